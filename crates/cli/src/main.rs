@@ -1,0 +1,36 @@
+//! `f3g`: train, evaluate, animate and export face-focused full-body Gaussian avatars.
+
+mod bench;
+mod memory;
+mod render_ply;
+
+use anyhow::Result;
+use clap::{Parser, Subcommand};
+
+#[global_allocator]
+static ALLOCATOR: memory::TrackingAllocator = memory::TrackingAllocator;
+
+/// F3G-Avatar: face-focused full-body Gaussian avatars from multi-view video.
+#[derive(Parser, Debug)]
+#[command(name = "f3g", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Render a standard 3DGS `.ply` from a camera JSON to PNG (and optionally `.npy`).
+    RenderPly(render_ply::RenderPlyArgs),
+    /// Performance benchmarks.
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::RenderPly(args) => render_ply::run(&args),
+        Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
+    }
+}

@@ -1,0 +1,352 @@
+//! File I/O shared by every stage.
+//!
+//! - Every write is atomic: data goes to a temporary file in the target directory, which is
+//!   then renamed over the destination, so a crash never leaves a half-written output.
+//! - Images in memory are `[H, W, C]` row-major `f32` in `[0, 1]`, RGB (not BGR).
+//! - Errors name the file and say what was expected.
+
+use std::io::{Cursor, Write};
+use std::path::{Path, PathBuf};
+
+/// A file could not be read, decoded or written.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}: {reason}")]
+pub struct IoError {
+    /// The file concerned.
+    pub path: PathBuf,
+    /// What went wrong.
+    pub reason: String,
+}
+
+impl IoError {
+    /// An error about `path`.
+    pub fn new(path: &Path, reason: impl ToString) -> Self {
+        Self {
+            path: path.to_path_buf(),
+            reason: reason.to_string(),
+        }
+    }
+}
+
+/// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let mut tmp = tempfile::Builder::new()
+        .prefix(".f3g-tmp-")
+        .tempfile_in(dir)
+        .map_err(|e| {
+            IoError::new(
+                path,
+                format!("cannot create a temporary file in {}: {e}", dir.display()),
+            )
+        })?;
+    tmp.write_all(bytes).map_err(|e| IoError::new(path, e))?;
+    tmp.as_file()
+        .sync_all()
+        .map_err(|e| IoError::new(path, e))?;
+    tmp.persist(path).map_err(|e| IoError::new(path, e.error))?;
+    Ok(())
+}
+
+/// An image of `f32` samples, `[height, width, channels]` row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    pub data: Vec<f32>,
+}
+
+impl Image {
+    /// A `width × height` image with `channels` channels, every sample `value`.
+    pub fn filled(width: usize, height: usize, channels: usize, value: f32) -> Self {
+        Self {
+            width,
+            height,
+            channels,
+            data: vec![value; width * height * channels],
+        }
+    }
+
+    /// Wraps `data`, checking its length.
+    pub fn from_vec(
+        width: usize,
+        height: usize,
+        channels: usize,
+        data: Vec<f32>,
+    ) -> Result<Self, String> {
+        if data.len() != width * height * channels {
+            return Err(format!(
+                "{} samples for a {width}x{height}x{channels} image",
+                data.len()
+            ));
+        }
+        Ok(Self {
+            width,
+            height,
+            channels,
+            data,
+        })
+    }
+
+    /// The samples of pixel `(x, y)`.
+    pub fn pixel(&self, x: usize, y: usize) -> &[f32] {
+        let at = (y * self.width + x) * self.channels;
+        &self.data[at..at + self.channels]
+    }
+
+    /// Mutable samples of pixel `(x, y)`.
+    pub fn pixel_mut(&mut self, x: usize, y: usize) -> &mut [f32] {
+        let at = (y * self.width + x) * self.channels;
+        &mut self.data[at..at + self.channels]
+    }
+}
+
+fn decode(path: &Path) -> Result<image::DynamicImage, IoError> {
+    image::ImageReader::open(path)
+        .map_err(|e| IoError::new(path, e))?
+        .with_guessed_format()
+        .map_err(|e| IoError::new(path, e))?
+        .decode()
+        .map_err(|e| IoError::new(path, format!("cannot decode image: {e}")))
+}
+
+/// Reads a PNG or JPEG as RGB in `[0, 1]` (alpha dropped, grey expanded).
+pub fn read_rgb(path: &Path) -> Result<Image, IoError> {
+    let img = decode(path)?.into_rgb32f();
+    let (w, h) = img.dimensions();
+    Ok(Image {
+        width: w as usize,
+        height: h as usize,
+        channels: 3,
+        data: img.into_raw(),
+    })
+}
+
+/// Reads a mask (grey, or the luminance of a colour image) as one channel in `[0, 1]`.
+pub fn read_gray(path: &Path) -> Result<Image, IoError> {
+    let img = decode(path)?.to_luma32f();
+    let (w, h) = img.dimensions();
+    Ok(Image {
+        width: w as usize,
+        height: h as usize,
+        channels: 1,
+        data: img.into_raw(),
+    })
+}
+
+/// Reads only the size `(width, height)` of an image file, without decoding it.
+pub fn image_size(path: &Path) -> Result<(usize, usize), IoError> {
+    let (w, h) = image::ImageReader::open(path)
+        .map_err(|e| IoError::new(path, e))?
+        .with_guessed_format()
+        .map_err(|e| IoError::new(path, e))?
+        .into_dimensions()
+        .map_err(|e| IoError::new(path, format!("cannot read the image header: {e}")))?;
+    Ok((w as usize, h as usize))
+}
+
+fn to_u8(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// Encodes an image with 1, 3 or 4 channels as PNG (samples clamped to `[0, 1]`).
+pub fn encode_png(img: &Image) -> Result<Vec<u8>, String> {
+    let color = match img.channels {
+        1 => image::ExtendedColorType::L8,
+        3 => image::ExtendedColorType::Rgb8,
+        4 => image::ExtendedColorType::Rgba8,
+        c => return Err(format!("cannot write a {c}-channel image as PNG")),
+    };
+    let bytes: Vec<u8> = img.data.iter().map(|&v| to_u8(v)).collect();
+    let mut out = Cursor::new(Vec::new());
+    image::ImageEncoder::write_image(
+        image::codecs::png::PngEncoder::new(&mut out),
+        &bytes,
+        img.width as u32,
+        img.height as u32,
+        color,
+    )
+    .map_err(|e| e.to_string())?;
+    Ok(out.into_inner())
+}
+
+/// Writes an image as PNG, atomically.
+pub fn write_png(path: &Path, img: &Image) -> Result<(), IoError> {
+    let bytes = encode_png(img).map_err(|e| IoError::new(path, e))?;
+    write_atomic(path, &bytes)
+}
+
+/// Writes a JPEG (quality 0–100), atomically. Used for capture images, as real datasets do.
+pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> {
+    let color = match img.channels {
+        1 => image::ExtendedColorType::L8,
+        3 => image::ExtendedColorType::Rgb8,
+        c => {
+            return Err(IoError::new(
+                path,
+                format!("cannot write a {c}-channel image as JPEG"),
+            ));
+        }
+    };
+    let bytes: Vec<u8> = img.data.iter().map(|&v| to_u8(v)).collect();
+    let mut out = Cursor::new(Vec::new());
+    image::ImageEncoder::write_image(
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality),
+        &bytes,
+        img.width as u32,
+        img.height as u32,
+        color,
+    )
+    .map_err(|e| IoError::new(path, e))?;
+    write_atomic(path, &out.into_inner())
+}
+
+/// Encodes `f32` data of the given shape as `.npy` (little-endian, C order).
+pub fn encode_npy_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, String> {
+    let expected: usize = shape.iter().product();
+    if expected != data.len() {
+        return Err(format!("{} values for shape {shape:?}", data.len()));
+    }
+    use npyz::WriterBuilder;
+    let mut buf = Vec::new();
+    let shape: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
+    let mut writer = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&shape)
+        .writer(&mut buf)
+        .begin_nd()
+        .map_err(|e| e.to_string())?;
+    writer
+        .extend(data.iter().copied())
+        .map_err(|e| e.to_string())?;
+    writer.finish().map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+/// Writes `f32` data of the given shape as `.npy`, atomically.
+pub fn write_npy_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), IoError> {
+    let bytes = encode_npy_f32(shape, data).map_err(|e| IoError::new(path, e))?;
+    write_atomic(path, &bytes)
+}
+
+/// Reads an `.npy` file as `f32` (any float or integer dtype is converted) with its shape.
+pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
+    let bytes = std::fs::read(path).map_err(|e| IoError::new(path, e))?;
+    let npy = npyz::NpyFile::new(&bytes[..])
+        .map_err(|e| IoError::new(path, format!("not a valid .npy file: {e}")))?;
+    npy_to_f32(npy).map_err(|e| IoError::new(path, e))
+}
+
+/// Converts any numeric `.npy` stream to `f32` values and its shape (C order required).
+pub fn npy_to_f32<R: std::io::Read>(
+    npy: npyz::NpyFile<R>,
+) -> Result<(Vec<usize>, Vec<f32>), String> {
+    use npyz::{DType, TypeChar};
+    if npy.order() != npyz::Order::C {
+        return Err("Fortran-ordered arrays are not supported; save with C order".into());
+    }
+    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    let DType::Plain(ts) = npy.dtype() else {
+        return Err(format!(
+            "dtype {:?} is not a plain numeric type",
+            npy.dtype()
+        ));
+    };
+    let read_err = |e: std::io::Error| e.to_string();
+    let values: Vec<f32> = match (ts.type_char(), ts.size_field()) {
+        (TypeChar::Float, 4) => npy.into_vec::<f32>().map_err(read_err)?,
+        (TypeChar::Float, 8) => npy
+            .into_vec::<f64>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        (TypeChar::Int, 4) => npy
+            .into_vec::<i32>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        (TypeChar::Int, 8) => npy
+            .into_vec::<i64>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        (TypeChar::Uint, 1) => npy
+            .into_vec::<u8>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(f32::from)
+            .collect(),
+        (TypeChar::Uint, 4) => npy
+            .into_vec::<u32>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|v| v as f32)
+            .collect(),
+        (TypeChar::Bool, 1) => npy
+            .into_vec::<bool>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|b| b as u8 as f32)
+            .collect(),
+        (c, s) => return Err(format!("unsupported dtype {c:?} of {s} bytes")),
+    };
+    Ok((shape, values))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png_round_trip_and_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.png");
+        let data: Vec<f32> = (0..5 * 3 * 3).map(|i| (i % 256) as f32 / 255.0).collect();
+        let img = Image::from_vec(5, 3, 3, data).unwrap();
+        write_png(&path, &img).unwrap();
+        assert_eq!(read_rgb(&path).unwrap(), img);
+        assert_eq!(image_size(&path).unwrap(), (5, 3));
+        let gray = read_gray(&path).unwrap();
+        assert_eq!((gray.width, gray.height, gray.channels), (5, 3, 1));
+    }
+
+    #[test]
+    fn npy_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.npy");
+        let data: Vec<f32> = (0..24).map(|i| i as f32 * 0.5).collect();
+        write_npy_f32(&path, &[2, 3, 4], &data).unwrap();
+        assert_eq!(read_npy_f32(&path).unwrap(), (vec![2, 3, 4], data));
+        assert!(encode_npy_f32(&[2, 2], &[1.0]).is_err());
+    }
+
+    #[test]
+    fn unreadable_files_name_the_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("broken.jpg");
+        std::fs::write(&path, b"\xff\xd8\xff\xe0 truncated").unwrap();
+        let e = read_rgb(&path).unwrap_err().to_string();
+        assert!(e.contains("broken.jpg"), "{e}");
+        let e = read_rgb(&dir.path().join("missing.png"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing.png"), "{e}");
+    }
+
+    #[test]
+    fn atomic_write_replaces_and_leaves_no_temporary_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.bin");
+        write_atomic(&path, b"first").unwrap();
+        write_atomic(&path, b"second").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"second");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+    }
+}

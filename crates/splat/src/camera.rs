@@ -1,0 +1,300 @@
+//! Pinhole cameras in the OpenCV convention.
+//!
+//! - World → camera: `x_cam = R · x_world + t`; the camera looks down +Z, image x to the right,
+//!   image y down. Units are metres.
+//! - Intrinsics `K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`; pixel `(i, j)` (column, row) has
+//!   its centre at `(i + 0.5, j + 0.5)`, so the continuous image spans `[0, W] × [0, H]`.
+//! - Points with depth outside `[near, far]` are not rendered.
+
+use serde::{Deserialize, Serialize};
+
+use crate::SplatError;
+
+/// Default near plane (metres), as in gsplat.
+pub const DEFAULT_NEAR: f64 = 0.01;
+/// Default far plane (metres).
+pub const DEFAULT_FAR: f64 = 1e4;
+
+/// A calibrated pinhole camera. This is also the `cam.json` format:
+/// `{"K": [[..],[..],[..]], "R": [[..],[..],[..]], "t": [..], "width": W, "height": H}`
+/// with optional `"near"` and `"far"`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Camera {
+    /// Intrinsic matrix (no skew).
+    #[serde(rename = "K")]
+    pub k: [[f64; 3]; 3],
+    /// World-to-camera rotation.
+    #[serde(rename = "R")]
+    pub r: [[f64; 3]; 3],
+    /// World-to-camera translation (metres).
+    pub t: [f64; 3],
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+    /// Near clipping depth (metres).
+    #[serde(default = "default_near")]
+    pub near: f64,
+    /// Far clipping depth (metres).
+    #[serde(default = "default_far")]
+    pub far: f64,
+}
+
+fn default_near() -> f64 {
+    DEFAULT_NEAR
+}
+
+fn default_far() -> f64 {
+    DEFAULT_FAR
+}
+
+impl Camera {
+    /// A camera at `eye` looking at `target`, with world `up` pointing up in the image, focal
+    /// lengths in pixels and the principal point at the image centre.
+    pub fn look_at(
+        eye: [f64; 3],
+        target: [f64; 3],
+        up: [f64; 3],
+        focal: f64,
+        width: u32,
+        height: u32,
+    ) -> Self {
+        let forward = normalize(sub(target, eye));
+        let right = normalize(cross(forward, up));
+        let down = cross(forward, right);
+        let r = [right, down, forward];
+        let t = [-dot(r[0], eye), -dot(r[1], eye), -dot(r[2], eye)];
+        Self {
+            k: [
+                [focal, 0.0, width as f64 / 2.0],
+                [0.0, focal, height as f64 / 2.0],
+                [0.0, 0.0, 1.0],
+            ],
+            r,
+            t,
+            width,
+            height,
+            near: DEFAULT_NEAR,
+            far: DEFAULT_FAR,
+        }
+    }
+
+    /// Focal length along x (pixels).
+    pub fn fx(&self) -> f64 {
+        self.k[0][0]
+    }
+    /// Focal length along y (pixels).
+    pub fn fy(&self) -> f64 {
+        self.k[1][1]
+    }
+    /// Principal point x (pixels).
+    pub fn cx(&self) -> f64 {
+        self.k[0][2]
+    }
+    /// Principal point y (pixels).
+    pub fn cy(&self) -> f64 {
+        self.k[1][2]
+    }
+
+    /// Camera centre in world coordinates, `-Rᵀ t`.
+    pub fn center(&self) -> [f64; 3] {
+        let r = &self.r;
+        let t = &self.t;
+        [
+            -(r[0][0] * t[0] + r[1][0] * t[1] + r[2][0] * t[2]),
+            -(r[0][1] * t[0] + r[1][1] * t[1] + r[2][1] * t[2]),
+            -(r[0][2] * t[0] + r[1][2] * t[1] + r[2][2] * t[2]),
+        ]
+    }
+
+    /// Projects a world point to pixel coordinates and depth; `None` behind the camera.
+    pub fn project(&self, x: [f64; 3]) -> Option<([f64; 2], f64)> {
+        let p = self.world_to_camera(x);
+        (p[2] > 0.0).then(|| {
+            (
+                [
+                    self.fx() * p[0] / p[2] + self.cx(),
+                    self.fy() * p[1] / p[2] + self.cy(),
+                ],
+                p[2],
+            )
+        })
+    }
+
+    /// `R · x + t`.
+    pub fn world_to_camera(&self, x: [f64; 3]) -> [f64; 3] {
+        [
+            dot(self.r[0], x) + self.t[0],
+            dot(self.r[1], x) + self.t[1],
+            dot(self.r[2], x) + self.t[2],
+        ]
+    }
+
+    /// The camera seeing the crop of its image whose top-left corner is `(x0, y0)` (pixels),
+    /// resized by `scale` into a `width × height` image: `fx' = s fx`, `cx' = s (cx − x0)`
+    /// (and likewise for y); R and t are unchanged.
+    pub fn crop_resize(&self, x0: f64, y0: f64, scale: f64, width: u32, height: u32) -> Self {
+        let mut cam = self.clone();
+        cam.k[0][0] = scale * self.fx();
+        cam.k[1][1] = scale * self.fy();
+        cam.k[0][2] = scale * (self.cx() - x0);
+        cam.k[1][2] = scale * (self.cy() - y0);
+        cam.width = width;
+        cam.height = height;
+        cam
+    }
+
+    /// Checks everything projection relies on; the error names the offending field.
+    pub fn validate(&self) -> Result<(), SplatError> {
+        let bad = |m: String| Err(SplatError::Camera(m));
+        let all_k = self.k.iter().flatten();
+        let all_r = self.r.iter().flatten();
+        if let Some(v) = all_k
+            .chain(all_r)
+            .chain(self.t.iter())
+            .find(|v| !v.is_finite())
+        {
+            return bad(format!("K, R and t must be finite, found {v}"));
+        }
+        if self.width == 0 || self.height == 0 {
+            return bad(format!(
+                "image size {}x{} is empty",
+                self.width, self.height
+            ));
+        }
+        if !(self.fx() > 0.0 && self.fy() > 0.0) {
+            return bad(format!(
+                "focal lengths must be positive, got fx={} fy={}",
+                self.fx(),
+                self.fy()
+            ));
+        }
+        if self.k[0][1] != 0.0 || self.k[1][0] != 0.0 || self.k[2] != [0.0, 0.0, 1.0] {
+            return bad(format!(
+                "K must be [[fx,0,cx],[0,fy,cy],[0,0,1]] (no skew), got {:?}",
+                self.k
+            ));
+        }
+        for i in 0..3 {
+            for j in 0..3 {
+                let rrt = dot(self.r[i], self.r[j]);
+                let expected = if i == j { 1.0 } else { 0.0 };
+                if (rrt - expected).abs() > 1e-4 {
+                    return bad(format!("R is not orthonormal (R Rᵀ[{i}][{j}] = {rrt})"));
+                }
+            }
+        }
+        if dot(cross(self.r[0], self.r[1]), self.r[2]) < 0.0 {
+            return bad("R is a reflection (det R = -1), expected a rotation".into());
+        }
+        if !(self.near > 0.0 && self.far > self.near && self.near.is_finite()) {
+            return bad(format!(
+                "need 0 < near < far, got near={} far={}",
+                self.near, self.far
+            ));
+        }
+        Ok(())
+    }
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+fn normalize(a: [f64; 3]) -> [f64; 3] {
+    let n = dot(a, a).sqrt();
+    [a[0] / n, a[1] / n, a[2] / n]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn front_camera() -> Camera {
+        Camera::look_at([0.0, 0.0, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 500.0, 640, 480)
+    }
+
+    #[test]
+    fn look_at_follows_opencv_axes() {
+        let cam = front_camera();
+        cam.validate().unwrap();
+        // The target projects to the principal point; world +X appears to the right, +Y up.
+        let (uv, depth) = cam.project([0.0; 3]).unwrap();
+        assert!((uv[0] - 320.0).abs() < 1e-12 && (uv[1] - 240.0).abs() < 1e-12);
+        assert!((depth - 3.0).abs() < 1e-12);
+        let (right, _) = cam.project([0.1, 0.0, 0.0]).unwrap();
+        let (up, _) = cam.project([0.0, 0.1, 0.0]).unwrap();
+        assert!(right[0] > 320.0 && up[1] < 240.0);
+        let c = cam.center();
+        assert!((c[0]).abs() < 1e-12 && (c[2] - 3.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn crop_resize_keeps_content_aligned() {
+        let cam = front_camera();
+        let crop = cam.crop_resize(100.0, 50.0, 2.5, 512, 512);
+        let x = [0.05, -0.02, 0.1];
+        let (full, _) = cam.project(x).unwrap();
+        let (cropped, _) = crop.project(x).unwrap();
+        assert!((cropped[0] - 2.5 * (full[0] - 100.0)).abs() < 1e-9);
+        assert!((cropped[1] - 2.5 * (full[1] - 50.0)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn validation_names_the_problem() {
+        let mut cam = front_camera();
+        cam.k[0][0] = f64::NAN;
+        assert!(cam.validate().unwrap_err().to_string().contains("finite"));
+        let mut cam = front_camera();
+        cam.r[0] = [2.0, 0.0, 0.0];
+        assert!(
+            cam.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("orthonormal")
+        );
+        let mut cam = front_camera();
+        cam.r[2] = [-cam.r[2][0], -cam.r[2][1], -cam.r[2][2]];
+        assert!(
+            cam.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("reflection")
+        );
+        let mut cam = front_camera();
+        cam.width = 0;
+        assert!(cam.validate().unwrap_err().to_string().contains("empty"));
+        let mut cam = front_camera();
+        cam.k[0][1] = 1.0;
+        assert!(cam.validate().unwrap_err().to_string().contains("skew"));
+        let mut cam = front_camera();
+        cam.near = 0.0;
+        assert!(cam.validate().unwrap_err().to_string().contains("near"));
+    }
+
+    #[test]
+    fn json_round_trip_and_defaults() {
+        let json = r#"{"K": [[500,0,320],[0,500,240],[0,0,1]], "R": [[1,0,0],[0,1,0],[0,0,1]],
+                       "t": [0,0,3], "width": 640, "height": 480}"#;
+        let cam: Camera = serde_json::from_str(json).unwrap();
+        assert_eq!(cam.near, DEFAULT_NEAR);
+        assert_eq!(cam.far, DEFAULT_FAR);
+        let back: Camera = serde_json::from_str(&serde_json::to_string(&cam).unwrap()).unwrap();
+        assert_eq!(back, cam);
+        let unknown = json.replace("\"width\"", "\"widht\"");
+        assert!(serde_json::from_str::<Camera>(&unknown).is_err());
+    }
+}

@@ -1,0 +1,36 @@
+//! Errors for everything a user can get wrong when rendering or reading Gaussians.
+
+use std::path::PathBuf;
+
+/// What went wrong, phrased so that the user can fix the input.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SplatError {
+    /// A tensor or array has a shape other than the one the renderer needs.
+    #[error("`{name}` has shape {got:?}, expected {expected}")]
+    Shape {
+        name: &'static str,
+        got: Vec<usize>,
+        expected: String,
+    },
+    /// A parameter holds NaN or ±inf.
+    #[error("`{name}` holds a non-finite value ({value}) at flat index {index}")]
+    NonFinite {
+        name: &'static str,
+        index: usize,
+        value: f64,
+    },
+    /// The camera cannot be used for projection.
+    #[error("invalid camera: {0}")]
+    Camera(String),
+    /// The spherical-harmonics coefficient count is not (degree + 1)² for a degree 0..=3.
+    #[error(
+        "spherical harmonics with {coeffs} coefficients per channel: expected 1, 4, 9 or 16 (degree 0..3)"
+    )]
+    ShDegree { coeffs: usize },
+    /// A render option is out of its valid range.
+    #[error("invalid render option `{name}`: {reason}")]
+    Option { name: &'static str, reason: String },
+    /// A `.ply` file could not be read or written.
+    #[error("{path}: {reason}")]
+    Ply { path: PathBuf, reason: String },
+}

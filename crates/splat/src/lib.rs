@@ -1,0 +1,30 @@
+//! Differentiable 3D Gaussian splatting.
+//!
+//! project (cull, EWA covariance, SH colour) → bin into 16×16 tiles (stable depth order) →
+//! composite front to back → backward from the final transmittance, back to front.
+//!
+//! - [`cpu`]: the readable, multi-threaded reference (generic over `f32`/`f64`); its module
+//!   docs state the exact semantics (footprint, cut-offs, outputs).
+//! - [`op`]: the same renderer as a Burn operation with a hand-written backward
+//!   ([`render`] is the entry point for tensors that need gradients).
+//! - [`ply`]: the standard 3DGS `.ply` layout, read and write.
+//!
+//! Conventions: metres, OpenCV cameras (`x_cam = R x + t`, +Z forward, pixel centres at
+//! `i + 0.5`), quaternions (w, x, y, z), natural-log scales, opacity logits, SH colour with
+//! `0.5 + C0 · f_dc` for degree 0. Images are `[H, W, C]` row-major.
+
+mod camera;
+mod cloud;
+pub mod cpu;
+mod error;
+pub mod op;
+pub mod ply;
+mod real;
+pub mod sh;
+
+pub use camera::{Camera, DEFAULT_FAR, DEFAULT_NEAR};
+pub use cloud::GaussianCloud;
+pub use cpu::RenderOptions;
+pub use error::SplatError;
+pub use op::{Gaussians, Rendered, SplatBackend, render};
+pub use real::Real;

@@ -1,0 +1,237 @@
+//! Shared test scenes and an independent brute-force renderer.
+//!
+//! The brute-force renderer composites every visible Gaussian at every pixel in (depth, index)
+//! order with the documented cut-offs (and the renderer's `exp`, [`Real::raster_exp`]) and nothing else: no tiles, no footprint boxes clipped to
+//! tiles, no per-tile early exit. It also records the discrete decisions (which Gaussians
+//! contribute to which pixel, which alphas are clamped, where each pixel stops), so that
+//! finite-difference tests can tell a smooth neighbourhood from a jump.
+#![allow(dead_code)]
+
+use f3g_splat::cpu::{self, ALPHA_MIN, GaussianSlices, RenderOptions, TRANSMITTANCE_MIN};
+use f3g_splat::{Camera, Real, sh};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Owned scene parameters in `f64`.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub means: Vec<f64>,
+    pub log_scales: Vec<f64>,
+    pub quats: Vec<f64>,
+    pub opacity_logits: Vec<f64>,
+    pub sh: Vec<f64>,
+    pub background: [f64; 3],
+    pub camera: Camera,
+}
+
+impl Scene {
+    pub fn slices(&self) -> GaussianSlices<'_, f64> {
+        GaussianSlices {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            quats: &self.quats,
+            opacity_logits: &self.opacity_logits,
+            sh: &self.sh,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+
+    pub fn to_f32(v: &[f64]) -> Vec<f32> {
+        v.iter().map(|&x| x as f32).collect()
+    }
+
+    /// All parameters as mutable slices, with their names, for finite differences.
+    pub fn fields_mut(&mut self) -> Vec<(&'static str, &mut [f64])> {
+        vec![
+            ("means", &mut self.means[..]),
+            ("log_scales", &mut self.log_scales[..]),
+            ("quats", &mut self.quats[..]),
+            ("opacity_logits", &mut self.opacity_logits[..]),
+            ("sh", &mut self.sh[..]),
+            ("background", &mut self.background[..]),
+        ]
+    }
+}
+
+/// A camera looking at the origin from +z·distance with an off-centre principal point and a
+/// small odd-sized image (several partial tiles).
+pub fn test_camera(rng: &mut ChaCha8Rng, width: u32, height: u32) -> Camera {
+    let eye = [
+        rng.random_range(-0.3..0.3),
+        rng.random_range(-0.3..0.3),
+        3.0,
+    ];
+    let mut cam = Camera::look_at(
+        eye,
+        [0.0, 0.0, 0.0],
+        [0.0, 1.0, 0.0],
+        rng.random_range(60.0..90.0),
+        width,
+        height,
+    );
+    cam.k[0][2] += rng.random_range(-3.0..3.0);
+    cam.k[1][2] += rng.random_range(-3.0..3.0);
+    cam.k[1][1] *= rng.random_range(0.9..1.1);
+    cam
+}
+
+/// `n` Gaussians clustered in front of the camera so that many overlap and occlude each
+/// other. `max_opacity` above 0.99 exercises the alpha clamp and early termination.
+pub fn random_scene(
+    seed: u64,
+    n: usize,
+    degree: usize,
+    max_opacity: f64,
+    width: u32,
+    height: u32,
+) -> Scene {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let camera = test_camera(&mut rng, width, height);
+    let k = sh::num_coeffs(degree);
+    let mut s = Scene {
+        means: Vec::new(),
+        log_scales: Vec::new(),
+        quats: Vec::new(),
+        opacity_logits: Vec::new(),
+        sh: Vec::new(),
+        background: [
+            rng.random_range(0.0..1.0),
+            rng.random_range(0.0..1.0),
+            rng.random_range(0.0..1.0),
+        ],
+        camera,
+    };
+    for _ in 0..n {
+        s.means.extend([
+            rng.random_range(-0.5..0.5),
+            rng.random_range(-0.4..0.4),
+            rng.random_range(-0.5..0.5),
+        ]);
+        s.log_scales
+            .extend((0..3).map(|_| rng.random_range(0.02f64..0.12).ln()));
+        s.quats.extend((0..4).map(|_| rng.random_range(-1.0..1.0)));
+        let o: f64 = rng.random_range(0.15..max_opacity);
+        s.opacity_logits.push((o / (1.0 - o)).ln());
+        for j in 0..k {
+            for _ in 0..3 {
+                // A positive DC term keeps colours away from the clamp at zero.
+                s.sh.push(if j == 0 {
+                    rng.random_range(0.3..1.5)
+                } else {
+                    rng.random_range(-0.15..0.15)
+                });
+            }
+        }
+    }
+    s
+}
+
+/// One pixel's decisions: (gaussian, alpha clamped) per contribution, then the Gaussian at
+/// which it stopped early, if any.
+pub type PixelDecisions = (Vec<(u32, bool)>, Option<u32>);
+
+/// Every discrete decision of a render, for detecting jumps.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Signature {
+    pub radii: Vec<u32>,
+    pub pixels: Vec<PixelDecisions>,
+}
+
+pub struct BruteForce<T> {
+    pub color: Vec<T>,
+    pub alpha: Vec<T>,
+    pub depth: Vec<T>,
+    pub signature: Signature,
+}
+
+/// Composites every visible Gaussian at every pixel, in (depth, index) order.
+pub fn brute_force<T: Real>(
+    g: &GaussianSlices<T>,
+    camera: &Camera,
+    background: [T; 3],
+    options: &RenderOptions,
+) -> BruteForce<T> {
+    let projected = cpu::project(g, camera);
+    let mut order: Vec<usize> = (0..projected.len())
+        .filter(|&i| projected[i].radius > 0)
+        .collect();
+    order.sort_by(|&a, &b| {
+        projected[a]
+            .depth
+            .partial_cmp(&projected[b].depth)
+            .unwrap()
+            .then(a.cmp(&b))
+    });
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let mut out = BruteForce {
+        color: vec![T::zero(); w * h * 3],
+        alpha: vec![T::zero(); w * h],
+        depth: vec![T::zero(); w * h],
+        signature: Signature {
+            radii: projected.iter().map(|p| p.radius).collect(),
+            pixels: Vec::new(),
+        },
+    };
+    for py in 0..h {
+        for px in 0..w {
+            let (cx, cy) = (T::c(px as f64 + 0.5), T::c(py as f64 + 0.5));
+            let mut t = T::one();
+            let mut rgb = [T::zero(); 3];
+            let mut z = T::zero();
+            let mut contributions = Vec::new();
+            let mut stop = None;
+            for &i in &order {
+                let p = &projected[i];
+                let r = T::c(p.radius as f64);
+                let (dx, dy) = (cx - p.mean[0], cy - p.mean[1]);
+                if dx.abs() > r || dy.abs() > r {
+                    continue;
+                }
+                let power = -T::c(0.5) * (p.conic[0] * dx * dx + p.conic[2] * dy * dy)
+                    - p.conic[1] * dx * dy;
+                if power > T::zero() {
+                    continue;
+                }
+                let raw = p.opacity * power.raster_exp();
+                let a = raw.min(T::c(options.alpha_max));
+                if a < T::c(ALPHA_MIN) {
+                    continue;
+                }
+                let next_t = t * (T::one() - a);
+                if next_t < T::c(TRANSMITTANCE_MIN) {
+                    stop = Some(i as u32);
+                    break;
+                }
+                for (acc, c) in rgb.iter_mut().zip(p.color) {
+                    *acc = *acc + a * t * c;
+                }
+                z = z + a * t * p.depth;
+                t = next_t;
+                contributions.push((i as u32, raw >= T::c(options.alpha_max)));
+            }
+            let o = py * w + px;
+            for c in 0..3 {
+                out.color[3 * o + c] = rgb[c] + t * background[c];
+            }
+            out.alpha[o] = T::one() - t;
+            out.depth[o] = z;
+            out.signature.pixels.push((contributions, stop));
+        }
+    }
+    out
+}
+
+/// Random per-pixel loss weights for colour, alpha and depth.
+pub fn loss_weights(seed: u64, pixels: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5eed);
+    (
+        (0..3 * pixels)
+            .map(|_| rng.random_range(-1.0..1.0))
+            .collect(),
+        (0..pixels).map(|_| rng.random_range(-1.0..1.0)).collect(),
+        (0..pixels).map(|_| rng.random_range(-0.3..0.3)).collect(),
+    )
+}
