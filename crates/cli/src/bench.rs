@@ -23,6 +23,61 @@ use crate::memory;
 pub enum BenchCommand {
     /// Forward and forward+backward time of the Gaussian rasteriser.
     Splat(SplatBenchArgs),
+    /// Posing the built-in human and skinning many Gaussians (the per-step LBS cost).
+    Lbs(LbsBenchArgs),
+}
+
+/// Options of `f3g bench lbs`.
+#[derive(Args, Debug)]
+pub struct LbsBenchArgs {
+    /// Number of Gaussians to skin.
+    #[arg(long, default_value_t = 400_000)]
+    pub points: usize,
+    /// Timed repetitions (the median is reported).
+    #[arg(long, default_value_t = 7)]
+    pub repeats: usize,
+}
+
+/// Times `rig.pose` on the built-in human and LBS of `points` Gaussians with its weights.
+pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
+    ensure!(args.repeats > 0, "--repeats must be at least 1");
+    let human = f3g_rig::builtin::load()?;
+    let rig = &human.rig;
+    let mut params = rig.zero_params();
+    for (i, p) in params.pose.iter_mut().enumerate() {
+        *p = 0.2 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
+    }
+    // Gaussians: copies of the mesh vertices with their skin weights.
+    let n = rig.mesh.vertices.len();
+    let index: Vec<usize> = (0..args.points).map(|i| i % n).collect();
+    let skin = rig.skin.select(&index);
+    let means: Vec<glam::Vec3> = index.iter().map(|&i| rig.mesh.vertices[i]).collect();
+    let rotations = vec![glam::Quat::IDENTITY; args.points];
+    let (mut pose_ms, mut lbs_ms) = (Vec::new(), Vec::new());
+    for rep in 0..=args.repeats {
+        let start = Instant::now();
+        let posed = rig.pose(&params)?;
+        let t_pose = millis(start);
+        let start = Instant::now();
+        let (m, r) = f3g_rig::skin_gaussians(&posed.skinning, &skin, &means, &rotations);
+        let t_lbs = millis(start);
+        std::hint::black_box((m, r));
+        if rep > 0 {
+            pose_ms.push(t_pose);
+            lbs_ms.push(t_lbs);
+        }
+    }
+    println!(
+        "built-in human ({} vertices, {} joints): pose {:.2} ms; skinning {} Gaussians (means + rotations) {:.1} ms ({:.0} ns per Gaussian, {} threads)",
+        n,
+        rig.skeleton.len(),
+        median(pose_ms),
+        args.points,
+        median(lbs_ms.clone()),
+        median(lbs_ms) * 1e6 / args.points as f64,
+        rayon::current_num_threads()
+    );
+    Ok(())
 }
 
 /// Options of `f3g bench splat`.

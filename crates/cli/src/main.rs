@@ -3,6 +3,7 @@
 mod bench;
 mod memory;
 mod render_ply;
+mod rig;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -22,6 +23,9 @@ struct Cli {
 enum Command {
     /// Render a standard 3DGS `.ply` from a camera JSON to PNG (and optionally `.npy`).
     RenderPly(render_ply::RenderPlyArgs),
+    /// Body models: pose and inspect them, convert parameters between them.
+    #[command(subcommand)]
+    Rig(rig::RigCommand),
     /// Performance benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -31,6 +35,8 @@ fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::RenderPly(args) => render_ply::run(&args),
+        Command::Rig(cmd) => rig::run(&cmd),
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
+        Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
     }
 }

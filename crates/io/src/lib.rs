@@ -207,24 +207,7 @@ pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> 
 
 /// Encodes `f32` data of the given shape as `.npy` (little-endian, C order).
 pub fn encode_npy_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, String> {
-    let expected: usize = shape.iter().product();
-    if expected != data.len() {
-        return Err(format!("{} values for shape {shape:?}", data.len()));
-    }
-    use npyz::WriterBuilder;
-    let mut buf = Vec::new();
-    let shape: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
-    let mut writer = npyz::WriteOptions::new()
-        .default_dtype()
-        .shape(&shape)
-        .writer(&mut buf)
-        .begin_nd()
-        .map_err(|e| e.to_string())?;
-    writer
-        .extend(data.iter().copied())
-        .map_err(|e| e.to_string())?;
-    writer.finish().map_err(|e| e.to_string())?;
-    Ok(buf)
+    encode_npy(shape, data)
 }
 
 /// Writes `f32` data of the given shape as `.npy`, atomically.
@@ -300,6 +283,199 @@ pub fn npy_to_f32<R: std::io::Read>(
     Ok((shape, values))
 }
 
+/// Converts any integer or boolean `.npy` stream to `i64` values and its shape (C order).
+pub fn npy_to_i64<R: std::io::Read>(
+    npy: npyz::NpyFile<R>,
+) -> Result<(Vec<usize>, Vec<i64>), String> {
+    use npyz::{DType, TypeChar};
+    if npy.order() != npyz::Order::C {
+        return Err("Fortran-ordered arrays are not supported; save with C order".into());
+    }
+    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    let DType::Plain(ts) = npy.dtype() else {
+        return Err(format!(
+            "dtype {:?} is not a plain numeric type",
+            npy.dtype()
+        ));
+    };
+    let read_err = |e: std::io::Error| e.to_string();
+    let values: Vec<i64> = match (ts.type_char(), ts.size_field()) {
+        (TypeChar::Int, 1) => npy
+            .into_vec::<i8>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Int, 2) => npy
+            .into_vec::<i16>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Int, 4) => npy
+            .into_vec::<i32>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Int, 8) => npy.into_vec::<i64>().map_err(read_err)?,
+        (TypeChar::Uint, 1) => npy
+            .into_vec::<u8>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Uint, 2) => npy
+            .into_vec::<u16>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Uint, 4) => npy
+            .into_vec::<u32>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (TypeChar::Uint, 8) => npy
+            .into_vec::<u64>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(|v| v as i64)
+            .collect(),
+        (TypeChar::Bool, 1) => npy
+            .into_vec::<bool>()
+            .map_err(read_err)?
+            .into_iter()
+            .map(i64::from)
+            .collect(),
+        (c, s) => return Err(format!("dtype {c:?} of {s} bytes is not an integer type")),
+    };
+    Ok((shape, values))
+}
+
+/// An `.npz` archive (as numpy's `savez`/`savez_compressed` write), with typed accessors whose
+/// errors name the file and the array.
+pub struct Npz<R: std::io::Read + std::io::Seek> {
+    archive: npyz::npz::NpzArchive<R>,
+    path: PathBuf,
+}
+
+impl Npz<std::io::BufReader<std::fs::File>> {
+    /// Opens an `.npz` file.
+    pub fn open(path: &Path) -> Result<Self, IoError> {
+        let archive = npyz::npz::NpzArchive::open(path)
+            .map_err(|e| IoError::new(path, format!("not a readable .npz archive: {e}")))?;
+        Ok(Self {
+            archive,
+            path: path.to_path_buf(),
+        })
+    }
+}
+
+impl<'a> Npz<Cursor<&'a [u8]>> {
+    /// Reads an `.npz` held in memory; `label` names it in errors.
+    pub fn from_bytes(bytes: &'a [u8], label: &str) -> Result<Self, IoError> {
+        let path = PathBuf::from(label);
+        let archive = npyz::npz::NpzArchive::new(Cursor::new(bytes))
+            .map_err(|e| IoError::new(&path, format!("not a readable .npz archive: {e}")))?;
+        Ok(Self { archive, path })
+    }
+}
+
+impl<R: std::io::Read + std::io::Seek> Npz<R> {
+    /// The archive's array names.
+    pub fn names(&self) -> Vec<String> {
+        self.archive.array_names().map(String::from).collect()
+    }
+
+    /// Whether the archive holds `name`.
+    pub fn contains(&self, name: &str) -> bool {
+        self.archive.array_names().any(|n| n == name)
+    }
+
+    fn array(
+        &mut self,
+        name: &str,
+    ) -> Result<npyz::NpyFile<npyz::zip::read::ZipFile<'_>>, IoError> {
+        let path = self.path.clone();
+        self.archive
+            .by_name(name)
+            .map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))?
+            .ok_or_else(|| IoError::new(&path, format!("missing array `{name}`")))
+    }
+
+    /// Array `name` as `f32` with its shape.
+    pub fn f32(&mut self, name: &str) -> Result<(Vec<usize>, Vec<f32>), IoError> {
+        let path = self.path.clone();
+        npy_to_f32(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
+    }
+
+    /// Integer array `name` as `i64` with its shape.
+    pub fn i64(&mut self, name: &str) -> Result<(Vec<usize>, Vec<i64>), IoError> {
+        let path = self.path.clone();
+        npy_to_i64(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
+    }
+
+    /// The file this archive came from (or its label).
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// The values of one array to write into an `.npz`.
+#[derive(Clone, Copy, Debug)]
+pub enum NpyValues<'a> {
+    F32(&'a [f32]),
+    I64(&'a [i64]),
+}
+
+fn encode_npy<T: npyz::AutoSerialize + Copy>(
+    shape: &[usize],
+    data: &[T],
+) -> Result<Vec<u8>, String> {
+    use npyz::WriterBuilder;
+    let expected: usize = shape.iter().product();
+    if expected != data.len() {
+        return Err(format!("{} values for shape {shape:?}", data.len()));
+    }
+    let mut buf = Vec::new();
+    let shape: Vec<u64> = shape.iter().map(|&s| s as u64).collect();
+    let mut writer = npyz::WriteOptions::new()
+        .default_dtype()
+        .shape(&shape)
+        .writer(&mut buf)
+        .begin_nd()
+        .map_err(|e| e.to_string())?;
+    writer
+        .extend(data.iter().copied())
+        .map_err(|e| e.to_string())?;
+    writer.finish().map_err(|e| e.to_string())?;
+    Ok(buf)
+}
+
+/// Writes named arrays as an uncompressed `.npz` (readable by `numpy.load`), atomically.
+pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<(), IoError> {
+    let mut buf = Cursor::new(Vec::new());
+    {
+        let mut zip = npyz::zip::ZipWriter::new(&mut buf);
+        let options = npyz::zip::write::FileOptions::default()
+            .compression_method(npyz::zip::CompressionMethod::Stored);
+        for (name, shape, values) in arrays {
+            zip.start_file(format!("{name}.npy"), options)
+                .map_err(|e| IoError::new(path, e))?;
+            let bytes = match values {
+                NpyValues::F32(v) => encode_npy(shape, v),
+                NpyValues::I64(v) => encode_npy(shape, v),
+            }
+            .map_err(|e| IoError::new(path, format!("`{name}`: {e}")))?;
+            zip.write_all(&bytes).map_err(|e| IoError::new(path, e))?;
+        }
+        zip.finish().map_err(|e| IoError::new(path, e))?;
+    }
+    write_atomic(path, &buf.into_inner())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -325,6 +501,35 @@ mod tests {
         write_npy_f32(&path, &[2, 3, 4], &data).unwrap();
         assert_eq!(read_npy_f32(&path).unwrap(), (vec![2, 3, 4], data));
         assert!(encode_npy_f32(&[2, 2], &[1.0]).is_err());
+    }
+
+    #[test]
+    fn npz_round_trip_and_missing_arrays() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.npz");
+        write_npz(
+            &path,
+            &[
+                ("x", &[2, 2], NpyValues::F32(&[1.0, 2.0, 3.0, 4.0])),
+                ("y", &[1], NpyValues::F32(&[5.0])),
+                ("k", &[2], NpyValues::I64(&[-1, 7])),
+            ],
+        )
+        .unwrap();
+        let mut npz = Npz::open(&path).unwrap();
+        assert!(npz.contains("x") && npz.contains("y"));
+        assert_eq!(
+            npz.f32("x").unwrap(),
+            (vec![2, 2], vec![1.0, 2.0, 3.0, 4.0])
+        );
+        let e = npz.f32("z").unwrap_err().to_string();
+        assert!(
+            e.contains("a.npz") && e.contains("missing array `z`"),
+            "{e}"
+        );
+        let e = npz.i64("y").unwrap_err().to_string();
+        assert!(e.contains("not an integer type"), "{e}");
+        assert_eq!(npz.i64("k").unwrap(), (vec![2], vec![-1, 7]));
     }
 
     #[test]

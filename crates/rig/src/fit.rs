@@ -1,0 +1,636 @@
+//! Fitting a rig's parameters to a posed mesh and joints (e.g. SMPL-X → built-in or MHR):
+//!
+//! `min Σ_i ‖V_i(θ) − T_i‖² + λ Σ_j ‖J_j(θ) − T_j‖² + ρ ‖θ‖²`
+//!
+//! over pose (and optionally identity and expression) parameters θ, with Levenberg–Marquardt.
+//! `T_i` is a vertex of the same topology, a barycentric point of the target mesh (a
+//! correspondence file), or the nearest target vertex (recomputed every iteration). The small
+//! prior ρ keeps parameters the data does not see at zero.
+//!
+//! Jacobian columns of Momentum pose parameters are analytic — each joint degree of freedom moves
+//! a point `x` attached below it by `ω × (x − c)` (rotation about axis ω through the joint
+//! centre c), `ln 2 · (x − c)` (scale) or along the parent's axis (translation), chained through
+//! skinning and the parameter transform as Momentum does. Other columns (identity, expression,
+//! axis-angle poses) use central differences.
+
+use faer::linalg::solvers::Solve;
+use glam::{Quat, Vec3};
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+
+use crate::RigError;
+use crate::rig::{Parameterization, Posed, Rig, RigParams};
+use crate::skeleton::{PARAMS_PER_JOINT, Similarity};
+
+/// How model vertices find their target points.
+#[derive(Clone, Debug)]
+pub enum Correspondence {
+    /// Model vertex `i` ↔ target vertex `i` (same topology).
+    Identity,
+    /// Model vertex `i` ↔ `Σ_k w[i][k] · T[tri[i][k]]` (e.g. MHR's `smplx2mhr_mapping.npz`).
+    Barycentric {
+        triangles: Vec<[u32; 3]>,
+        weights: Vec<[f32; 3]>,
+    },
+    /// Model vertex `i` ↔ the nearest target vertex, recomputed every iteration.
+    Nearest,
+}
+
+/// Settings of a fit.
+#[derive(Clone, Debug)]
+pub struct FitOptions {
+    /// λ: weight of the joint term relative to the vertex term.
+    pub joint_weight: f32,
+    /// ρ: Tikhonov prior on the parameters.
+    pub prior: f32,
+    pub max_iterations: usize,
+    pub fit_identity: bool,
+    pub fit_expression: bool,
+    /// At most this many model vertices enter the vertex term (an even subsample); 0 fits the
+    /// joints alone.
+    pub max_vertices: usize,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        Self {
+            joint_weight: 1.0,
+            prior: 1e-6,
+            max_iterations: 50,
+            fit_identity: false,
+            fit_expression: false,
+            max_vertices: 2000,
+        }
+    }
+}
+
+/// What to fit to.
+pub struct FitTarget<'a> {
+    pub vertices: &'a [Vec3],
+    /// `(model joint, target position)` pairs.
+    pub joints: &'a [(usize, Vec3)],
+}
+
+/// A fitted frame and its residuals.
+#[derive(Clone, Debug)]
+pub struct FitResult {
+    pub params: RigParams,
+    /// RMS and maximum distance (metres) of the corresponded vertices.
+    pub vertex_rms: f32,
+    pub vertex_max: f32,
+    /// RMS distance of the paired joints.
+    pub joint_rms: f32,
+    pub iterations: usize,
+}
+
+/// Which parameter a Jacobian column is.
+#[derive(Clone, Copy, Debug)]
+enum Column {
+    Pose(usize),
+    Identity(usize),
+    Expression(usize),
+}
+
+struct Problem<'a> {
+    rig: &'a Rig,
+    target: &'a FitTarget<'a>,
+    correspondence: &'a Correspondence,
+    nearest: Option<ImmutableKdTree<f32, 3>>,
+    sample: Vec<usize>,
+    columns: Vec<Column>,
+    options: &'a FitOptions,
+}
+
+fn get(p: &RigParams, c: Column) -> f32 {
+    match c {
+        Column::Pose(i) => p.pose[i],
+        Column::Identity(i) => p.identity[i],
+        Column::Expression(i) => p.expression[i],
+    }
+}
+
+fn set(p: &mut RigParams, c: Column, v: f32) {
+    match c {
+        Column::Pose(i) => p.pose[i] = v,
+        Column::Identity(i) => p.identity[i] = v,
+        Column::Expression(i) => p.expression[i] = v,
+    }
+}
+
+impl Problem<'_> {
+    /// Target point of model vertex `i` given the model's posed vertex `v`.
+    fn target_point(&self, i: usize, v: Vec3) -> Vec3 {
+        match self.correspondence {
+            Correspondence::Identity => self.target.vertices[i],
+            Correspondence::Barycentric { triangles, weights } => {
+                let (t, w) = (triangles[i], weights[i]);
+                (0..3)
+                    .map(|k| self.target.vertices[t[k] as usize] * w[k])
+                    .sum()
+            }
+            Correspondence::Nearest => {
+                let tree = self.nearest.as_ref().expect("built for Nearest");
+                let hit = tree
+                    .query(&v.to_array())
+                    .nearest_one::<SquaredEuclidean<f32>>()
+                    .execute();
+                self.target.vertices[hit.item as usize]
+            }
+        }
+    }
+
+    fn residuals(&self, posed: &Posed, params: &RigParams) -> Vec<f64> {
+        let lambda = (self.options.joint_weight as f64).sqrt();
+        let prior = (self.options.prior as f64).sqrt();
+        let mut r = Vec::with_capacity(
+            3 * (self.sample.len() + self.target.joints.len()) + self.columns.len(),
+        );
+        for &i in &self.sample {
+            let v = posed.vertices[i];
+            r.extend((v - self.target_point(i, v)).to_array().map(f64::from));
+        }
+        for &(j, t) in self.target.joints {
+            r.extend(
+                (posed.joints[j].translation - t)
+                    .to_array()
+                    .map(|x| lambda * x as f64),
+            );
+        }
+        r.extend(self.columns.iter().map(|&c| prior * get(params, c) as f64));
+        r
+    }
+
+    fn pose(&self, params: &RigParams) -> Result<Posed, RigError> {
+        self.rig.pose(params)
+    }
+
+    /// Jacobian `[residuals × columns]` (row-major), with target points held fixed (nearest
+    /// correspondences are re-found at the next iteration).
+    fn jacobian(&self, params: &RigParams, posed: &Posed) -> Result<Vec<f64>, RigError> {
+        let rows = 3 * (self.sample.len() + self.target.joints.len()) + self.columns.len();
+        let cols = self.columns.len();
+        let mut jac = vec![0.0f64; rows * cols];
+        let analytic = self.analytic_pose_columns(params, posed)?;
+        let numeric: Vec<(usize, Vec<f64>)> = self
+            .columns
+            .par_iter()
+            .enumerate()
+            .filter(|(ci, _)| !analytic.contains_key(ci))
+            .map(|(ci, &c)| -> Result<(usize, Vec<f64>), RigError> {
+                let h = 1e-3f32;
+                let mut plus = params.clone();
+                set(&mut plus, c, get(params, c) + h);
+                let mut minus = params.clone();
+                set(&mut minus, c, get(params, c) - h);
+                let (pp, pm) = (self.pose(&plus)?, self.pose(&minus)?);
+                let diff = |a: Vec3, b: Vec3| ((a - b) / (2.0 * h)).to_array().map(f64::from);
+                let mut col: Vec<f64> = self
+                    .sample
+                    .iter()
+                    .flat_map(|&i| diff(pp.vertices[i], pm.vertices[i]))
+                    .collect();
+                let lambda = (self.options.joint_weight as f64).sqrt();
+                col.extend(self.target.joints.iter().flat_map(|&(j, _)| {
+                    diff(pp.joints[j].translation, pm.joints[j].translation).map(|x| lambda * x)
+                }));
+                Ok((ci, col))
+            })
+            .collect::<Result<_, _>>()?;
+        for (ci, col) in numeric.into_iter().chain(analytic) {
+            for (r, v) in col.into_iter().enumerate() {
+                jac[r * cols + ci] = v;
+            }
+        }
+        let prior = (self.options.prior as f64).sqrt();
+        let base = 3 * (self.sample.len() + self.target.joints.len());
+        for ci in 0..cols {
+            jac[(base + ci) * cols + ci] = prior;
+        }
+        Ok(jac)
+    }
+
+    /// Analytic columns for Momentum pose parameters, keyed by column index.
+    fn analytic_pose_columns(
+        &self,
+        params: &RigParams,
+        posed: &Posed,
+    ) -> Result<std::collections::HashMap<usize, Vec<f64>>, RigError> {
+        let Parameterization::Momentum(transform) = &self.rig.parameterization else {
+            return Ok(Default::default());
+        };
+        let skeleton = &self.rig.skeleton;
+        let joint_params = transform.apply(&params.pose)?;
+        let axes = joint_axes(skeleton.joints(), &joint_params, &posed.joints);
+        // Model parameter column per (row = joint·7 + channel).
+        let mut by_row: Vec<Vec<(usize, f32)>> =
+            vec![Vec::new(); skeleton.len() * PARAMS_PER_JOINT];
+        let column_of: std::collections::HashMap<usize, usize> = self
+            .columns
+            .iter()
+            .enumerate()
+            .filter_map(|(ci, c)| {
+                if let Column::Pose(p) = c {
+                    Some((*p, ci))
+                } else {
+                    None
+                }
+            })
+            .collect();
+        for &(row, col, w) in &transform.entries {
+            if let Some(&ci) = column_of.get(&(col as usize)) {
+                by_row[row as usize].push((ci, w));
+            }
+        }
+        let ancestors: Vec<Vec<usize>> = (0..skeleton.len())
+            .map(|j| {
+                let mut out = vec![j];
+                let mut k = skeleton.joints()[j].parent;
+                while let Some(p) = k {
+                    out.push(p);
+                    k = skeleton.joints()[p].parent;
+                }
+                out
+            })
+            .collect();
+        let mut columns: std::collections::HashMap<usize, Vec<f64>> =
+            column_of.values().map(|&ci| (ci, Vec::new())).collect();
+        let rows = 3 * (self.sample.len() + self.target.joints.len());
+        for col in columns.values_mut() {
+            col.resize(rows, 0.0);
+        }
+        // d(point attached below joint k)/dθ, accumulated into `row` with `weight`.
+        let mut add_point = |row: usize, k: usize, x: Vec3, weight: f32| {
+            for &a in &ancestors[k] {
+                for ch in 0..PARAMS_PER_JOINT {
+                    let entries = &by_row[a * PARAMS_PER_JOINT + ch];
+                    if entries.is_empty() {
+                        continue;
+                    }
+                    let d = axes[a].derivative(ch, x);
+                    for &(ci, w) in entries {
+                        let col = columns.get_mut(&ci).expect("column");
+                        for (c, v) in d.to_array().iter().enumerate() {
+                            col[row + c] += (weight * w * v) as f64;
+                        }
+                    }
+                }
+            }
+        };
+        for (s, &i) in self.sample.iter().enumerate() {
+            for (k, w) in self.rig.skin.influences(i) {
+                let x = posed.skinning[k].transform_point3(posed.rest_vertices[i]);
+                add_point(3 * s, k, x, w);
+            }
+        }
+        let lambda = self.options.joint_weight.sqrt();
+        for (p, &(j, _)) in self.target.joints.iter().enumerate() {
+            add_point(
+                3 * (self.sample.len() + p),
+                j,
+                posed.joints[j].translation,
+                lambda,
+            );
+        }
+        Ok(columns)
+    }
+}
+
+/// A joint's degrees of freedom in world space: translation axes (parent frame, with scale),
+/// rotation axes (after the rotations applied before them), and its centre.
+#[derive(Clone, Copy, Debug)]
+pub struct JointAxes {
+    pub translation: [Vec3; 3],
+    pub rotation: [Vec3; 3],
+    pub centre: Vec3,
+}
+
+impl JointAxes {
+    /// How a world point attached below the joint moves per unit of channel `ch`.
+    pub fn derivative(&self, ch: usize, x: Vec3) -> Vec3 {
+        match ch {
+            0..3 => self.translation[ch],
+            3..6 => self.rotation[ch - 3].cross(x - self.centre),
+            _ => (x - self.centre) * std::f32::consts::LN_2,
+        }
+    }
+}
+
+/// World axes of every joint's degrees of freedom for Momentum joint parameters.
+pub fn joint_axes(
+    joints: &[crate::Joint],
+    params: &[[f32; PARAMS_PER_JOINT]],
+    world: &[Similarity],
+) -> Vec<JointAxes> {
+    joints
+        .iter()
+        .zip(params)
+        .enumerate()
+        .map(|(j, (joint, p))| {
+            let parent = joint.parent.map_or(Similarity::IDENTITY, |q| world[q]);
+            let frame = parent.rotation * joint.pre_rotation;
+            let rz = Quat::from_rotation_z(p[5]);
+            let ry = Quat::from_rotation_y(p[4]);
+            JointAxes {
+                translation: [Vec3::X, Vec3::Y, Vec3::Z]
+                    .map(|e| parent.rotation * (e * parent.scale)),
+                rotation: [
+                    (frame * rz * ry) * Vec3::X,
+                    (frame * rz) * Vec3::Y,
+                    frame * Vec3::Z,
+                ],
+                centre: world[j].translation,
+            }
+        })
+        .collect()
+}
+
+/// Fits one frame, starting from `init`. With nearest-vertex correspondences and joint pairs,
+/// the joints are fitted alone first, so that the vertex term starts near the right pose
+/// (nearest-point matching from far away falls into local minima).
+pub fn fit(
+    rig: &Rig,
+    target: &FitTarget,
+    correspondence: &Correspondence,
+    init: &RigParams,
+    options: &FitOptions,
+) -> Result<FitResult, RigError> {
+    let init = if matches!(correspondence, Correspondence::Nearest) && !target.joints.is_empty() {
+        let joints_only = FitOptions {
+            max_vertices: 0,
+            ..options.clone()
+        };
+        fit_stage(rig, target, correspondence, init, &joints_only)?.params
+    } else {
+        init.clone()
+    };
+    fit_stage(rig, target, correspondence, &init, options)
+}
+
+fn fit_stage(
+    rig: &Rig,
+    target: &FitTarget,
+    correspondence: &Correspondence,
+    init: &RigParams,
+    options: &FitOptions,
+) -> Result<FitResult, RigError> {
+    let n = rig.mesh.vertices.len();
+    match correspondence {
+        Correspondence::Identity if target.vertices.len() != n => {
+            return Err(RigError::Params(format!(
+                "same-topology fit needs {n} target vertices, got {}",
+                target.vertices.len()
+            )));
+        }
+        Correspondence::Barycentric { triangles, weights }
+            if triangles.len() != n || weights.len() != n =>
+        {
+            return Err(RigError::Params(format!(
+                "the correspondence maps {} vertices, the model has {n}",
+                triangles.len()
+            )));
+        }
+        Correspondence::Barycentric { triangles, .. }
+            if triangles
+                .iter()
+                .flatten()
+                .any(|&t| t as usize >= target.vertices.len()) =>
+        {
+            return Err(RigError::Params(
+                "the correspondence references target vertices that do not exist".into(),
+            ));
+        }
+        _ => {}
+    }
+    if let Some(&(j, _)) = target.joints.iter().find(|(j, _)| *j >= rig.skeleton.len()) {
+        return Err(RigError::Params(format!(
+            "joint pair references model joint {j}"
+        )));
+    }
+    let sample: Vec<usize> = match options.max_vertices {
+        0 => Vec::new(),
+        m => (0..n).step_by(n.div_ceil(m).max(1)).collect(),
+    };
+    let mut columns: Vec<Column> = (0..rig.num_pose_params()).map(Column::Pose).collect();
+    if options.fit_identity {
+        columns.extend((0..rig.identity.len()).map(Column::Identity));
+    }
+    if options.fit_expression {
+        columns.extend((0..rig.expression.len()).map(Column::Expression));
+    }
+    let nearest = matches!(correspondence, Correspondence::Nearest).then(|| {
+        let points: Vec<[f32; 3]> = target.vertices.iter().map(|v| v.to_array()).collect();
+        ImmutableKdTree::new_from_slice(&points)
+    });
+    let nearest = match nearest {
+        Some(Ok(t)) => Some(t),
+        Some(Err(e)) => {
+            return Err(RigError::Params(format!(
+                "cannot index the target vertices: {e:?}"
+            )));
+        }
+        None => None,
+    };
+    let problem = Problem {
+        rig,
+        target,
+        correspondence,
+        nearest,
+        sample,
+        columns,
+        options,
+    };
+
+    let mut params = init.clone();
+    let mut posed = problem.pose(&params)?;
+    let mut r = problem.residuals(&posed, &params);
+    let mut cost: f64 = r.iter().map(|v| v * v).sum();
+    let mut mu = 1e-3f64;
+    let mut iterations = 0;
+    for _ in 0..options.max_iterations {
+        iterations += 1;
+        let jac = problem.jacobian(&params, &posed)?;
+        let cols = problem.columns.len();
+        let rows = r.len();
+        let j = faer::Mat::<f64>::from_fn(rows, cols, |a, b| jac[a * cols + b]);
+        let rv = faer::Mat::<f64>::from_fn(rows, 1, |a, _| r[a]);
+        let jtj = j.transpose() * &j;
+        let jtr = j.transpose() * &rv;
+        let mut improved = false;
+        for _ in 0..10 {
+            let damped = faer::Mat::<f64>::from_fn(cols, cols, |a, b| {
+                jtj[(a, b)]
+                    + if a == b {
+                        mu * jtj[(a, a)].max(1e-9)
+                    } else {
+                        0.0
+                    }
+            });
+            let Ok(llt) = damped.llt(faer::Side::Lower) else {
+                mu *= 10.0;
+                continue;
+            };
+            let delta = llt.solve(&jtr);
+            let mut trial = params.clone();
+            for (ci, &c) in problem.columns.iter().enumerate() {
+                set(&mut trial, c, get(&params, c) - delta[(ci, 0)] as f32);
+            }
+            let trial_posed = problem.pose(&trial)?;
+            let trial_r = problem.residuals(&trial_posed, &trial);
+            let trial_cost: f64 = trial_r.iter().map(|v| v * v).sum();
+            if trial_cost < cost {
+                let relative = (cost - trial_cost) / cost.max(1e-30);
+                params = trial;
+                posed = trial_posed;
+                r = trial_r;
+                cost = trial_cost;
+                mu = (mu / 3.0).max(1e-9);
+                improved = relative > 1e-7;
+                break;
+            }
+            mu *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    let distances: Vec<f32> = problem
+        .sample
+        .iter()
+        .map(|&i| (posed.vertices[i] - problem.target_point(i, posed.vertices[i])).length())
+        .collect();
+    let joint_d: Vec<f32> = target
+        .joints
+        .iter()
+        .map(|&(j, t)| (posed.joints[j].translation - t).length())
+        .collect();
+    let rms = |d: &[f32]| {
+        if d.is_empty() {
+            0.0
+        } else {
+            (d.iter().map(|x| x * x).sum::<f32>() / d.len() as f32).sqrt()
+        }
+    };
+    Ok(FitResult {
+        vertex_rms: rms(&distances),
+        vertex_max: distances.iter().copied().fold(0.0, f32::max),
+        joint_rms: rms(&joint_d),
+        params,
+        iterations,
+    })
+}
+
+/// SMPL-X joints and the built-in human's joints at the same anatomical places (the joint
+/// centres are defined differently, so this pairs them approximately).
+pub const SMPLX_TO_BUILTIN: [(&str, &str); 25] = [
+    ("pelvis", "spine05"),
+    ("left_hip", "upperleg01.L"),
+    ("right_hip", "upperleg01.R"),
+    ("spine1", "spine04"),
+    ("spine2", "spine03"),
+    ("spine3", "spine02"),
+    ("left_knee", "lowerleg01.L"),
+    ("right_knee", "lowerleg01.R"),
+    ("left_ankle", "foot.L"),
+    ("right_ankle", "foot.R"),
+    ("neck", "neck01"),
+    ("head", "head"),
+    ("jaw", "jaw"),
+    ("left_eye", "eye.L"),
+    ("right_eye", "eye.R"),
+    ("left_collar", "clavicle.L"),
+    ("right_collar", "clavicle.R"),
+    ("left_shoulder", "upperarm01.L"),
+    ("right_shoulder", "upperarm01.R"),
+    ("left_elbow", "lowerarm01.L"),
+    ("right_elbow", "lowerarm01.R"),
+    ("left_wrist", "wrist.L"),
+    ("right_wrist", "wrist.R"),
+    ("left_index1", "finger2-1.L"),
+    ("right_index1", "finger2-1.R"),
+];
+
+/// `(model joint, source joint)` pairs: by identical names when the models share joint names,
+/// the SMPL-X → built-in table for that pair, otherwise none.
+pub fn default_joint_map(source: &Rig, model: &Rig) -> Vec<(usize, usize)> {
+    let by_name: Vec<(usize, usize)> = model
+        .skeleton
+        .joints()
+        .iter()
+        .enumerate()
+        .filter_map(|(m, j)| source.skeleton.index_of(&j.name).map(|s| (m, s)))
+        .collect();
+    if !by_name.is_empty() {
+        return by_name;
+    }
+    SMPLX_TO_BUILTIN
+        .iter()
+        .filter_map(|(s, m)| Some((model.skeleton.index_of(m)?, source.skeleton.index_of(s)?)))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gltf;
+    use std::path::PathBuf;
+
+    /// The analytic pose columns equal central differences on a Momentum character with every
+    /// channel type (translations, rotations with pre-rotations, scales, joint references).
+    #[test]
+    fn analytic_jacobian_matches_finite_differences() {
+        let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/pymomentum");
+        let rig = gltf::load(&dir.join("char_a.glb"), Some(&dir.join("char_a.model"))).unwrap();
+        let mut params = rig.zero_params();
+        for (i, p) in params.pose.iter_mut().enumerate() {
+            *p = ((i * 7919) % 13) as f32 / 13.0 - 0.5;
+        }
+        let posed = rig.pose(&params).unwrap();
+        let joints: Vec<(usize, Vec3)> = (0..rig.skeleton.len()).map(|j| (j, Vec3::ZERO)).collect();
+        let target = FitTarget {
+            vertices: &posed.vertices,
+            joints: &joints,
+        };
+        let options = FitOptions {
+            joint_weight: 2.0,
+            ..Default::default()
+        };
+        let problem = Problem {
+            rig: &rig,
+            target: &target,
+            correspondence: &Correspondence::Identity,
+            nearest: None,
+            sample: (0..rig.mesh.vertices.len()).collect(),
+            columns: (0..rig.num_pose_params()).map(Column::Pose).collect(),
+            options: &options,
+        };
+        let analytic = problem.analytic_pose_columns(&params, &posed).unwrap();
+        assert_eq!(analytic.len(), rig.num_pose_params());
+        let lambda = options.joint_weight.sqrt();
+        for (ci, col) in &analytic {
+            // f32 positions near 1 m: a larger step keeps rounding out of the differences.
+            let h = 1e-2;
+            let mut plus = params.clone();
+            plus.pose[*ci] += h;
+            let mut minus = params.clone();
+            minus.pose[*ci] -= h;
+            let (pp, pm) = (rig.pose(&plus).unwrap(), rig.pose(&minus).unwrap());
+            let mut numeric: Vec<f32> = pp
+                .vertices
+                .iter()
+                .zip(&pm.vertices)
+                .flat_map(|(a, b)| ((*a - *b) / (2.0 * h)).to_array())
+                .collect();
+            numeric.extend(pp.joints.iter().zip(&pm.joints).flat_map(|(a, b)| {
+                ((a.translation - b.translation) / (2.0 * h) * lambda).to_array()
+            }));
+            let scale = numeric.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-3);
+            for (r, (a, n)) in col.iter().zip(&numeric).enumerate() {
+                assert!(
+                    (*a as f32 - n).abs() < 2e-3 * scale + 2e-5,
+                    "parameter {} row {r}: analytic {a} numeric {n}",
+                    rig.pose_param_names()[*ci]
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,367 @@
+//! Rigged characters from glTF 2.0 (`.gltf` or `.glb`).
+//!
+//! The first node with a skinned mesh defines the character: the skin's joints become the
+//! skeleton (each joint's parent is its nearest ancestor among the joints; transforms of
+//! non-joint ancestors are folded into the root), node rotations become pre-rotations and node
+//! translations rest offsets (unit scales only), the skin's inverse bind matrices are kept, all
+//! triangle primitives are concatenated, `JOINTS_0/1` and `WEIGHTS_0/1` give up to eight
+//! influences, and morph targets become the expression block (names from `extras.targetNames`).
+//!
+//! Pose parameters come from, in order of preference: a Momentum `.model` file passed by the
+//! caller; the `FB_momentum` extension that Momentum writes into glTF files; otherwise `rx, ry,
+//! rz` for every joint plus `tx, ty, tz` for the root. Momentum works in centimetres, so the
+//! translation rows of a Momentum transform are scaled by 0.01 to stay in metres.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use glam::{Affine3A, Mat4, Quat, Vec3};
+
+use crate::params::{CHANNELS, ParameterTransform, parse_model};
+use crate::rig::{Mesh, Parameterization, Rig};
+use crate::skeleton::{Joint, PARAMS_PER_JOINT, Skeleton};
+use crate::{BlendShapes, RigError, SkinWeights};
+
+/// Momentum's length unit (centimetres) in metres.
+pub const MOMENTUM_UNIT: f32 = 0.01;
+
+/// Loads a rigged character; `model` is an optional Momentum `.model` file for its parameters.
+pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
+    let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
+    let gltf = gltf::Gltf::from_slice(&bytes)
+        .map_err(|e| RigError::file(path, format!("not a valid glTF file: {e}")))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    let buffers = gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
+        .map_err(|e| RigError::file(path, format!("cannot load buffers: {e}")))?;
+    let doc = &gltf.document;
+    let node = doc
+        .nodes()
+        .find(|n| n.mesh().is_some() && n.skin().is_some())
+        .ok_or_else(|| RigError::file(path, "no node with a skinned mesh"))?;
+    let skin = node.skin().expect("checked above");
+    let mesh = node.mesh().expect("checked above");
+
+    // Node parents and world transforms of the whole scene graph.
+    let mut parent_of: HashMap<usize, usize> = HashMap::new();
+    for n in doc.nodes() {
+        for c in n.children() {
+            parent_of.insert(c.index(), n.index());
+        }
+    }
+    let local = |i: usize| {
+        Mat4::from_cols_array_2d(&doc.nodes().nth(i).expect("node index").transform().matrix())
+    };
+    let world = |mut i: usize| {
+        let mut m = local(i);
+        while let Some(&p) = parent_of.get(&i) {
+            m = local(p) * m;
+            i = p;
+        }
+        m
+    };
+
+    // Skeleton, parents first (skin order breaks ties).
+    let skin_nodes: Vec<usize> = skin.joints().map(|j| j.index()).collect();
+    let joint_parent = |node: usize| {
+        let mut i = node;
+        while let Some(&p) = parent_of.get(&i) {
+            if let Some(k) = skin_nodes.iter().position(|&s| s == p) {
+                return Some(k);
+            }
+            i = p;
+        }
+        None
+    };
+    let skin_parents: Vec<Option<usize>> = skin_nodes.iter().map(|&n| joint_parent(n)).collect();
+    let mut order: Vec<usize> = Vec::with_capacity(skin_nodes.len());
+    while order.len() < skin_nodes.len() {
+        let before = order.len();
+        for (k, parent) in skin_parents.iter().enumerate() {
+            if !order.contains(&k) && parent.is_none_or(|p| order.contains(&p)) {
+                order.push(k);
+            }
+        }
+        if order.len() == before {
+            return Err(RigError::file(path, "the skin's joints form a cycle"));
+        }
+    }
+    let ours: Vec<usize> = (0..skin_nodes.len())
+        .map(|k| {
+            order
+                .iter()
+                .position(|&o| o == k)
+                .expect("every joint ordered")
+        })
+        .collect();
+    let mut joints = Vec::with_capacity(order.len());
+    for &k in &order {
+        let node = doc.nodes().nth(skin_nodes[k]).expect("joint node");
+        let name = node
+            .name()
+            .map(String::from)
+            .unwrap_or_else(|| format!("joint{k}"));
+        let (t, r, s) = node.transform().decomposed();
+        if s.iter().any(|v| (v - 1.0).abs() > 1e-4) {
+            return Err(RigError::file(
+                path,
+                format!("joint `{name}` has scale {s:?}; only unit scales are supported"),
+            ));
+        }
+        let (mut offset, mut pre_rotation) = (Vec3::from(t), Quat::from_array(r).normalize());
+        if skin_parents[k].is_none()
+            && let Some(&p) = parent_of.get(&skin_nodes[k])
+        {
+            let (scale, rotation, translation) = world(p).to_scale_rotation_translation();
+            if (scale - Vec3::ONE).abs().max_element() > 1e-4 {
+                return Err(RigError::file(
+                    path,
+                    format!(
+                        "the ancestors of root joint `{name}` are scaled by {scale}; only unit scales are supported"
+                    ),
+                ));
+            }
+            offset = rotation * offset + translation;
+            pre_rotation = rotation * pre_rotation;
+        }
+        joints.push(Joint {
+            name,
+            parent: skin_parents[k].map(|p| ours[p]),
+            offset,
+            pre_rotation,
+        });
+    }
+    let skeleton = Skeleton::new(joints).map_err(|e| RigError::file(path, e))?;
+
+    let reader = skin.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+    let inverse_bind: Vec<Affine3A> = match reader.read_inverse_bind_matrices() {
+        Some(m) => {
+            let m: Vec<[[f32; 4]; 4]> = m.collect();
+            if m.len() != skin_nodes.len() {
+                return Err(RigError::file(
+                    path,
+                    format!(
+                        "{} inverse bind matrices for {} joints",
+                        m.len(),
+                        skin_nodes.len()
+                    ),
+                ));
+            }
+            order
+                .iter()
+                .map(|&k| Affine3A::from_mat4(Mat4::from_cols_array_2d(&m[k])))
+                .collect()
+        }
+        // glTF's default: the joints' scene transforms are the bind pose.
+        None => order
+            .iter()
+            .map(|&k| Affine3A::from_mat4(world(skin_nodes[k]).inverse()))
+            .collect(),
+    };
+
+    // Mesh: every triangle primitive, concatenated.
+    let mut vertices = Vec::new();
+    let mut triangles = Vec::new();
+    let mut lists: Vec<Vec<(usize, f32)>> = Vec::new();
+    let mut targets: Vec<Vec<Vec3>> = Vec::new();
+    for (pi, prim) in mesh.primitives().enumerate() {
+        if prim.mode() != gltf::mesh::Mode::Triangles {
+            continue;
+        }
+        let r = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+        let start = vertices.len() as u32;
+        let positions: Vec<Vec3> = r
+            .read_positions()
+            .ok_or_else(|| RigError::file(path, format!("primitive {pi} has no POSITION")))?
+            .map(Vec3::from)
+            .collect();
+        let n = positions.len();
+        match r.read_indices() {
+            Some(ix) => {
+                let ix: Vec<u32> = ix.into_u32().collect();
+                triangles.extend(
+                    ix.chunks_exact(3)
+                        .map(|t| [t[0] + start, t[1] + start, t[2] + start]),
+                );
+            }
+            None => triangles.extend(
+                (0..n as u32 / 3).map(|t| [start + 3 * t, start + 3 * t + 1, start + 3 * t + 2]),
+            ),
+        }
+        let mut prim_lists = vec![Vec::new(); n];
+        for set in 0..2 {
+            let (Some(js), Some(ws)) = (r.read_joints(set), r.read_weights(set)) else {
+                continue;
+            };
+            for (v, (j, w)) in js.into_u16().zip(ws.into_f32()).enumerate().take(n) {
+                for (jj, ww) in j.iter().zip(w) {
+                    if ww != 0.0 {
+                        let k = *jj as usize;
+                        let joint = *ours.get(k).ok_or_else(|| {
+                            RigError::file(
+                                path,
+                                format!(
+                                    "vertex {v} of primitive {pi} uses joint {k} of {}",
+                                    ours.len()
+                                ),
+                            )
+                        })?;
+                        prim_lists[v].push((joint, ww));
+                    }
+                }
+            }
+        }
+        lists.extend(prim_lists);
+        let prim_targets: Vec<Vec<Vec3>> = r
+            .read_morph_targets()
+            .map(|(p, _, _)| {
+                p.map(|p| p.map(Vec3::from).collect())
+                    .unwrap_or_else(|| vec![Vec3::ZERO; n])
+            })
+            .collect();
+        if pi > 0 && prim_targets.len() != targets.len() {
+            return Err(RigError::file(
+                path,
+                "primitives have different numbers of morph targets",
+            ));
+        }
+        targets.resize(prim_targets.len(), Vec::new());
+        for (all, t) in targets.iter_mut().zip(prim_targets) {
+            all.extend(t);
+        }
+        vertices.extend(positions);
+    }
+    if vertices.is_empty() {
+        return Err(RigError::file(
+            path,
+            "the skinned mesh has no triangle primitive",
+        ));
+    }
+    let skin_weights =
+        SkinWeights::from_lists(&lists, skeleton.len()).map_err(|e| RigError::file(path, e))?;
+    let target_names: Vec<String> = mesh
+        .extras()
+        .as_ref()
+        .and_then(|e| serde_json::from_str::<serde_json::Value>(e.get()).ok())
+        .and_then(|v| v.get("targetNames").cloned())
+        .and_then(|v| serde_json::from_value(v).ok())
+        .unwrap_or_else(|| (0..targets.len()).map(|i| format!("target{i}")).collect());
+    let expression = BlendShapes::new(target_names, targets.concat(), vertices.len())
+        .map_err(|e| RigError::file(path, e))?;
+
+    let transform = match model {
+        Some(m) => {
+            let text = std::fs::read_to_string(m).map_err(|e| RigError::file(m, e))?;
+            momentum_to_metres(parse_model(&text, &skeleton, m)?.transform)
+        }
+        None => match momentum_extension(&bytes, &gltf, &skeleton, path)? {
+            Some(t) => momentum_to_metres(t),
+            None => default_transform(&skeleton),
+        },
+    };
+    let rig = Rig {
+        name: format!("gltf:{}", path.display()),
+        skeleton,
+        parameterization: Parameterization::Momentum(transform),
+        mesh: Mesh {
+            vertices,
+            triangles,
+        },
+        identity: BlendShapes::default(),
+        expression,
+        skin: skin_weights,
+        correctives: None,
+        joint_model: None,
+        inverse_bind: Some(inverse_bind),
+    };
+    rig.validate()?;
+    Ok(rig)
+}
+
+/// Scales the translation rows of a Momentum (centimetre) transform to metres.
+pub fn momentum_to_metres(mut t: ParameterTransform) -> ParameterTransform {
+    let is_translation = |row: usize| row % PARAMS_PER_JOINT < 3;
+    for e in &mut t.entries {
+        if is_translation(e.0 as usize) {
+            e.2 *= MOMENTUM_UNIT;
+        }
+    }
+    for (row, o) in t.offsets.iter_mut().enumerate() {
+        if is_translation(row) {
+            *o *= MOMENTUM_UNIT;
+        }
+    }
+    t
+}
+
+/// `rx, ry, rz` for every joint and `tx, ty, tz` for roots.
+pub fn default_transform(skeleton: &Skeleton) -> ParameterTransform {
+    let mut t = ParameterTransform::empty(skeleton.len());
+    for (j, joint) in skeleton.joints().iter().enumerate() {
+        let channels: &[usize] = if joint.parent.is_none() {
+            &[0, 1, 2, 3, 4, 5]
+        } else {
+            &[3, 4, 5]
+        };
+        for &c in channels {
+            t.add_parameter(format!("{}_{}", joint.name, CHANNELS[c]), &[(j, c, 1.0)]);
+        }
+    }
+    t
+}
+
+/// The parameter transform stored by Momentum in the `FB_momentum` extension, if any
+/// (it keeps weights but not constant offsets).
+fn momentum_extension(
+    bytes: &[u8],
+    gltf: &gltf::Gltf,
+    skeleton: &Skeleton,
+    path: &Path,
+) -> Result<Option<ParameterTransform>, RigError> {
+    let json: serde_json::Value = if gltf.blob.is_some() || bytes.starts_with(b"glTF") {
+        let glb = gltf::binary::Glb::from_slice(bytes).map_err(|e| RigError::file(path, e))?;
+        serde_json::from_slice(&glb.json).map_err(|e| RigError::file(path, e))?
+    } else {
+        serde_json::from_slice(bytes).map_err(|e| RigError::file(path, e))?
+    };
+    let Some(t) = json.pointer("/extensions/FB_momentum/transform") else {
+        return Ok(None);
+    };
+    let field = |reason: String| RigError::field(path, "extensions.FB_momentum.transform", reason);
+    let names: Vec<String> =
+        serde_json::from_value(t.get("parameters").cloned().unwrap_or_default())
+            .map_err(|e| field(e.to_string()))?;
+    let mut transform = ParameterTransform {
+        names,
+        entries: Vec::new(),
+        offsets: vec![0.0; skeleton.len() * PARAMS_PER_JOINT],
+    };
+    let joints = t
+        .get("joints")
+        .and_then(|j| j.as_object())
+        .cloned()
+        .unwrap_or_default();
+    for (joint, channels) in joints {
+        let j = skeleton
+            .index_of(&joint)
+            .ok_or_else(|| field(format!("unknown joint `{joint}`")))?;
+        for (channel, params) in channels.as_object().cloned().unwrap_or_default() {
+            let c = CHANNELS
+                .iter()
+                .position(|c| *c == channel)
+                .ok_or_else(|| field(format!("unknown channel `{channel}`")))?;
+            for (param, weight) in params.as_object().cloned().unwrap_or_default() {
+                let col = transform
+                    .index_of(&param)
+                    .ok_or_else(|| field(format!("unknown parameter `{param}`")))?;
+                let w = weight
+                    .as_f64()
+                    .ok_or_else(|| field(format!("weight of `{param}` is not a number")))?
+                    as f32;
+                transform
+                    .entries
+                    .push(((j * PARAMS_PER_JOINT + c) as u32, col as u32, w));
+            }
+        }
+    }
+    Ok(Some(transform))
+}
