@@ -4,6 +4,7 @@ mod bench;
 mod memory;
 mod render_ply;
 mod rig;
+mod template;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -26,6 +27,10 @@ enum Command {
     /// Body models: pose and inspect them, convert parameters between them.
     #[command(subcommand)]
     Rig(rig::RigCommand),
+    /// Build a canonical clothed template (body model in the canonical pose + garment).
+    Template(template::TemplateArgs),
+    /// Write PNG pictures of a template's position maps (canonical, posed, head, mask).
+    Posmaps(template::PosmapsArgs),
     /// Performance benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -36,6 +41,8 @@ fn main() -> Result<()> {
     match cli.command {
         Command::RenderPly(args) => render_ply::run(&args),
         Command::Rig(cmd) => rig::run(&cmd),
+        Command::Template(args) => template::run(&args),
+        Command::Posmaps(args) => template::posmaps(&args),
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
     }

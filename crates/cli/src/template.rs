@@ -1,0 +1,245 @@
+//! `f3g template` (build a canonical clothed template) and `f3g posmaps` (look at its maps).
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use f3g_io::Image;
+use f3g_rig::{ModelSpec, sequence};
+use f3g_template::canonical::CanonicalPose;
+use f3g_template::mesh::read_mesh;
+use f3g_template::posmap::position_colours;
+use f3g_template::template::{Template, submesh};
+use f3g_template::{HeadMaps, Poser, PositionMaps, TransferOptions, posed_positions};
+
+/// Build a canonical template: the body model in the canonical pose, optionally with a garment.
+#[derive(Args, Debug)]
+pub struct TemplateArgs {
+    #[command(flatten)]
+    pub build: BuildArgs,
+}
+
+/// Options of `f3g template`.
+#[derive(Args, Debug)]
+pub struct BuildArgs {
+    /// Body model: builtin, smplx:MODEL.npz, mhr:DIR or gltf:FILE.
+    #[arg(long, default_value = "builtin")]
+    pub body: ModelSpec,
+    /// Garment mesh aligned with the canonical body (.obj, .ply, .gltf, .glb), or
+    /// `builtin:skirt` for the built-in human's skirt.
+    #[arg(long)]
+    pub clothes: Option<String>,
+    /// Output template (.npz).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Hip rotation of the canonical pose, degrees.
+    #[arg(long, default_value_t = 25.0)]
+    pub leg_spread: f32,
+    /// Upper-arm rotation of the canonical pose (up from the rest pose), degrees.
+    #[arg(long, default_value_t = 0.0)]
+    pub arm_raise: f32,
+    /// Closest-point matches farther than this fraction of the garment's bounding-box
+    /// diagonal are inpainted.
+    #[arg(long, default_value_t = 0.05)]
+    pub distance_ratio: f32,
+    /// Matches whose normals differ by more than this many degrees are inpainted.
+    #[arg(long, default_value_t = 30.0)]
+    pub max_angle: f32,
+}
+
+pub fn run(args: &TemplateArgs) -> Result<()> {
+    build(&args.build)
+}
+
+/// The built-in human's skirt in the canonical pose, as a garment mesh.
+fn builtin_skirt(pose: &CanonicalPose) -> Result<f3g_rig::Mesh> {
+    let human = f3g_rig::builtin::load()?;
+    let (params, _) = f3g_template::canonical_params(&human.rig, pose);
+    let posed = human.rig.pose(&params)?;
+    let skirt = human
+        .part("skirt")
+        .context("the built-in human has a skirt part")?;
+    let keep: Vec<bool> = human.vertex_part.iter().map(|p| *p == skirt).collect();
+    Ok(submesh(
+        &f3g_rig::Mesh {
+            vertices: posed.vertices,
+            triangles: human.rig.mesh.triangles.clone(),
+        },
+        &keep,
+    )
+    .0)
+}
+
+fn build(a: &BuildArgs) -> Result<()> {
+    let out = a.out.as_ref().context("--out is required")?;
+    let pose = CanonicalPose {
+        leg_spread_deg: a.leg_spread,
+        arm_raise_deg: a.arm_raise,
+    };
+    let model_text = match &a.body {
+        ModelSpec::Builtin => "builtin".to_string(),
+        ModelSpec::Smplx(p) => format!("smplx:{}", p.display()),
+        ModelSpec::Mhr(p) => format!("mhr:{}", p.display()),
+        ModelSpec::Gltf(p) => format!("gltf:{}", p.display()),
+    };
+    let garment = match a.clothes.as_deref() {
+        None => None,
+        Some("builtin:skirt") => Some((builtin_skirt(&pose)?, PathBuf::from("builtin:skirt"))),
+        Some(path) => {
+            let path = PathBuf::from(path);
+            Some((read_mesh(&path)?, path))
+        }
+    };
+    let options = TransferOptions {
+        distance_ratio: a.distance_ratio,
+        max_angle_deg: a.max_angle,
+    };
+    let (template, report) = Template::build(
+        &a.body,
+        &model_text,
+        &pose,
+        garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
+        &options,
+    )?;
+    let rig = a.body.load()?;
+    template.save(out, &rig)?;
+    println!(
+        "template: {} vertices, {} triangles ({}) -> {}",
+        template.mesh.vertices.len(),
+        template.mesh.triangles.len(),
+        if garment.is_some() {
+            "body + garment"
+        } else {
+            "body"
+        },
+        out.display()
+    );
+    if !report.legs_spread {
+        println!(
+            "note: {} has no recognised hip joints; the canonical pose is its rest pose",
+            rig.name
+        );
+    }
+    if let Some(g) = &report.garment {
+        println!(
+            "garment: {} vertices matched the body, {} inpainted, {} kept closest-point weights (no match in their component); {} degenerate triangles dropped, {} non-manifold edges, {} unused vertices",
+            report.matched,
+            report.inpainted,
+            report.fallback,
+            g.degenerate_triangles,
+            g.non_manifold_edges,
+            g.unused_vertices
+        );
+    }
+    Ok(())
+}
+
+/// Write PNG pictures of a template's position maps.
+#[derive(Args, Debug)]
+pub struct PosmapsArgs {
+    /// Template (.npz) from `f3g template`.
+    #[arg(long)]
+    pub template: PathBuf,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Pixels per side of each (front, back) map.
+    #[arg(long, default_value_t = 256)]
+    pub resolution: usize,
+    /// Parameters of a frame to draw the posed maps of (JSON, smpl_params.npz or f3g .npz).
+    #[arg(long)]
+    pub params: Option<PathBuf>,
+    /// Frame of a sequence file.
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+}
+
+fn save(
+    path: &std::path::Path,
+    width: usize,
+    height: usize,
+    channels: usize,
+    data: Vec<f32>,
+) -> Result<()> {
+    f3g_io::write_png(
+        path,
+        &Image::from_vec(width, height, channels, data).map_err(anyhow::Error::msg)?,
+    )?;
+    Ok(())
+}
+
+pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
+    let (template, rig) = Template::load(&a.template)?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let maps = PositionMaps::build(&template, a.resolution, None)?;
+    let (w, h) = maps.size();
+    save(
+        &a.out.join("canonical.png"),
+        w,
+        h,
+        3,
+        maps.scatter(&position_colours(&maps.positions)),
+    )?;
+    let normals: Vec<[f32; 3]> = maps
+        .normals
+        .iter()
+        .map(|n| (*n * 0.5 + 0.5).to_array())
+        .collect();
+    save(&a.out.join("normals.png"), w, h, 3, maps.scatter(&normals))?;
+    save(
+        &a.out.join("mask.png"),
+        w,
+        h,
+        1,
+        maps.mask().iter().map(|&m| m as u8 as f32).collect(),
+    )?;
+    let head = HeadMaps::build(&maps, &rig.skeleton)?;
+    let hs = head.size;
+    save(
+        &a.out.join("head.png"),
+        2 * hs,
+        hs,
+        3,
+        head.scatter(&position_colours(&head.positions)),
+    )?;
+    if let Some(p) = &a.params {
+        let frames = sequence::read(p, &rig)?;
+        let frame = frames.get(a.frame).with_context(|| {
+            format!(
+                "{}: frame {} requested, the file has {}",
+                p.display(),
+                a.frame,
+                frames.len()
+            )
+        })?;
+        let poser = Poser::new(&rig, &template)?;
+        let posed = posed_positions(&poser, &maps, frame)?;
+        save(
+            &a.out.join("posed.png"),
+            w,
+            h,
+            3,
+            maps.scatter(&position_colours(&posed)),
+        )?;
+        let posed_head = poser.pose_points(&head.positions, &head.skin, frame, false)?;
+        save(
+            &a.out.join("head_posed.png"),
+            2 * hs,
+            hs,
+            3,
+            head.scatter(&position_colours(&posed_head)),
+        )?;
+    }
+    println!(
+        "{} Gaussians on {}×{} maps; head crop {:?} densified to {} face Gaussians on {}×{} head maps; pictures in {}",
+        maps.len(),
+        h,
+        w,
+        head.crop,
+        head.len(),
+        hs,
+        2 * hs,
+        a.out.display()
+    );
+    Ok(())
+}
