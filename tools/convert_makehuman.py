@@ -15,7 +15,7 @@ Kept geometry (everything else, e.g. joint cubes, tights, eyelashes, genital hel
 - `body`: the skin surface;
 - `eye_l`, `eye_r`: eyeballs (the body has only sockets; a face-focused avatar needs eyes);
 - `teeth_upper`, `teeth_lower`, `tongue`: visible when the jaw opens;
-- `skirt`: the skirt helper, a garment that does not hug the body.
+- `skirt`: the skirt helper cut to a hem above the knees, a garment that does not hug the body.
 The hair helper is dropped too: it is a long-hair proxy that hangs over the face, which would
 hide exactly what a face-focused avatar must show (the synthetic capture paints hair on the scalp).
 """
@@ -38,6 +38,9 @@ PARTS = [
 ]
 MAX_INFLUENCES = 8
 DM_TO_M = 0.1
+# The skirt helper reaches the ankles; it is cut to a hem above the knees (metres, rest pose)
+# so the synthetic capture shows both a loose garment and the legs.
+SKIRT_HEM_Y = -0.25
 RACES = ["african", "asian", "caucasian"]
 
 
@@ -110,6 +113,9 @@ def main(src, out):
     part_of = np.full(count, -1)
     for part_id, (_, group) in enumerate(PARTS):
         part_of[group_indices(groups, group)] = part_id
+    skirt_id = [p for p, _ in PARTS].index("skirt")
+    rest_y = (vertices[:, 1] + default[:, 1]) * DM_TO_M
+    part_of[(part_of == skirt_id) & (rest_y < SKIRT_HEM_Y)] = -1
     keep = np.nonzero(part_of >= 0)[0]
     new_index = np.full(count, -1)
     new_index[keep] = np.arange(len(keep))

@@ -1,6 +1,7 @@
 //! `f3g`: train, evaluate, animate and export face-focused full-body Gaussian avatars.
 
 mod bench;
+mod data;
 mod memory;
 mod render_ply;
 mod rig;
@@ -27,6 +28,11 @@ enum Command {
     /// Body models: pose and inspect them, convert parameters between them.
     #[command(subcommand)]
     Rig(rig::RigCommand),
+    /// Render a synthetic multi-view capture of the built-in human.
+    Synth(data::SynthArgs),
+    /// Captures: validate them, look at them.
+    #[command(subcommand)]
+    Data(data::DataCommand),
     /// Build a canonical clothed template (body model in the canonical pose + garment).
     Template(template::TemplateArgs),
     /// Write PNG pictures of a template's position maps (canonical, posed, head, mask).
@@ -41,6 +47,8 @@ fn main() -> Result<()> {
     match cli.command {
         Command::RenderPly(args) => render_ply::run(&args),
         Command::Rig(cmd) => rig::run(&cmd),
+        Command::Synth(args) => data::synth(&args),
+        Command::Data(cmd) => data::run(&cmd),
         Command::Template(args) => template::run(&args),
         Command::Posmaps(args) => template::posmaps(&args),
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),

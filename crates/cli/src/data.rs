@@ -1,0 +1,153 @@
+//! `f3g synth` and `f3g data`: make, check and look at captures.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+use f3g_data::synth::{SynthOptions, generate};
+use f3g_data::{Dataset, check};
+use f3g_rig::ModelSpec;
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Render a synthetic multi-view capture of the built-in human (AvatarReX layout).
+#[derive(Args, Debug)]
+pub struct SynthArgs {
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Number of cameras in the ring.
+    #[arg(long)]
+    pub cameras: Option<usize>,
+    /// Number of frames.
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// Image height in pixels (width is 3/4 of it).
+    #[arg(long)]
+    pub resolution: Option<usize>,
+    /// Camera elevation, degrees.
+    #[arg(long)]
+    pub elevation: Option<f32>,
+    /// Seed of the motion and the camera jitter.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// `paper`: AvatarReX scale (16 cameras, 1536×2048, 2000 frames); defaults otherwise
+    /// (16 cameras, 576×768, 40 frames).
+    #[arg(long)]
+    pub preset: Option<String>,
+}
+
+pub fn synth(a: &SynthArgs) -> Result<()> {
+    let mut options = match a.preset.as_deref() {
+        None => SynthOptions::default(),
+        Some("paper") => SynthOptions::paper(),
+        Some(other) => bail!("unknown --preset `{other}`: the only preset is `paper`"),
+    };
+    options.cameras = a.cameras.unwrap_or(options.cameras);
+    options.frames = a.frames.unwrap_or(options.frames);
+    options.resolution = a.resolution.unwrap_or(options.resolution);
+    options.elevation_deg = a.elevation.unwrap_or(options.elevation_deg);
+    options.seed = a.seed;
+    let bar = ProgressBar::new(options.frames as u64).with_style(ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} frames × {msg} [{elapsed} < {eta}]",
+    )?);
+    bar.set_message(format!("{} cameras", options.cameras));
+    let start = std::time::Instant::now();
+    generate(&a.out, &options, &|f| bar.set_position(f as u64))?;
+    bar.finish_and_clear();
+    println!(
+        "wrote {} frames × {} cameras at {}×{} to {} in {:.1} s",
+        options.frames,
+        options.cameras,
+        options.resolution * 3 / 4,
+        options.resolution,
+        a.out.display(),
+        start.elapsed().as_secs_f32()
+    );
+    Ok(())
+}
+
+/// Captures.
+#[derive(Subcommand, Debug)]
+pub enum DataCommand {
+    /// Validate a capture: cameras, image and mask sizes, decodability, body parameters.
+    Check(CheckArgs),
+    /// Write a contact sheet of all cameras of one frame with the face boxes drawn.
+    Show(ShowArgs),
+}
+
+/// Options of `f3g data check`.
+#[derive(Args, Debug)]
+pub struct CheckArgs {
+    /// Capture folder.
+    pub dir: PathBuf,
+    /// Body model for smpl_params.npz (smplx:MODEL.npz).
+    #[arg(long)]
+    pub model: Option<ModelSpec>,
+    /// Decode every N-th frame fully (1 decodes everything; headers are always checked).
+    #[arg(long, default_value_t = 10)]
+    pub decode_every: usize,
+    /// Also write the report as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Options of `f3g data show`.
+#[derive(Args, Debug)]
+pub struct ShowArgs {
+    /// Capture folder.
+    pub dir: PathBuf,
+    /// Frame to show.
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Body model for smpl_params.npz (smplx:MODEL.npz).
+    #[arg(long)]
+    pub model: Option<ModelSpec>,
+    /// Width of each camera's thumbnail.
+    #[arg(long, default_value_t = 256)]
+    pub thumb: usize,
+}
+
+pub fn run(cmd: &DataCommand) -> Result<()> {
+    match cmd {
+        DataCommand::Check(a) => {
+            let ds = Dataset::open(&a.dir, a.model.as_ref())?;
+            let r = check::check(&ds, a.decode_every);
+            println!(
+                "{}: {} layout, model {}, {} cameras, {} frames; {} images present ({} decoded), {} missing",
+                a.dir.display(),
+                r.layout,
+                r.model,
+                r.cameras,
+                r.frames,
+                r.images_present,
+                r.images_decoded,
+                r.images_missing
+            );
+            for w in &r.warnings {
+                println!("warning: {w}");
+            }
+            for e in r.errors.iter().take(20) {
+                println!("error: {e}");
+            }
+            if let Some(path) = &a.json {
+                f3g_io::write_atomic(path, serde_json::to_string_pretty(&r)?.as_bytes())?;
+            }
+            if !r.errors.is_empty() {
+                bail!("{} problems found (first 20 shown)", r.errors.len());
+            }
+            println!("ok");
+            Ok(())
+        }
+        DataCommand::Show(a) => {
+            let ds = Dataset::open(&a.dir, a.model.as_ref())?;
+            let sheet = check::contact_sheet(&ds, a.frame, a.thumb, 1.3)
+                .with_context(|| format!("drawing frame {}", a.frame))?;
+            f3g_io::write_png(&a.out, &sheet)?;
+            println!("wrote {}", a.out.display());
+            Ok(())
+        }
+    }
+}

@@ -1,0 +1,205 @@
+//! Image operations on `[H, W, C]` f32 images: resizing with matching intrinsics,
+//! crop-and-resize, mask morphology, drawing.
+
+use f3g_io::Image;
+use f3g_splat::Camera;
+
+/// Resizes to `width × height` (triangle filter, i.e. bilinear with area averaging when
+/// shrinking).
+pub fn resize(img: &Image, width: usize, height: usize) -> Image {
+    use image::imageops::{FilterType, resize as resize_buffer};
+    let data = match img.channels {
+        1 => {
+            let buf = image::ImageBuffer::<image::Luma<f32>, Vec<f32>>::from_raw(
+                img.width as u32,
+                img.height as u32,
+                img.data.clone(),
+            )
+            .expect("sized buffer");
+            resize_buffer(&buf, width as u32, height as u32, FilterType::Triangle).into_raw()
+        }
+        _ => {
+            let buf = image::ImageBuffer::<image::Rgb<f32>, Vec<f32>>::from_raw(
+                img.width as u32,
+                img.height as u32,
+                img.data.clone(),
+            )
+            .expect("sized buffer");
+            resize_buffer(&buf, width as u32, height as u32, FilterType::Triangle).into_raw()
+        }
+    };
+    Image {
+        width,
+        height,
+        channels: img.channels,
+        data,
+    }
+}
+
+/// The camera of an image resized from the camera's size to `width × height`: pixel
+/// coordinates scale by `width / W` and `height / H` (exact, since pixel centres are at i + 0.5).
+pub fn resized_camera(camera: &Camera, width: usize, height: usize) -> Camera {
+    let (sx, sy) = (
+        width as f64 / camera.width as f64,
+        height as f64 / camera.height as f64,
+    );
+    let mut c = camera.clone();
+    c.k[0][0] *= sx;
+    c.k[0][2] *= sx;
+    c.k[1][1] *= sy;
+    c.k[1][2] *= sy;
+    c.width = width as u32;
+    c.height = height as u32;
+    c
+}
+
+/// Size of an image scaled by `scale` (at least 1×1).
+pub fn scaled_size(width: usize, height: usize, scale: f32) -> (usize, usize) {
+    (
+        ((width as f32 * scale).round() as usize).max(1),
+        ((height as f32 * scale).round() as usize).max(1),
+    )
+}
+
+/// Bilinear sample at continuous pixel coordinates (pixel centres at i + 0.5); `fill` outside.
+fn sample(img: &Image, x: f32, y: f32, fill: &[f32], out: &mut [f32]) {
+    let (fx, fy) = (x - 0.5, y - 0.5);
+    let (x0, y0) = (fx.floor(), fy.floor());
+    let (tx, ty) = (fx - x0, fy - y0);
+    out.iter_mut().for_each(|o| *o = 0.0);
+    for (dx, dy, w) in [
+        (0, 0, (1.0 - tx) * (1.0 - ty)),
+        (1, 0, tx * (1.0 - ty)),
+        (0, 1, (1.0 - tx) * ty),
+        (1, 1, tx * ty),
+    ] {
+        let (xi, yi) = (x0 as i64 + dx, y0 as i64 + dy);
+        let inside = xi >= 0 && yi >= 0 && (xi as usize) < img.width && (yi as usize) < img.height;
+        for c in 0..img.channels {
+            let v = if inside {
+                img.data[(yi as usize * img.width + xi as usize) * img.channels + c]
+            } else {
+                fill[c]
+            };
+            out[c] += w * v;
+        }
+    }
+}
+
+/// A square crop: top-left `(x0, y0)` and side in source pixels, resampled to `size × size`
+/// (bilinear; `fill` outside the image). Use [`Camera::crop_resize`] with
+/// `scale = size / side` for its intrinsics.
+pub fn crop_resize(img: &Image, x0: f32, y0: f32, side: f32, size: usize, fill: &[f32]) -> Image {
+    let scale = side / size as f32;
+    let mut out = Image::filled(size, size, img.channels, 0.0);
+    for j in 0..size {
+        for i in 0..size {
+            let (x, y) = (x0 + (i as f32 + 0.5) * scale, y0 + (j as f32 + 0.5) * scale);
+            let at = (j * size + i) * img.channels;
+            sample(img, x, y, fill, &mut out.data[at..at + img.channels]);
+        }
+    }
+    out
+}
+
+/// Square dilation (`grow`) or erosion of a boolean mask with a `(2r+1)²` window.
+pub fn morph(mask: &[bool], width: usize, height: usize, r: usize, grow: bool) -> Vec<bool> {
+    let pass = |src: &[bool], horizontal: bool| -> Vec<bool> {
+        let mut out = vec![false; src.len()];
+        for y in 0..height {
+            for x in 0..width {
+                let (lo, hi) = if horizontal {
+                    (x.saturating_sub(r), (x + r).min(width - 1))
+                } else {
+                    (y.saturating_sub(r), (y + r).min(height - 1))
+                };
+                let at = |k: usize| {
+                    if horizontal {
+                        src[y * width + k]
+                    } else {
+                        src[k * width + x]
+                    }
+                };
+                out[y * width + x] = if grow {
+                    (lo..=hi).any(at)
+                } else {
+                    (lo..=hi).all(at)
+                };
+            }
+        }
+        out
+    };
+    pass(&pass(mask, true), false)
+}
+
+/// Draws a rectangle outline (thickness 2) on an RGB image.
+pub fn draw_box(img: &mut Image, x0: f32, y0: f32, x1: f32, y1: f32, colour: [f32; 3]) {
+    let (w, h) = (img.width as i64, img.height as i64);
+    let (x0, y0, x1, y1) = (
+        x0.round() as i64,
+        y0.round() as i64,
+        x1.round() as i64,
+        y1.round() as i64,
+    );
+    let mut put = |x: i64, y: i64| {
+        if x >= 0 && y >= 0 && x < w && y < h {
+            img.pixel_mut(x as usize, y as usize)[..3].copy_from_slice(&colour);
+        }
+    };
+    for t in 0..2 {
+        for x in x0..=x1 {
+            put(x, y0 + t);
+            put(x, y1 - t);
+        }
+        for y in y0..=y1 {
+            put(x0 + t, y);
+            put(x1 - t, y);
+        }
+    }
+}
+
+/// Pastes `tile` into `canvas` at `(x, y)` (RGB).
+pub fn paste(canvas: &mut Image, tile: &Image, x: usize, y: usize) {
+    for j in 0..tile.height.min(canvas.height.saturating_sub(y)) {
+        for i in 0..tile.width.min(canvas.width.saturating_sub(x)) {
+            let src = tile.pixel(i, j);
+            let rgb = if tile.channels == 1 {
+                [src[0]; 3]
+            } else {
+                [src[0], src[1], src[2]]
+            };
+            canvas.pixel_mut(x + i, y + j)[..3].copy_from_slice(&rgb);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn crop_resize_samples_where_the_camera_says() {
+        // A horizontal ramp: value = x coordinate of the pixel centre / width.
+        let (w, h) = (40, 30);
+        let data: Vec<f32> = (0..w * h)
+            .flat_map(|p| [((p % w) as f32 + 0.5) / w as f32; 3])
+            .collect();
+        let img = Image::from_vec(w, h, 3, data).unwrap();
+        let crop = crop_resize(&img, 10.0, 5.0, 20.0, 10, &[0.0; 3]);
+        // Output pixel i samples x = 10 + (i + 0.5)·2.
+        for i in 1..9 {
+            let expected = (10.0 + (i as f32 + 0.5) * 2.0) / w as f32;
+            assert!((crop.pixel(i, 4)[0] - expected).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn morphology() {
+        let (w, h) = (7, 7);
+        let mut m = vec![false; w * h];
+        m[3 * w + 3] = true;
+        let grown = morph(&m, w, h, 1, true);
+        assert_eq!(grown.iter().filter(|x| **x).count(), 9);
+        assert_eq!(morph(&grown, w, h, 1, false), m);
+    }
+}
