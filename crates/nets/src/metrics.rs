@@ -1,0 +1,164 @@
+//! Image metrics as the field reports them, and their differentiable losses.
+//!
+//! - **SSIM** as 3DGS computes it: an 11-tap Gaussian window (σ = 1.5) applied separably with
+//!   zero padding, `C1 = 0.01²`, `C2 = 0.03²`, the map averaged over all pixels and channels.
+//!   (scikit-image gives the same number on images zero-padded by 5 pixels with
+//!   `gaussian_weights=True, use_sample_covariance=False, data_range=1`.)
+//! - **PSNR** `= 20 · log10(1 / √MSE)` over all pixels and channels.
+//! - **D-SSIM** loss `1 − SSIM`; **L1**.
+//!
+//! Tensors are `[B, C, H, W]` in `[0, 1]`; host images are [`f3g_io::Image`] `[H, W, C]`.
+
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::NetsError;
+use f3g_io::Image;
+
+const WINDOW: usize = 11;
+const SIGMA: f64 = 1.5;
+const C1: f32 = 0.01 * 0.01;
+const C2: f32 = 0.03 * 0.03;
+
+fn gaussian_taps() -> Vec<f32> {
+    let half = (WINDOW / 2) as f64;
+    let g: Vec<f64> = (0..WINDOW)
+        .map(|i| (-(i as f64 - half).powi(2) / (2.0 * SIGMA * SIGMA)).exp())
+        .collect();
+    let s: f64 = g.iter().sum();
+    g.iter().map(|v| (v / s) as f32).collect()
+}
+
+/// Separable Gaussian filtering of every channel with zero padding.
+fn filter(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    let device = x.device();
+    let taps = gaussian_taps();
+    let horizontal =
+        Tensor::<4>::from_data(TensorData::new(taps.clone(), [1, 1, 1, WINDOW]), &device);
+    let vertical = Tensor::<4>::from_data(TensorData::new(taps, [1, 1, WINDOW, 1]), &device);
+    let p = WINDOW / 2;
+    let x = x.reshape([b * c, 1, h, w]);
+    let x = conv2d(
+        x,
+        horizontal,
+        None,
+        ConvOptions::new([1, 1], [0, p], [1, 1], 1),
+    );
+    let x = conv2d(
+        x,
+        vertical,
+        None,
+        ConvOptions::new([1, 1], [p, 0], [1, 1], 1),
+    );
+    x.reshape([b, c, h, w])
+}
+
+/// SSIM of each image pair: `[B]`.
+pub fn ssim(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
+    let [batch, c, h, w] = a.dims();
+    let mu1 = filter(a.clone());
+    let mu2 = filter(b.clone());
+    let mu1_sq = mu1.clone().powf_scalar(2.0);
+    let mu2_sq = mu2.clone().powf_scalar(2.0);
+    let mu12 = mu1 * mu2;
+    let s1 = filter(a.clone().powf_scalar(2.0)) - mu1_sq.clone();
+    let s2 = filter(b.clone().powf_scalar(2.0)) - mu2_sq.clone();
+    let s12 = filter(a * b) - mu12.clone();
+    let map = ((mu12 * 2.0 + C1) * (s12 * 2.0 + C2)) / ((mu1_sq + mu2_sq + C1) * (s1 + s2 + C2));
+    map.reshape([batch, c * h * w]).mean_dim(1).reshape([batch])
+}
+
+/// The D-SSIM loss `1 − SSIM`, averaged over the batch.
+pub fn dssim_loss(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
+    (ssim(a, b) * -1.0 + 1.0).mean()
+}
+
+/// Mean absolute error.
+pub fn l1_loss(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
+    (a - b).abs().mean()
+}
+
+/// PSNR of two host images of the same shape (values in `[0, 1]`); `+∞` when identical.
+pub fn psnr(a: &Image, b: &Image) -> Result<f64, NetsError> {
+    same_shape(a, b)?;
+    let mse = a
+        .data
+        .iter()
+        .zip(&b.data)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.data.len() as f64;
+    Ok(20.0 * (1.0 / mse.sqrt()).log10())
+}
+
+/// SSIM of two host images of the same shape.
+pub fn ssim_images(a: &Image, b: &Image) -> Result<f64, NetsError> {
+    same_shape(a, b)?;
+    let device = Device::flex();
+    let value = ssim(image_tensor(a, &device), image_tensor(b, &device));
+    Ok(value.into_data().try_into_vec::<f32>().expect("f32")[0] as f64)
+}
+
+/// A host image `[H, W, C]` as a `[1, C, H, W]` tensor.
+pub fn image_tensor(img: &Image, device: &Device) -> Tensor<4> {
+    Tensor::<3>::from_data(
+        TensorData::new(img.data.clone(), [img.height, img.width, img.channels]),
+        device,
+    )
+    .permute([2, 0, 1])
+    .unsqueeze()
+}
+
+/// A `[1, C, H, W]` or `[C, H, W]`-like tensor back to a host image `[H, W, C]`.
+pub fn tensor_image(t: Tensor<4>) -> Image {
+    let [_, c, h, w] = t.dims();
+    let data = t
+        .slice([0..1, 0..c, 0..h, 0..w])
+        .reshape([c, h, w])
+        .permute([1, 2, 0])
+        .into_data()
+        .try_into_vec::<f32>()
+        .expect("f32 tensor");
+    Image {
+        width: w,
+        height: h,
+        channels: c,
+        data,
+    }
+}
+
+fn same_shape(a: &Image, b: &Image) -> Result<(), NetsError> {
+    if (a.width, a.height, a.channels) != (b.width, b.height, b.channels) {
+        return Err(NetsError::Input(format!(
+            "images differ in size: {}×{}×{} and {}×{}×{}",
+            a.width, a.height, a.channels, b.width, b.height, b.channels
+        )));
+    }
+    if a.data.iter().chain(&b.data).any(|v| !v.is_finite()) {
+        return Err(NetsError::Input("an image has non-finite values".into()));
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn identical_images_score_perfectly() {
+        let img =
+            Image::from_vec(20, 16, 3, (0..960).map(|i| (i % 7) as f32 / 7.0).collect()).unwrap();
+        assert!(psnr(&img, &img).unwrap().is_infinite());
+        assert!((ssim_images(&img, &img).unwrap() - 1.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn psnr_of_a_constant_offset() {
+        let a = Image::filled(8, 8, 3, 0.5);
+        let b = Image::filled(8, 8, 3, 0.6);
+        assert!((psnr(&a, &b).unwrap() - 20.0).abs() < 1e-4);
+        assert!(psnr(&a, &Image::filled(8, 9, 3, 0.5)).is_err());
+    }
+}

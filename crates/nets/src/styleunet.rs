@@ -1,0 +1,404 @@
+//! The DualStyleUNet of Animatable Gaussians / F3G-Avatar: one encoder, two StyleGAN2-style
+//! decoders (front and back), output in the Haar domain.
+//!
+//! ```text
+//! input [B, in, S, S] ── ConvLayer ↓ ─▶ S/2 ─┬─ (+FromRGB) ─ ConvBlock ↓ ─▶ S/4 … ─▶ middle
+//!                                           skips at S/2, S/4, …, middle
+//! decoder (×2): x = skip(middle); for r = middle … O/4:
+//!     x = comb_r(x ‖ skip_r) → StyledConv ↑ (2r) → StyledConv → [+ view features at S/2]
+//!     rgb = ToRGB(x, rgb)   (4·out Haar sub-bands at 2r)
+//! output = inverse Haar(rgb): [B, out, O, O], O = S or 2S
+//! ```
+//!
+//! Channels per resolution follow StyleGAN2: `min(max_channels, channel_base · cm / r)`
+//! (paper values: base 16384, max 512, so cm 2 gives 512 up to 64², then 256, 128, 64, 32).
+//! The style is a constant `1/√d` vector through the learned mapping network, the same for every
+//! layer (n_latent collapses to one w); noise maps are fixed. The optional view branch (the
+//! colour networks) turns a map of `n · v` per side into features added to that side's decoder
+//! where its features reach `S/2` (AG adds them at 256² for S = 512).
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+
+use crate::NetsError;
+use crate::layers::{
+    ConvLayer, EqualConv2d, Init, Mapping, StyledConv, ToRgb, fused_lrelu, inverse_haar, resize,
+};
+use burn::module::Param;
+use burn::tensor::activation::leaky_relu;
+
+/// Architecture of a [`DualStyleUNet`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StyleUNetConfig {
+    /// Side of the input maps (a power of two).
+    pub input_size: usize,
+    /// Side of each output map: `input_size` or `2 · input_size`.
+    pub output_size: usize,
+    pub in_channels: usize,
+    /// Output channels per side.
+    pub out_channels: usize,
+    pub channel_multiplier: usize,
+    /// `channels(r) = min(max_channels, channel_base · channel_multiplier / r)`.
+    pub channel_base: usize,
+    pub max_channels: usize,
+    pub style_dim: usize,
+    /// Depth of the mapping network.
+    pub n_mlp: usize,
+    /// Resolution of the bottleneck.
+    pub middle_size: usize,
+    /// Adds the view-direction branch (colour networks).
+    pub view_conditioned: bool,
+}
+
+impl StyleUNetConfig {
+    /// The paper's body network: 512 → 1024, cm 2, style 512, n_mlp 2.
+    pub fn paper_body(out_channels: usize, view_conditioned: bool) -> Self {
+        Self {
+            input_size: 512,
+            output_size: 1024,
+            in_channels: 3,
+            out_channels,
+            channel_multiplier: 2,
+            channel_base: 16384,
+            max_channels: 512,
+            style_dim: 512,
+            n_mlp: 2,
+            middle_size: 8,
+            view_conditioned,
+        }
+    }
+
+    /// The paper's face network: 256 → 256, cm 1, style 256, n_mlp 2.
+    pub fn paper_face(out_channels: usize, view_conditioned: bool) -> Self {
+        Self {
+            input_size: 256,
+            output_size: 256,
+            channel_multiplier: 1,
+            style_dim: 256,
+            ..Self::paper_body(out_channels, view_conditioned)
+        }
+    }
+
+    /// The CPU body network of the demo: 64 → 128, at most 64 channels.
+    pub fn cpu_body(out_channels: usize, view_conditioned: bool) -> Self {
+        Self {
+            input_size: 64,
+            output_size: 128,
+            in_channels: 3,
+            out_channels,
+            channel_multiplier: 1,
+            channel_base: 2048,
+            max_channels: 64,
+            style_dim: 64,
+            n_mlp: 2,
+            middle_size: 8,
+            view_conditioned,
+        }
+    }
+
+    /// The CPU face network of the demo: 32 → 32, at most 64 channels.
+    pub fn cpu_face(out_channels: usize, view_conditioned: bool) -> Self {
+        Self {
+            input_size: 32,
+            output_size: 32,
+            channel_base: 1024,
+            middle_size: 4,
+            ..Self::cpu_body(out_channels, view_conditioned)
+        }
+    }
+
+    /// Channels of the features at resolution `r`.
+    pub fn channels(&self, r: usize) -> usize {
+        (self.channel_base * self.channel_multiplier / r).clamp(1, self.max_channels)
+    }
+
+    /// Checks every field, naming the first bad one.
+    pub fn validate(&self) -> Result<(), NetsError> {
+        let pow2 = |v: usize| v >= 4 && v.is_power_of_two();
+        if !pow2(self.input_size) {
+            return Err(NetsError::config(
+                "input_size",
+                format!("{} is not a power of two ≥ 4", self.input_size),
+            ));
+        }
+        if self.output_size != self.input_size && self.output_size != 2 * self.input_size {
+            return Err(NetsError::config(
+                "output_size",
+                format!(
+                    "{} must equal input_size ({}) or twice it",
+                    self.output_size, self.input_size
+                ),
+            ));
+        }
+        if !pow2(self.middle_size) || self.middle_size > self.output_size / 4 {
+            return Err(NetsError::config(
+                "middle_size",
+                format!(
+                    "{} must be a power of two in [4, output_size / 4 = {}]",
+                    self.middle_size,
+                    self.output_size / 4
+                ),
+            ));
+        }
+        if self.middle_size > self.input_size / 4 {
+            return Err(NetsError::config(
+                "middle_size",
+                format!("{} exceeds input_size / 4", self.middle_size),
+            ));
+        }
+        for (field, v) in [
+            ("in_channels", self.in_channels),
+            ("out_channels", self.out_channels),
+            ("channel_multiplier", self.channel_multiplier),
+            ("channel_base", self.channel_base),
+            ("max_channels", self.max_channels),
+            ("style_dim", self.style_dim),
+        ] {
+            if v == 0 {
+                return Err(NetsError::config(field, "must be at least 1"));
+            }
+        }
+        if self.n_mlp > 16 {
+            return Err(NetsError::config("n_mlp", "more than 16 layers"));
+        }
+        Ok(())
+    }
+
+    /// Builds the network with weights drawn from `seed`.
+    pub fn init(&self, seed: u64, device: &Device) -> Result<DualStyleUNet, NetsError> {
+        self.validate()?;
+        let mut init = Init::new(seed, device);
+        let s = self.input_size;
+        let ch = |r| self.channels(r);
+        let conv_in = ConvLayer::new(&mut init, [self.in_channels, ch(s / 2)], 3, true, true);
+        let mut from_rgb = Vec::new();
+        let mut encoder = Vec::new();
+        let mut r = s / 2;
+        while r > self.middle_size {
+            from_rgb.push(FromRgb {
+                conv: EqualConv2d::new(&mut init, [self.in_channels, ch(r)], 1, 1, 0, false),
+                bias: init.constant([ch(r)], 0.0),
+            });
+            encoder.push(ConvBlock {
+                conv1: ConvLayer::new(&mut init, [ch(r), ch(r)], 3, false, true),
+                conv2: ConvLayer::new(&mut init, [ch(r), ch(r / 2)], 3, true, true),
+            });
+            r /= 2;
+        }
+        let front = Decoder::new(&mut init, self);
+        let back = Decoder::new(&mut init, self);
+        let view = self.view_conditioned.then(|| {
+            let c = ch(s / 2);
+            ViewBranch {
+                conv1: EqualConv2d::new(&mut init, [1, (c / 2).max(1)], 4, 2, 1, true),
+                conv2: EqualConv2d::new(&mut init, [(c / 2).max(1), c], 4, 2, 1, true),
+            }
+        });
+        let style_dim = self.style_dim;
+        Ok(DualStyleUNet {
+            mapping: Mapping::new(&mut init, style_dim, self.n_mlp, 0.01),
+            conv_in,
+            from_rgb,
+            encoder,
+            front,
+            back,
+            view,
+            config_json: serde_json::to_string(self).expect("serialisable config"),
+        })
+    }
+}
+
+/// Adds the area-downsampled raw input to the encoder features.
+#[derive(Module, Debug)]
+pub struct FromRgb {
+    pub conv: EqualConv2d,
+    pub bias: Param<Tensor<1>>,
+}
+
+/// Two 3×3 convolutions, the second halving the resolution.
+#[derive(Module, Debug)]
+pub struct ConvBlock {
+    pub conv1: ConvLayer,
+    pub conv2: ConvLayer,
+}
+
+/// One decoder level.
+#[derive(Module, Debug)]
+pub struct DecoderBlock {
+    pub comb: ConvLayer,
+    pub up: StyledConv,
+    pub conv: StyledConv,
+    pub to_rgb: ToRgb,
+}
+
+/// A decoder: levels from the bottleneck to `output_size / 2`.
+#[derive(Module, Debug)]
+pub struct Decoder {
+    pub blocks: Vec<DecoderBlock>,
+}
+
+impl Decoder {
+    fn new(init: &mut Init, c: &StyleUNetConfig) -> Self {
+        let ch = |r| c.channels(r);
+        let mut blocks = Vec::new();
+        let mut r = c.middle_size;
+        while r <= c.output_size / 4 {
+            let comb_in = if r == c.middle_size { ch(r) } else { 2 * ch(r) };
+            blocks.push(DecoderBlock {
+                comb: ConvLayer::new(init, [comb_in, ch(r)], 3, false, true),
+                up: StyledConv::new(init, [ch(r), ch(2 * r)], c.style_dim, true, 2 * r),
+                conv: StyledConv::new(init, [ch(2 * r), ch(2 * r)], c.style_dim, false, 2 * r),
+                to_rgb: ToRgb::new(init, ch(2 * r), c.out_channels, c.style_dim),
+            });
+            r *= 2;
+        }
+        Self { blocks }
+    }
+
+    fn forward(
+        &self,
+        skips: &[Tensor<4>],
+        style: Tensor<2>,
+        view: Option<Tensor<4>>,
+        view_level: usize,
+    ) -> Tensor<4> {
+        // skips[k] is at resolution middle · 2^(levels − 1 − k)… stored from large to small.
+        let mut x = skips.last().expect("at least one skip").clone();
+        let mut rgb = None;
+        let mut view = view;
+        for (level, block) in self.blocks.iter().enumerate() {
+            if level > 0 {
+                let skip = skips[skips.len() - 1 - level].clone();
+                x = Tensor::cat(vec![x, skip], 1);
+            }
+            x = block.comb.forward(x);
+            x = block.up.forward(x, style.clone());
+            x = block.conv.forward(x, style.clone());
+            if level == view_level
+                && let Some(v) = view.take()
+            {
+                x = x + v;
+            }
+            rgb = Some(block.to_rgb.forward(x.clone(), style.clone(), rgb));
+        }
+        inverse_haar(rgb.expect("at least one decoder block"))
+    }
+}
+
+/// The view-direction branch: `n · v` map → two stride-2 4×4 convolutions.
+#[derive(Module, Debug)]
+pub struct ViewBranch {
+    pub conv1: EqualConv2d,
+    pub conv2: EqualConv2d,
+}
+
+/// The DualStyleUNet.
+#[derive(Module, Debug)]
+pub struct DualStyleUNet {
+    pub mapping: Mapping,
+    pub conv_in: ConvLayer,
+    pub from_rgb: Vec<FromRgb>,
+    pub encoder: Vec<ConvBlock>,
+    pub front: Decoder,
+    pub back: Decoder,
+    pub view: Option<ViewBranch>,
+    /// The configuration it was built from, so checkpoints can be checked against it.
+    config_json: String,
+}
+
+/// Front and back outputs, each `[B, out_channels, O, O]`.
+#[derive(Clone, Debug)]
+pub struct DualOutput {
+    pub front: Tensor<4>,
+    pub back: Tensor<4>,
+}
+
+impl DualStyleUNet {
+    /// The configuration the network was built with.
+    pub fn config(&self) -> StyleUNetConfig {
+        serde_json::from_str(&self.config_json).expect("written by init")
+    }
+
+    /// The constant style through the mapping network: `[1, style_dim]`.
+    fn style(&self, device: &Device) -> Tensor<2> {
+        let d = self.mapping_dim();
+        let z = Tensor::<2>::ones([1, d], device) / (d as f32).sqrt();
+        self.mapping.forward(z)
+    }
+
+    fn mapping_dim(&self) -> usize {
+        self.front.blocks[0].up.conv.modulation.weight.dims()[1]
+    }
+
+    /// Runs the network. `input`: `[B, in, S, S]`; `view`: `(front, back)` maps of `n · v`,
+    /// each `[B, 1, S, S]`, required exactly when the network is view-conditioned.
+    pub fn forward(
+        &self,
+        input: Tensor<4>,
+        view: Option<(Tensor<4>, Tensor<4>)>,
+    ) -> Result<DualOutput, NetsError> {
+        let c = self.config();
+        let [b, cin, h, w] = input.dims();
+        if [cin, h, w] != [c.in_channels, c.input_size, c.input_size] {
+            return Err(NetsError::Input(format!(
+                "StyleUNet input is [{b}, {cin}, {h}, {w}], expected [B, {}, {}, {}]",
+                c.in_channels, c.input_size, c.input_size
+            )));
+        }
+        if view.is_some() != self.view.is_some() {
+            return Err(NetsError::Input(if self.view.is_some() {
+                "this StyleUNet is view-conditioned: give the n·v maps".into()
+            } else {
+                "this StyleUNet takes no view maps".into()
+            }));
+        }
+        let device = input.device();
+        let style = self.style(&device);
+        let mut skips = Vec::new();
+        let mut x = self.conv_in.forward(input.clone());
+        let mut r = c.input_size / 2;
+        for (rgb, block) in self.from_rgb.iter().zip(&self.encoder) {
+            let small = resize_area(input.clone(), c.input_size / r);
+            x = x + fused_lrelu(rgb.conv.forward(small), rgb.bias.val());
+            skips.push(x.clone());
+            x = block.conv1.forward(x);
+            x = block.conv2.forward(x);
+            r /= 2;
+        }
+        skips.push(x);
+        // The decoder level whose output is at S/2.
+        let view_level = (c.input_size / 2 / c.middle_size).trailing_zeros() as usize - 1;
+        let (vf, vb) = match (&self.view, view) {
+            (Some(branch), Some((f, bk))) => {
+                let feat = |m: Tensor<4>| -> Result<Tensor<4>, NetsError> {
+                    let [mb, mc, mh, mw] = m.dims();
+                    if [mb, mc, mh, mw] != [b, 1, c.input_size, c.input_size] {
+                        return Err(NetsError::Input(format!(
+                            "view map is [{mb}, {mc}, {mh}, {mw}], expected [{b}, 1, {}, {}]",
+                            c.input_size, c.input_size
+                        )));
+                    }
+                    let y = leaky_relu(branch.conv1.forward(m), 0.2);
+                    let y = branch.conv2.forward(y);
+                    Ok(resize(y, c.input_size / 2, c.input_size / 2))
+                };
+                (Some(feat(f)?), Some(feat(bk)?))
+            }
+            _ => (None, None),
+        };
+        Ok(DualOutput {
+            front: self.front.forward(&skips, style.clone(), vf, view_level),
+            back: self.back.forward(&skips, style, vb, view_level),
+        })
+    }
+}
+
+/// Area down-sampling by an integer factor (average pooling).
+fn resize_area(x: Tensor<4>, factor: usize) -> Tensor<4> {
+    if factor == 1 {
+        return x;
+    }
+    burn::tensor::module::avg_pool2d(x, burn::tensor::ops::AvgPoolOptions::new([factor, factor]))
+}
