@@ -27,6 +27,9 @@ pub enum BenchCommand {
     Lbs(LbsBenchArgs),
     /// Forward and forward+backward time of the StyleUNets, LPIPS and the discriminator.
     Nets(crate::nets::NetsBenchArgs),
+    /// Train the cpu preset with and without the face branch on the synthetic capture and
+    /// compare body and head metrics on held-out cameras.
+    Quality(crate::demo::QualityArgs),
 }
 
 /// Options of `f3g bench lbs`.

@@ -1,7 +1,9 @@
 //! `f3g`: train, evaluate, animate and export face-focused full-body Gaussian avatars.
 
+mod avatar;
 mod bench;
 mod data;
+mod demo;
 mod memory;
 mod nets;
 mod render_ply;
@@ -24,6 +26,17 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
+    /// The whole pipeline on the built-in data: synthetic capture, training, evaluation,
+    /// animation and an HTML report (a few minutes on two cores).
+    Demo(demo::DemoArgs),
+    /// Train an avatar on a capture (or resume a run).
+    Train(avatar::TrainArgs),
+    /// Evaluate a trained avatar on held-out views or poses (body and head metrics).
+    Eval(avatar::EvalArgs),
+    /// Animate a trained avatar with a pose sequence (PNG frames, GIF, optional .ply).
+    Animate(avatar::AnimateArgs),
+    /// Write a trained avatar's posed Gaussians as a standard 3DGS .ply.
+    ExportPly(avatar::ExportPlyArgs),
     /// Render a standard 3DGS `.ply` from a camera JSON to PNG (and optionally `.npy`).
     RenderPly(render_ply::RenderPlyArgs),
     /// Body models: pose and inspect them, convert parameters between them.
@@ -51,6 +64,11 @@ enum Command {
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
+        Command::Demo(args) => demo::demo(&args),
+        Command::Train(args) => avatar::train(&args).map(|_| ()),
+        Command::Eval(args) => avatar::eval(&args).map(|_| ()),
+        Command::Animate(args) => avatar::animate(&args).map(|_| ()),
+        Command::ExportPly(args) => avatar::export_ply(&args),
         Command::RenderPly(args) => render_ply::run(&args),
         Command::Rig(cmd) => rig::run(&cmd),
         Command::Synth(args) => data::synth(&args),
@@ -60,6 +78,7 @@ fn main() -> Result<()> {
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
         Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
+        Command::Bench(bench::BenchCommand::Quality(args)) => demo::quality(&args),
         Command::Metrics(args) => nets::metrics(&args),
         Command::Weights(cmd) => nets::weights(&cmd),
     }

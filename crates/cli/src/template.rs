@@ -9,7 +9,7 @@ use f3g_rig::{ModelSpec, sequence};
 use f3g_template::canonical::CanonicalPose;
 use f3g_template::mesh::read_mesh;
 use f3g_template::posmap::position_colours;
-use f3g_template::template::{Template, submesh};
+use f3g_template::template::Template;
 use f3g_template::{HeadMaps, Poser, PositionMaps, TransferOptions, posed_positions};
 
 /// Build a canonical template: the body model in the canonical pose, optionally with a garment.
@@ -51,25 +51,6 @@ pub fn run(args: &TemplateArgs) -> Result<()> {
     build(&args.build)
 }
 
-/// The built-in human's skirt in the canonical pose, as a garment mesh.
-fn builtin_skirt(pose: &CanonicalPose) -> Result<f3g_rig::Mesh> {
-    let human = f3g_rig::builtin::load()?;
-    let (params, _) = f3g_template::canonical_params(&human.rig, pose);
-    let posed = human.rig.pose(&params)?;
-    let skirt = human
-        .part("skirt")
-        .context("the built-in human has a skirt part")?;
-    let keep: Vec<bool> = human.vertex_part.iter().map(|p| *p == skirt).collect();
-    Ok(submesh(
-        &f3g_rig::Mesh {
-            vertices: posed.vertices,
-            triangles: human.rig.mesh.triangles.clone(),
-        },
-        &keep,
-    )
-    .0)
-}
-
 fn build(a: &BuildArgs) -> Result<()> {
     let out = a.out.as_ref().context("--out is required")?;
     let pose = CanonicalPose {
@@ -84,7 +65,10 @@ fn build(a: &BuildArgs) -> Result<()> {
     };
     let garment = match a.clothes.as_deref() {
         None => None,
-        Some("builtin:skirt") => Some((builtin_skirt(&pose)?, PathBuf::from("builtin:skirt"))),
+        Some("builtin:skirt") => Some((
+            f3g_template::template::builtin_skirt(&pose)?,
+            PathBuf::from("builtin:skirt"),
+        )),
         Some(path) => {
             let path = PathBuf::from(path);
             Some((read_mesh(&path)?, path))

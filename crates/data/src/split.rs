@@ -35,6 +35,16 @@ impl std::str::FromStr for SplitKind {
     }
 }
 
+impl std::fmt::Display for SplitKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Train => "train",
+            Self::NovelView => "novel-view",
+            Self::NovelPose => "novel-pose",
+        })
+    }
+}
+
 /// Cameras and frames of a split.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Split {

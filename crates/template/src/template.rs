@@ -80,6 +80,26 @@ pub fn submesh(mesh: &Mesh, keep: &[bool]) -> (Mesh, Vec<usize>) {
     )
 }
 
+/// The built-in human's skirt helper in the canonical pose, as a garment mesh for
+/// [`Template::build`] (what `--clothes builtin:skirt` means).
+pub fn builtin_skirt(pose: &CanonicalPose) -> Result<Mesh, TemplateError> {
+    let human = f3g_rig::builtin::load()?;
+    let (params, _) = canonical_params(&human.rig, pose);
+    let posed = human.rig.pose(&params)?;
+    let skirt = human
+        .part("skirt")
+        .ok_or_else(|| TemplateError::Invalid("the built-in human has no skirt part".into()))?;
+    let keep: Vec<bool> = human.vertex_part.iter().map(|p| *p == skirt).collect();
+    Ok(submesh(
+        &Mesh {
+            vertices: posed.vertices,
+            triangles: human.rig.mesh.triangles.clone(),
+        },
+        &keep,
+    )
+    .0)
+}
+
 impl Template {
     /// The body alone in the canonical pose, or the body plus a garment mesh (aligned with the
     /// canonical body) whose skin weights are transferred from the body.

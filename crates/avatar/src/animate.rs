@@ -1,0 +1,202 @@
+//! Animation: a trained avatar driven by a pose sequence, seen by an orbiting or a fixed
+//! camera, written as PNG frames, an animated GIF and optionally 3DGS `.ply` files.
+
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::AvatarError;
+use crate::trained::TrainedAvatar;
+use f3g_io::Image;
+use f3g_rig::{ModelSpec, RigParams};
+use f3g_splat::Camera;
+
+/// Where the camera is.
+#[derive(Clone, Debug)]
+pub enum CameraPath {
+    /// Circles the subject `turns` times over the sequence, at `elevation_deg`, keeping the
+    /// posed body's centre in view.
+    Orbit { turns: f32, elevation_deg: f32 },
+    /// One calibrated camera (the `cam.json` format).
+    Fixed(Camera),
+}
+
+/// Animation settings.
+#[derive(Clone, Debug)]
+pub struct AnimateOptions {
+    pub camera: CameraPath,
+    /// Image size of the orbit camera (a fixed camera brings its own).
+    pub width: u32,
+    pub height: u32,
+    pub out: PathBuf,
+    pub export_ply: bool,
+    /// Frames per second of the GIF.
+    pub fps: f32,
+    /// Project poses onto the training poses' principal components (unseen poses).
+    pub use_pca: bool,
+    pub background: [f32; 3],
+}
+
+/// What was written.
+#[derive(Clone, Debug, Serialize)]
+pub struct AnimateReport {
+    pub frames: usize,
+    pub gif: PathBuf,
+    pub plys: Vec<PathBuf>,
+    pub seconds_per_frame: f64,
+}
+
+/// Reads a pose sequence for the avatar's body model: an f3g sequence (`.npz` naming its
+/// model, as `f3g synth` and `f3g rig fit` write), or an `smpl_params.npz` when the avatar is
+/// built on SMPL-X.
+pub fn read_motion(path: &Path, avatar: &TrainedAvatar) -> Result<Vec<RigParams>, AvatarError> {
+    let npz = f3g_io::Npz::open(path)?;
+    let frames = if npz.contains("model") {
+        f3g_rig::sequence::read(path, &avatar.setup.rig)?
+    } else if npz.contains("body_pose") {
+        if !matches!(avatar.setup.model, ModelSpec::Smplx(_)) {
+            return Err(AvatarError::file(
+                path,
+                format!(
+                    "holds SMPL-X parameters but the avatar's body model is `{}`: convert them with `f3g rig fit`",
+                    avatar.info.model
+                ),
+            ));
+        }
+        let p = f3g_rig::smplx::read_params(path)?;
+        (0..p.frames)
+            .map(|i| p.frame(i, &avatar.setup.rig))
+            .collect()
+    } else {
+        return Err(AvatarError::file(
+            path,
+            "not a pose sequence: expected an f3g body_params.npz or an smpl_params.npz",
+        ));
+    };
+    if frames.is_empty() {
+        return Err(AvatarError::file(path, "holds no frames"));
+    }
+    for (i, p) in frames.iter().enumerate() {
+        avatar
+            .setup
+            .check_params(p, &format!("{} frame {i}", path.display()))?;
+    }
+    Ok(frames)
+}
+
+/// The orbit camera of frame `i` of `n` around `centre`.
+pub fn orbit_camera(
+    centre: Vec3,
+    i: usize,
+    n: usize,
+    turns: f32,
+    elevation_deg: f32,
+    width: u32,
+    height: u32,
+) -> Camera {
+    let yaw = std::f32::consts::TAU * turns * i as f32 / n.max(1) as f32;
+    let e = elevation_deg.to_radians();
+    let distance = 3.0f32;
+    let eye = centre + distance * Vec3::new(yaw.sin() * e.cos(), e.sin(), yaw.cos() * e.cos());
+    // The 2 m tall view fills ~95 % of the image height.
+    let focal = 0.95 * height as f64 * distance as f64 / 2.0;
+    Camera::look_at(
+        eye.to_array().map(f64::from),
+        centre.to_array().map(f64::from),
+        [0.0, 1.0, 0.0],
+        focal,
+        width,
+        height,
+    )
+}
+
+/// Renders `motion` with the avatar of `run_dir`.
+pub fn animate(
+    avatar: &TrainedAvatar,
+    motion: &[RigParams],
+    options: &AnimateOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<AnimateReport, AvatarError> {
+    let frames_dir = options.out.join("frames");
+    std::fs::create_dir_all(&frames_dir).map_err(|e| AvatarError::file(&frames_dir, e))?;
+    let ply_dir = options.out.join("ply");
+    if options.export_ply {
+        std::fs::create_dir_all(&ply_dir).map_err(|e| AvatarError::file(&ply_dir, e))?;
+    }
+    let start = std::time::Instant::now();
+    let mut images = Vec::new();
+    let mut plys = Vec::new();
+    for (i, params) in motion.iter().enumerate() {
+        let camera = match &options.camera {
+            CameraPath::Fixed(c) => c.clone(),
+            CameraPath::Orbit {
+                turns,
+                elevation_deg,
+            } => {
+                let posed = avatar.setup.rig.pose(params)?;
+                let (lo, hi) = posed
+                    .vertices
+                    .iter()
+                    .fold((Vec3::MAX, Vec3::MIN), |(l, h), v| (l.min(*v), h.max(*v)));
+                orbit_camera(
+                    0.5 * (lo + hi),
+                    i,
+                    motion.len(),
+                    *turns,
+                    *elevation_deg,
+                    options.width,
+                    options.height,
+                )
+            }
+        };
+        let img = avatar.render(params, &camera, options.background, options.use_pca)?;
+        f3g_io::write_png(&frames_dir.join(format!("frame_{i:05}.png")), &img)?;
+        if options.export_ply {
+            let cloud = avatar.posed_cloud(params, &camera, options.use_pca)?;
+            let path = ply_dir.join(format!("frame_{i:05}.ply"));
+            f3g_splat::ply::write_ply(&path, &cloud)?;
+            plys.push(path);
+        }
+        images.push(img);
+        progress(i + 1, motion.len());
+    }
+    let gif = options.out.join("animation.gif");
+    write_gif(&gif, &images, options.fps)?;
+    Ok(AnimateReport {
+        frames: motion.len(),
+        gif,
+        plys,
+        seconds_per_frame: start.elapsed().as_secs_f64() / motion.len().max(1) as f64,
+    })
+}
+
+/// Writes frames as a looping animated GIF, atomically.
+pub fn write_gif(path: &Path, frames: &[Image], fps: f32) -> Result<(), AvatarError> {
+    use image::codecs::gif::{GifEncoder, Repeat};
+    use image::{Delay, Frame, RgbaImage};
+    let mut bytes = Vec::new();
+    {
+        let mut encoder = GifEncoder::new_with_speed(&mut bytes, 10);
+        encoder
+            .set_repeat(Repeat::Infinite)
+            .map_err(|e| AvatarError::file(path, e))?;
+        let delay = Delay::from_numer_denom_ms((1000.0 / fps.max(0.1)) as u32, 1);
+        for f in frames {
+            let rgba: Vec<u8> = f
+                .data
+                .chunks_exact(f.channels)
+                .flat_map(|p| {
+                    let c = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                    [c(p[0]), c(p[1 % f.channels]), c(p[2 % f.channels]), 255]
+                })
+                .collect();
+            let img =
+                RgbaImage::from_raw(f.width as u32, f.height as u32, rgba).expect("sized buffer");
+            encoder
+                .encode_frame(Frame::from_parts(img, 0, 0, delay))
+                .map_err(|e| AvatarError::file(path, e))?;
+        }
+    }
+    Ok(f3g_io::write_atomic(path, &bytes)?)
+}

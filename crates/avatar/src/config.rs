@@ -1,0 +1,462 @@
+//! The training configuration: one typed struct that is the config-file format (JSON), with
+//! the `cpu` and `paper` presets, overrides by dotted key, and validation naming the key.
+//!
+//! A config file holds any subset of the keys; it is merged over the preset it names
+//! (`"preset": "cpu"`, the default) and then checked: unknown keys and out-of-range values are
+//! errors. Overrides use the same dotted keys (`--set steps.joint=500`, values in JSON).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::AvatarError;
+use f3g_nets::{DiscriminatorConfig, LpipsNet, StyleUNetConfig};
+
+/// Which canonical template the avatar is built on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum TemplateChoice {
+    /// The body model's surface alone.
+    Body,
+    /// The body plus the capture's garment: the built-in human's skirt for the built-in body,
+    /// otherwise the mesh in `garment`.
+    Clothed,
+}
+
+/// Loss weights (the paper's λ values in the `paper` preset).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LossWeights {
+    pub l1: f32,
+    pub lpips: f32,
+    /// Mean offset length (metres) of the predicted positions from the canonical ones.
+    pub offset: f32,
+    pub face_l1: f32,
+    pub face_lpips: f32,
+    /// Non-saturating generator loss on face crops.
+    pub adversarial: f32,
+    /// R1 weight γ of the discriminator.
+    pub r1_gamma: f32,
+    /// R1 is applied every this many discriminator steps (lazy regularisation).
+    pub r1_interval: u64,
+}
+
+/// Steps of each training stage.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Stages {
+    /// Body network reconstructs the canonical attributes (no rendering).
+    pub pretrain: u64,
+    /// Body-only rendering (the pretrained body branch the face model is taken from).
+    pub body: u64,
+    /// Face networks learn zero residuals on the averaged canonical face model.
+    pub face_pretrain: u64,
+    /// Body and face branches with body and face losses.
+    pub joint: u64,
+    /// Face networks only.
+    pub face_finetune: u64,
+}
+
+impl Stages {
+    pub fn total(&self) -> u64 {
+        self.pretrain + self.body + self.face_pretrain + self.joint + self.face_finetune
+    }
+}
+
+/// Everything a training run needs besides the capture.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// The preset these values started from (informative).
+    pub preset: String,
+    pub seed: u64,
+    pub template: TemplateChoice,
+    /// Garment mesh for `template = clothed` with a body model other than the built-in one.
+    pub garment: Option<String>,
+    /// Side of each canonical position map (front and back), R.
+    pub map_resolution: usize,
+    /// Body StyleUNet: inputs the posed front and back maps (6 channels) at
+    /// `input_size = R / 2` and outputs `3 + 3 + 8` channels (offset, colour, opacity + scale +
+    /// rotation) per side at `R`; view-conditioned.
+    pub body_net: StyleUNetConfig,
+    /// Whether the face branch exists (`--no-face-branch` turns it off).
+    pub face_branch: bool,
+    /// The three face StyleUNets (their `out_channels` are set per network: 3, 3, 8).
+    pub face_net: StyleUNetConfig,
+    /// Side of the rendered face crops.
+    pub face_crop_size: usize,
+    /// Face crop box enlargement around the projected head.
+    pub face_padding: f32,
+    /// Scale of the body views relative to the capture's images.
+    pub body_scale: f32,
+    pub lpips_net: LpipsNet,
+    /// Side the body's mask-bounding-box crop is resized to for LPIPS.
+    pub lpips_size: usize,
+    pub losses: LossWeights,
+    /// Whether the face adversarial loss is used (`--no-adversarial` turns it off).
+    pub adversarial: bool,
+    pub discriminator: DiscriminatorConfig,
+    pub steps: Stages,
+    /// Training frames whose body-branch outputs are averaged into the canonical face model.
+    pub face_init_frames: usize,
+    /// Adam learning rate of the body and face networks (cosine schedule over the rendering
+    /// stages, as Animatable Gaussians).
+    pub lr: f64,
+    /// Adam learning rate of the discriminator (β = (0, 0.99), StyleGAN2).
+    pub lr_discriminator: f64,
+    /// Standard deviation of the noise added to view directions during training.
+    pub view_noise: f32,
+    /// Pose PCA components and clamp (in standard deviations) for unseen poses.
+    pub pca_components: usize,
+    pub pca_sigma: f32,
+    pub checkpoint_every: u64,
+    pub validate_every: u64,
+    /// Decoded-image cache of the loader, bytes.
+    pub cache_bytes: usize,
+}
+
+impl TrainConfig {
+    /// Small enough to train on two CPU cores in minutes (what `f3g demo` uses).
+    pub fn cpu() -> Self {
+        let mut body = StyleUNetConfig::cpu_body(14, true);
+        body.in_channels = 6;
+        let mut face = StyleUNetConfig::cpu_face(3, false);
+        face.in_channels = 6;
+        Self {
+            preset: "cpu".into(),
+            seed: 0,
+            template: TemplateChoice::Clothed,
+            garment: None,
+            map_resolution: 128,
+            body_net: body,
+            face_branch: true,
+            face_net: face,
+            face_crop_size: 64,
+            face_padding: 1.3,
+            body_scale: 0.5,
+            lpips_net: LpipsNet::Alex,
+            lpips_size: 128,
+            losses: LossWeights {
+                l1: 1.0,
+                lpips: 0.1,
+                offset: 5e-3,
+                face_l1: 1.0,
+                face_lpips: 0.1,
+                adversarial: 5e-3,
+                r1_gamma: 1.0,
+                r1_interval: 16,
+            },
+            adversarial: true,
+            discriminator: DiscriminatorConfig::cpu(64),
+            steps: Stages {
+                pretrain: 100,
+                body: 150,
+                face_pretrain: 30,
+                joint: 200,
+                face_finetune: 50,
+            },
+            face_init_frames: 8,
+            lr: 1e-3,
+            lr_discriminator: 2e-3,
+            view_noise: 0.1,
+            pca_components: 20,
+            pca_sigma: 2.0,
+            checkpoint_every: 100,
+            validate_every: 100,
+            cache_bytes: 1 << 30,
+        }
+    }
+
+    /// AvatarReX scale as the paper trains it: 1024² maps, 512 → 1024 body network, 256² face
+    /// networks, 512² face crops, VGG LPIPS on 512² crops, 5k pretraining, 400k rendering
+    /// iterations (split into a body-only and a joint half, so the canonical face model is
+    /// averaged from a trained body branch) and a 5k face-only fine-tune.
+    pub fn paper() -> Self {
+        let mut body = StyleUNetConfig::paper_body(14, true);
+        body.in_channels = 6;
+        let mut face = StyleUNetConfig::paper_face(3, false);
+        face.in_channels = 6;
+        Self {
+            preset: "paper".into(),
+            map_resolution: 1024,
+            body_net: body,
+            face_net: face,
+            face_crop_size: 512,
+            body_scale: 1.0,
+            lpips_net: LpipsNet::Vgg,
+            lpips_size: 512,
+            losses: LossWeights {
+                r1_gamma: 10.0,
+                ..Self::cpu().losses
+            },
+            discriminator: DiscriminatorConfig::paper(512),
+            steps: Stages {
+                pretrain: 5000,
+                body: 200_000,
+                face_pretrain: 1000,
+                joint: 200_000,
+                face_finetune: 5000,
+            },
+            face_init_frames: 200,
+            lr: 5e-4,
+            checkpoint_every: 5000,
+            validate_every: 5000,
+            cache_bytes: 8 << 30,
+            ..Self::cpu()
+        }
+    }
+
+    /// A preset by name.
+    pub fn preset(name: &str) -> Result<Self, AvatarError> {
+        match name {
+            "cpu" => Ok(Self::cpu()),
+            "paper" => Ok(Self::paper()),
+            _ => Err(AvatarError::config(
+                "preset",
+                format!("unknown preset `{name}`: expected cpu or paper"),
+            )),
+        }
+    }
+
+    /// Reads a JSON config file: its keys over the preset it names.
+    pub fn from_file(path: &Path) -> Result<Self, AvatarError> {
+        let text = std::fs::read_to_string(path).map_err(|e| AvatarError::file(path, e))?;
+        let value: Value = serde_json::from_str(&text)
+            .map_err(|e| AvatarError::file(path, format!("not valid JSON: {e}")))?;
+        let preset = value
+            .get("preset")
+            .and_then(Value::as_str)
+            .unwrap_or("cpu")
+            .to_string();
+        let mut base = serde_json::to_value(Self::preset(&preset)?).expect("serialisable");
+        merge(&mut base, &value);
+        let config: Self = serde_json::from_value(base)
+            .map_err(|e| AvatarError::file(path, format!("bad configuration: {e}")))?;
+        config.validate().map_err(|e| AvatarError::file(path, e))?;
+        Ok(config)
+    }
+
+    /// Applies `key=value` overrides (dotted keys, JSON values; bare words are strings).
+    pub fn with_overrides(self, overrides: &[String]) -> Result<Self, AvatarError> {
+        let mut value = serde_json::to_value(&self).expect("serialisable");
+        for item in overrides {
+            let (key, text) = item.split_once('=').ok_or_else(|| {
+                AvatarError::config(item, "expected key=value, e.g. steps.joint=500")
+            })?;
+            let parsed: Value =
+                serde_json::from_str(text).unwrap_or_else(|_| Value::String(text.to_string()));
+            let mut slot = &mut value;
+            for part in key.split('.') {
+                slot = slot
+                    .as_object_mut()
+                    .and_then(|o| o.get_mut(part))
+                    .ok_or_else(|| AvatarError::config(key, "no such key"))?;
+            }
+            *slot = parsed;
+        }
+        let config: Self = serde_json::from_value(value)
+            .map_err(|e| AvatarError::config("--set", format!("{e}")))?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Checks ranges and the consistency between sizes, naming the first bad key.
+    pub fn validate(&self) -> Result<(), AvatarError> {
+        let bad = |k: &str, m: String| Err(AvatarError::config(k, m));
+        let r = self.map_resolution;
+        if r < 16 || !r.is_power_of_two() {
+            return bad("map_resolution", format!("{r} is not a power of two ≥ 16"));
+        }
+        self.body_net
+            .validate()
+            .map_err(|e| AvatarError::config("body_net", e))?;
+        if self.body_net.output_size != r || self.body_net.input_size != r / 2 {
+            return bad(
+                "body_net",
+                format!(
+                    "input_size/output_size must be map_resolution / 2 = {} and map_resolution = {r} (got {} → {})",
+                    r / 2,
+                    self.body_net.input_size,
+                    self.body_net.output_size
+                ),
+            );
+        }
+        if self.body_net.in_channels != 6 || self.body_net.out_channels != 14 {
+            return bad(
+                "body_net",
+                "in_channels must be 6 (front and back maps) and out_channels 14".into(),
+            );
+        }
+        if !self.body_net.view_conditioned {
+            return bad(
+                "body_net.view_conditioned",
+                "the body network predicts view-dependent colour: must be true".into(),
+            );
+        }
+        self.face_net
+            .validate()
+            .map_err(|e| AvatarError::config("face_net", e))?;
+        if self.face_net.in_channels != 6 || self.face_net.output_size != self.face_net.input_size {
+            return bad(
+                "face_net",
+                "in_channels must be 6 and output_size equal to input_size".into(),
+            );
+        }
+        self.discriminator
+            .validate()
+            .map_err(|e| AvatarError::config("discriminator", e))?;
+        if self.discriminator.resolution != self.face_crop_size {
+            return bad(
+                "discriminator.resolution",
+                format!(
+                    "must equal face_crop_size ({}); got {}",
+                    self.face_crop_size, self.discriminator.resolution
+                ),
+            );
+        }
+        let min_crop = match self.lpips_net {
+            LpipsNet::Alex => 32,
+            LpipsNet::Vgg => 16,
+        };
+        if self.face_crop_size < min_crop || self.lpips_size < min_crop {
+            return bad(
+                "face_crop_size",
+                format!("face_crop_size and lpips_size must be at least {min_crop} for LPIPS"),
+            );
+        }
+        if !(self.body_scale > 0.0 && self.body_scale <= 1.0) {
+            return bad(
+                "body_scale",
+                format!("{} is not in (0, 1]", self.body_scale),
+            );
+        }
+        if !(self.face_padding >= 1.0 && self.face_padding <= 4.0) {
+            return bad(
+                "face_padding",
+                format!("{} is not in [1, 4]", self.face_padding),
+            );
+        }
+        for (k, v) in [("lr", self.lr), ("lr_discriminator", self.lr_discriminator)] {
+            if !(v > 0.0 && v < 1.0) {
+                return bad(k, format!("{v} is not in (0, 1)"));
+            }
+        }
+        let l = &self.losses;
+        for (k, v) in [
+            ("losses.l1", l.l1),
+            ("losses.lpips", l.lpips),
+            ("losses.offset", l.offset),
+            ("losses.face_l1", l.face_l1),
+            ("losses.face_lpips", l.face_lpips),
+            ("losses.adversarial", l.adversarial),
+            ("losses.r1_gamma", l.r1_gamma),
+            ("view_noise", self.view_noise),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(k, format!("{v} must be finite and ≥ 0"));
+            }
+        }
+        if l.r1_interval == 0 {
+            return bad("losses.r1_interval", "must be at least 1".into());
+        }
+        if self.steps.total() == 0 {
+            return bad("steps", "all stages have zero steps".into());
+        }
+        if self.face_branch && self.face_init_frames == 0 {
+            return bad(
+                "face_init_frames",
+                "must be at least 1 with the face branch".into(),
+            );
+        }
+        if self.checkpoint_every == 0 || self.validate_every == 0 {
+            return bad(
+                "checkpoint_every",
+                "checkpoint_every and validate_every must be ≥ 1".into(),
+            );
+        }
+        if self.pca_sigma.is_nan() || self.pca_sigma <= 0.0 {
+            return bad("pca_sigma", format!("{} must be positive", self.pca_sigma));
+        }
+        Ok(())
+    }
+
+    /// The face networks' configurations: position, colour (view-conditioned), auxiliary.
+    pub fn face_nets(&self) -> [StyleUNetConfig; 3] {
+        let with = |out: usize, view: bool| StyleUNetConfig {
+            out_channels: out,
+            view_conditioned: view,
+            ..self.face_net.clone()
+        };
+        [with(3, false), with(3, true), with(8, false)]
+    }
+}
+
+/// Deep merge of JSON objects: `patch` wins.
+fn merge(base: &mut Value, patch: &Value) {
+    match (base, patch) {
+        (Value::Object(b), Value::Object(p)) => {
+            for (k, v) in p {
+                match b.get_mut(k) {
+                    Some(slot) if slot.is_object() && v.is_object() => merge(slot, v),
+                    _ => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (b, p) => *b = p.clone(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_are_valid() {
+        TrainConfig::cpu().validate().unwrap();
+        TrainConfig::paper().validate().unwrap();
+    }
+
+    #[test]
+    fn files_merge_over_the_preset_and_reject_unknown_keys_and_bad_values() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.json");
+        std::fs::write(&path, r#"{"steps": {"joint": 7}, "lr": 0.002}"#).unwrap();
+        let c = TrainConfig::from_file(&path).unwrap();
+        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 150));
+        std::fs::write(&path, r#"{"stepz": 3}"#).unwrap();
+        let e = TrainConfig::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("c.json") && e.contains("stepz"), "{e}");
+        std::fs::write(&path, r#"{"steps": {"joint": 7, "warp": 1}}"#).unwrap();
+        let e = TrainConfig::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("warp"), "{e}");
+        std::fs::write(&path, r#"{"body_scale": 3}"#).unwrap();
+        let e = TrainConfig::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("body_scale"), "{e}");
+        std::fs::write(&path, r#"{"map_resolution": 100}"#).unwrap();
+        let e = TrainConfig::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("map_resolution"), "{e}");
+    }
+
+    #[test]
+    fn overrides_use_dotted_keys() {
+        let c = TrainConfig::cpu()
+            .with_overrides(&["steps.joint=3".into(), "lpips_net=vgg".into()])
+            .unwrap();
+        assert_eq!((c.steps.joint, c.lpips_net), (3, LpipsNet::Vgg));
+        let e = TrainConfig::cpu()
+            .with_overrides(&["steps.nope=3".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("steps.nope"), "{e}");
+        assert!(
+            TrainConfig::cpu()
+                .with_overrides(&["lr=-1".into()])
+                .unwrap_err()
+                .to_string()
+                .contains("`lr`")
+        );
+    }
+}

@@ -1,0 +1,376 @@
+//! Evaluation on held-out views or poses: body and head PSNR / SSIM / LPIPS.
+//!
+//! Protocol (Animatable Gaussians' `eval/score.py`, extended with the head):
+//! - ground-truth pixels whose mask is ≤ 0.5 are white; the avatar is rendered over white;
+//! - **body**: PSNR and SSIM (3DGS convention) on the full image at `scale` × the capture's
+//!   resolution; LPIPS on the mask's bounding box padded by 50 px (at full resolution), made
+//!   square with white and resized to `lpips_size`;
+//! - **head**: the square around the projected head vertices of the frame's posed body model
+//!   (padding as in training), cut from the full-resolution image and resized to
+//!   `face_size`, and the avatar rendered with that crop's camera; PSNR, SSIM, LPIPS on it;
+//! - novel poses go through the pose PCA (clamped coefficients) as in Animatable Gaussians.
+//!
+//! Renders and ground truths are rounded to 8 bits and written as PNG (`images/`: the body
+//! image, its LPIPS crop and the head crop, each with `_gt`), and the metrics are computed on
+//! exactly those pixels, so anyone can recompute them from the files.
+
+use std::path::{Path, PathBuf};
+
+use burn::tensor::Device;
+use serde::Serialize;
+
+use crate::AvatarError;
+use crate::report::{comparison_row, stack_rows};
+use crate::trained::TrainedAvatar;
+use f3g_data::Dataset;
+use f3g_data::crop::{crop_view, head_box};
+use f3g_data::imgops::{crop_resize, resize, resized_camera, scaled_size};
+use f3g_data::split::{Protocol, Split, SplitKind, preset};
+use f3g_io::Image;
+use f3g_nets::metrics::{image_tensor, psnr, ssim_images};
+use f3g_nets::{Lpips, LpipsNet};
+
+/// What to evaluate and how.
+#[derive(Clone, Debug)]
+pub struct EvalOptions {
+    pub split: SplitKind,
+    /// Explicit cameras/frames instead of the split preset.
+    pub cameras: Option<Vec<usize>>,
+    pub frames: Option<Vec<usize>>,
+    /// Every `every`-th frame of the split.
+    pub every: usize,
+    /// Body images are scored at this fraction of the capture's resolution.
+    pub scale: f32,
+    pub face_size: usize,
+    pub lpips_size: usize,
+    pub lpips_net: LpipsNet,
+    /// Output folder (default `RUN/eval/<split>`).
+    pub out: Option<PathBuf>,
+}
+
+/// Scores of one image (LPIPS `None` when the weights are unavailable).
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Scores {
+    pub psnr: f64,
+    pub ssim: f64,
+    pub lpips: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageScores {
+    pub frame: usize,
+    pub camera: String,
+    pub body: Scores,
+    /// `None` when the head is not in view.
+    pub head: Option<Scores>,
+}
+
+/// The evaluation report (`metrics.json`).
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalReport {
+    pub run: PathBuf,
+    pub step: u64,
+    pub split: SplitKind,
+    pub lpips_net: String,
+    pub lpips_available: bool,
+    pub scale: f32,
+    pub face_size: usize,
+    pub images: Vec<ImageScores>,
+    pub mean_body: Scores,
+    pub mean_head: Option<Scores>,
+}
+
+/// Mean of scores (LPIPS only when every image has it).
+fn mean(scores: &[&Scores]) -> Option<Scores> {
+    if scores.is_empty() {
+        return None;
+    }
+    let n = scores.len() as f64;
+    let lpips: Option<Vec<f64>> = scores.iter().map(|s| s.lpips).collect();
+    Some(Scores {
+        psnr: scores.iter().map(|s| s.psnr).sum::<f64>() / n,
+        ssim: scores.iter().map(|s| s.ssim).sum::<f64>() / n,
+        lpips: lpips.map(|v| v.iter().sum::<f64>() / n),
+    })
+}
+
+/// Rounds to 8 bits per channel: renders are scored as the PNG files they are saved as (the
+/// reference scores images read back from disk), so the numbers can be recomputed from them.
+fn quantise(mut img: Image) -> Image {
+    img.data
+        .iter_mut()
+        .for_each(|v| *v = (v.clamp(0.0, 1.0) * 255.0).round() / 255.0);
+    img
+}
+
+/// White where the mask is ≤ 0.5 (hard threshold, as the reference evaluation).
+fn whiten(image: &Image, mask: &Image) -> Image {
+    let mut out = image.clone();
+    for (p, rgb) in out.data.chunks_exact_mut(3).enumerate() {
+        if mask.data[p] <= 0.5 {
+            rgb.fill(1.0);
+        }
+    }
+    out
+}
+
+fn lpips_distance(lpips: Option<&Lpips>, a: &Image, b: &Image) -> Result<Option<f64>, AvatarError> {
+    let Some(l) = lpips else { return Ok(None) };
+    let d = Device::flex();
+    let v = l.forward(image_tensor(a, &d), image_tensor(b, &d))?;
+    Ok(Some(
+        v.into_data().try_into_vec::<f32>().expect("f32")[0] as f64,
+    ))
+}
+
+fn scores(lpips: Option<&Lpips>, render: &Image, gt: &Image) -> Result<Scores, AvatarError> {
+    Ok(Scores {
+        psnr: psnr(render, gt)?,
+        ssim: ssim_images(render, gt)?,
+        lpips: lpips_distance(lpips, render, gt)?,
+    })
+}
+
+/// The square `(x0, y0, side)` around the mask's bounding box, padded by `pad` pixels (it may
+/// extend past the image; the crop fills with white there).
+fn body_crop(mask: &Image, pad: f32) -> Option<(f32, f32, f32)> {
+    let (w, h) = (mask.width, mask.height);
+    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+    for y in 0..h {
+        for x in 0..w {
+            if mask.data[y * w + x] > 0.5 {
+                (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+            }
+        }
+    }
+    (x0 <= x1).then(|| {
+        let side = (x1 - x0 + 1).max(y1 - y0 + 1) as f32 + 2.0 * pad;
+        let cx = 0.5 * (x0 + x1 + 1) as f32;
+        let cy = 0.5 * (y0 + y1 + 1) as f32;
+        (cx - 0.5 * side, cy - 0.5 * side, side)
+    })
+}
+
+/// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`).
+pub fn evaluate(
+    run_dir: &Path,
+    data: Option<&Path>,
+    model: Option<&f3g_rig::ModelSpec>,
+    options: &EvalOptions,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport, AvatarError> {
+    let avatar = TrainedAvatar::load(run_dir)?;
+    let data = data.map_or_else(|| avatar.info.data.clone(), Path::to_path_buf);
+    let ds = Dataset::open(&data, model)?;
+    if ds.model != avatar.info.model {
+        return Err(AvatarError::file(
+            &data,
+            format!(
+                "the capture's body model is `{}`, the avatar's `{}`",
+                ds.model, avatar.info.model
+            ),
+        ));
+    }
+    let split = match (&options.cameras, &options.frames) {
+        (Some(c), Some(f)) => Split {
+            cameras: c.clone(),
+            frames: f.clone(),
+        },
+        (c, f) => {
+            let p = preset(
+                Protocol::of(&ds),
+                options.split,
+                ds.cameras.len(),
+                ds.frames(),
+            )?;
+            Split {
+                cameras: c.clone().unwrap_or(p.cameras),
+                frames: f.clone().unwrap_or(p.frames),
+            }
+        }
+    };
+    let pairs: Vec<(usize, usize)> = split
+        .frames
+        .iter()
+        .step_by(options.every.max(1))
+        .flat_map(|&f| split.cameras.iter().map(move |&c| (c, f)))
+        .filter(|&(c, f)| ds.has_image(c, f))
+        .collect();
+    if pairs.is_empty() {
+        return Err(AvatarError::Invalid(format!(
+            "the {:?} split of {} has no images",
+            options.split,
+            data.display()
+        )));
+    }
+    let lpips = Lpips::load(options.lpips_net, &Device::flex()).ok();
+    let out_dir = options
+        .out
+        .clone()
+        .unwrap_or_else(|| run_dir.join("eval").join(options.split.to_string()));
+    let renders = out_dir.join("images");
+    std::fs::create_dir_all(&renders).map_err(|e| AvatarError::file(&renders, e))?;
+    let use_pca = options.split == SplitKind::NovelPose;
+    let rig = ds.rig()?;
+    let mut images = Vec::new();
+    let mut grids = Vec::new();
+    for (i, &(c, f)) in pairs.iter().enumerate() {
+        let cam = &ds.cameras[c];
+        let full = ds.image(c, f)?;
+        let mask = ds.mask(c, f)?;
+        let gt_full = quantise(whiten(&full, &mask));
+        let params = &ds.params[f];
+        // Body: the whole image at `scale`.
+        let (w, h) = scaled_size(full.width, full.height, options.scale);
+        let camera = resized_camera(&cam.camera, w, h);
+        let gt = quantise(whiten(&resize(&full, w, h), &resize(&mask, w, h)));
+        let render = quantise(avatar.render(params, &camera, [1.0; 3], use_pca)?);
+        let mut body = Scores {
+            psnr: psnr(&render, &gt)?,
+            ssim: ssim_images(&render, &gt)?,
+            lpips: None,
+        };
+        if let Some((x0, y0, side)) = body_crop(&mask, 50.0) {
+            // The render at full resolution would be costly on a CPU: crop the scaled one.
+            let s = options.scale;
+            let a = quantise(crop_resize(
+                &render,
+                x0 * s,
+                y0 * s,
+                side * s,
+                options.lpips_size,
+                &[1.0; 3],
+            ));
+            let b = quantise(crop_resize(
+                &gt_full,
+                x0,
+                y0,
+                side,
+                options.lpips_size,
+                &[1.0; 3],
+            ));
+            body.lpips = lpips_distance(lpips.as_ref(), &a, &b)?;
+            let name = format!("{}_{f:08}_lpips", cam.name);
+            f3g_io::write_png(&renders.join(format!("{name}.png")), &a)?;
+            f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &b)?;
+        }
+        // Head: the face crop at full resolution.
+        let posed = rig.pose(params)?;
+        let head_points: Vec<glam::Vec3> = avatar
+            .setup
+            .head_vertices
+            .iter()
+            .map(|&v| posed.vertices[v])
+            .collect();
+        let head = match head_box(&cam.camera, &head_points, avatar.config.face_padding) {
+            Some(b) => {
+                let (gt_face, face_cam) =
+                    crop_view(&gt_full, &cam.camera, &b, options.face_size, &[1.0; 3]);
+                let gt_face = quantise(gt_face);
+                let face = quantise(avatar.render(params, &face_cam, [1.0; 3], use_pca)?);
+                let s = scores(lpips.as_ref(), &face, &gt_face)?;
+                let name = format!("{}_{f:08}_head", cam.name);
+                f3g_io::write_png(&renders.join(format!("{name}.png")), &face)?;
+                f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt_face)?;
+                if grids.len() < 8 {
+                    grids.push(comparison_row(&gt_face, &face));
+                }
+                Some(s)
+            }
+            None => None,
+        };
+        let name = format!("{}_{f:08}", cam.name);
+        f3g_io::write_png(&renders.join(format!("{name}.png")), &render)?;
+        f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt)?;
+        if grids.len() < 8 {
+            grids.push(comparison_row(&gt, &render));
+        }
+        images.push(ImageScores {
+            frame: f,
+            camera: cam.name.clone(),
+            body,
+            head,
+        });
+        progress(i + 1, pairs.len());
+    }
+    let mean_body = mean(&images.iter().map(|i| &i.body).collect::<Vec<_>>()).expect("≥ 1 image");
+    let mean_head = mean(
+        &images
+            .iter()
+            .filter_map(|i| i.head.as_ref())
+            .collect::<Vec<_>>(),
+    );
+    let report = EvalReport {
+        run: run_dir.to_path_buf(),
+        step: avatar.step,
+        split: options.split,
+        lpips_net: options.lpips_net.to_string(),
+        lpips_available: lpips.is_some(),
+        scale: options.scale,
+        face_size: options.face_size,
+        images,
+        mean_body,
+        mean_head,
+    };
+    f3g_io::write_atomic(
+        &out_dir.join("metrics.json"),
+        serde_json::to_string_pretty(&report)
+            .expect("serialisable")
+            .as_bytes(),
+    )?;
+    f3g_io::write_atomic(&out_dir.join("metrics.md"), markdown(&report).as_bytes())?;
+    if !grids.is_empty() {
+        f3g_io::write_png(&out_dir.join("comparison.png"), &stack_rows(&grids))?;
+    }
+    Ok(report)
+}
+
+fn fmt_lpips(v: Option<f64>) -> String {
+    v.map_or("n/a".into(), |v| format!("{v:.4}"))
+}
+
+/// The Markdown table of a report (means, then every image).
+pub fn markdown(r: &EvalReport) -> String {
+    let mut s = format!(
+        "# Evaluation: {:?}, step {}\n\nLPIPS: {}{}; body images at {} × capture resolution, head crops {}².\n\n",
+        r.split,
+        r.step,
+        r.lpips_net,
+        if r.lpips_available {
+            ""
+        } else {
+            " (weights not installed: n/a)"
+        },
+        r.scale,
+        r.face_size
+    );
+    s += "| | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n";
+    let row = |name: String, b: &Scores, h: Option<&Scores>| {
+        let (hp, hs, hl) = h.map_or(("–".into(), "–".into(), "–".into()), |h| {
+            (
+                format!("{:.3}", h.psnr),
+                format!("{:.4}", h.ssim),
+                fmt_lpips(h.lpips),
+            )
+        });
+        format!(
+            "| {name} | {:.3} | {:.4} | {} | {hp} | {hs} | {hl} |\n",
+            b.psnr,
+            b.ssim,
+            fmt_lpips(b.lpips)
+        )
+    };
+    s += &row(
+        format!("**mean of {}**", r.images.len()),
+        &r.mean_body,
+        r.mean_head.as_ref(),
+    );
+    for i in &r.images {
+        s += &row(
+            format!("{} / {}", i.camera, i.frame),
+            &i.body,
+            i.head.as_ref(),
+        );
+    }
+    s
+}

@@ -1,0 +1,29 @@
+//! F3G-Avatar: the avatar model, its training, evaluation and animation.
+//!
+//! - [`config`]: the training configuration (presets `cpu` and `paper`, JSON files, overrides).
+//! - [`setup`]: what a run derives from the body model: template, position and head maps,
+//!   initial attributes, per-frame network inputs.
+//! - [`model`]: body and face networks, canonical face model, fusion, LBS, rendering.
+//! - [`train`]: region-aware training with stages, checkpoints and exact resume.
+//! - [`run`]: the run folder (config, checkpoints, PCA, logs).
+//! - [`report`]: comparison grids, loss curves.
+//! - [`trained`]: a trained avatar for inference; [`eval`]: body and head metrics on held-out
+//!   views or poses; [`animate`]: pose sequences to frames, GIF and `.ply`.
+//!
+//! Data flow per step: body parameters → posed maps (`setup`) → networks (`model`) →
+//! canonical Gaussians (body ++ face) → LBS → splatting → losses against the capture.
+
+pub mod animate;
+pub mod config;
+mod error;
+pub mod eval;
+pub mod model;
+pub mod report;
+pub mod run;
+pub mod setup;
+pub mod train;
+pub mod trained;
+
+pub use config::TrainConfig;
+pub use error::AvatarError;
+pub use train::{Outcome, StepReport, Trainer};

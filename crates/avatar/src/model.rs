@@ -1,0 +1,484 @@
+//! The avatar model: the body StyleUNet, the three face StyleUNets, the canonical face model,
+//! fusion, linear blend skinning of the Gaussians and rendering.
+//!
+//! Body branch (one view-conditioned StyleUNet, the paper's "BodyUNet"): posed front/back maps
+//! `[1, 6, R/2, R/2]` → `14` channels per side at `R`, read at the body Gaussians' texels:
+//! offset `0.05 · o[0..3]` on the canonical position, colour `0.5 + o[3..6]`, opacity logit
+//! `logit(0.1) + o[6]`, log-scale `ln s₀ + o[7..10]`, rotation `(1, 0, 0, 0) + o[10..14]`
+//! (normalised when rendered) — Animatable Gaussians' heads.
+//!
+//! Face branch (paper §3.4): the posed head maps `P` (`[1, 6, F, F]`) go through the position
+//! network, `P̂ = P + 0.05 · 𝒫(P)`; the colour network (view-conditioned) and the auxiliary
+//! network read `P̂`. Their outputs, resampled to the head map and read at the face Gaussians'
+//! texels, are residuals on the canonical face model `𝒢` (the head region of the trained body
+//! branch averaged over training frames, densified; [`FaceBase`]). Face scales are capped at
+//! 0.15 m as in the reference.
+//!
+//! Fusion concatenates body and face Gaussians; the body keeps its own head Gaussians (the
+//! paper concatenates the two sets and does not remove any), so the face branch adds detail on
+//! top. The fused set is posed by LBS (means by the blended transform, rotations by its polar
+//! rotation, scales unchanged) and splatted with SH degree 0.
+
+use burn::module::Module;
+use burn::tensor::{Device, Int, Tensor, TensorData};
+
+use crate::AvatarError;
+use crate::config::TrainConfig;
+use crate::setup::{INITIAL_OPACITY, Setup, logit};
+use f3g_nets::DualStyleUNet;
+use f3g_nets::layers::resize;
+use f3g_rig::PointTransform;
+use f3g_splat::{Camera, Gaussians, RenderOptions, Rendered, render};
+
+/// Scale of the position outputs (metres per unit of network output).
+pub const OFFSET_SCALE: f32 = 0.05;
+/// Largest face Gaussian scale (metres).
+pub const FACE_MAX_SCALE: f32 = 0.15;
+const SH_C0: f32 = f3g_splat::sh::SH_C0 as f32;
+
+/// The three face networks.
+#[derive(Module, Debug)]
+pub struct FaceNets {
+    pub position: DualStyleUNet,
+    pub colour: DualStyleUNet,
+    pub aux: DualStyleUNet,
+}
+
+/// The trainable networks.
+#[derive(Module, Debug)]
+pub struct AvatarNets {
+    pub body: DualStyleUNet,
+    pub face: Option<FaceNets>,
+}
+
+impl AvatarNets {
+    /// Networks of `config`, weights drawn from its seed.
+    pub fn new(config: &TrainConfig, device: &Device) -> Result<Self, AvatarError> {
+        let face = if config.face_branch {
+            let [p, c, a] = config.face_nets();
+            Some(FaceNets {
+                position: p.init(config.seed.wrapping_add(11), device)?,
+                colour: c.init(config.seed.wrapping_add(12), device)?,
+                aux: a.init(config.seed.wrapping_add(13), device)?,
+            })
+        } else {
+            None
+        };
+        Ok(Self {
+            body: config.body_net.init(config.seed.wrapping_add(10), device)?,
+            face,
+        })
+    }
+}
+
+/// Canonical attributes of the face Gaussians (`𝒢`), host side.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FaceBase {
+    /// `[N_f, 3]` canonical positions.
+    pub positions: Vec<f32>,
+    /// `[N_f, 3]` colours.
+    pub colours: Vec<f32>,
+    /// `[N_f]` opacity logits.
+    pub opacity_logits: Vec<f32>,
+    /// `[N_f, 3]` natural-log scales.
+    pub log_scales: Vec<f32>,
+    /// `[N_f, 4]` rotations (w, x, y, z).
+    pub quats: Vec<f32>,
+}
+
+impl FaceBase {
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.opacity_logits.is_empty()
+    }
+}
+
+/// Per-Gaussian attributes of the body branch's output, host side (`[N, C]` row-major).
+#[derive(Clone, Debug)]
+pub struct BodyAttributes {
+    pub positions: Vec<f32>,
+    pub colours: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+}
+
+/// Everything the networks need for one (frame, camera), as tensors.
+pub struct NetInputs {
+    pub body_map: Tensor<4>,
+    pub body_view: (Tensor<4>, Tensor<4>),
+    pub face_map: Option<Tensor<4>>,
+    pub face_view: Option<(Tensor<4>, Tensor<4>)>,
+    /// Skinning transforms of every Gaussian (body then face).
+    pub transforms: Vec<PointTransform>,
+}
+
+/// Canonical Gaussians as tensors, before posing.
+pub struct Canonical {
+    pub means: Tensor<2>,
+    pub log_scales: Tensor<2>,
+    pub quats: Tensor<2>,
+    pub opacity_logits: Tensor<1>,
+    pub colours: Tensor<2>,
+    /// `[N_b, 3]` body position offsets (for the offset regulariser).
+    pub body_offsets: Tensor<2>,
+    /// `[N_f, 3]` face position offsets, and all face residuals `[N_f, 14]`.
+    pub face_offsets: Option<Tensor<2>>,
+    pub face_residuals: Option<Tensor<2>>,
+}
+
+/// Constant tensors of the avatar on one device.
+pub struct Constants {
+    body_pixels: Tensor<1, Int>,
+    body_positions: Tensor<2>,
+    body_log_scales: Tensor<2>,
+    face: Option<FaceConstants>,
+    pub net_input_size: usize,
+    pub face_input_size: usize,
+}
+
+struct FaceConstants {
+    pixels: Tensor<1, Int>,
+    size: usize,
+    positions: Tensor<2>,
+    colours: Tensor<2>,
+    opacity_logits: Tensor<1>,
+    log_scales: Tensor<2>,
+    quats: Tensor<2>,
+}
+
+fn t2(values: Vec<f32>, cols: usize, device: &Device) -> Tensor<2> {
+    let rows = values.len() / cols;
+    Tensor::from_data(TensorData::new(values, [rows, cols]), device)
+}
+
+fn t1(values: Vec<f32>, device: &Device) -> Tensor<1> {
+    let n = values.len();
+    Tensor::from_data(TensorData::new(values, [n]), device)
+}
+
+fn index(values: &[usize], device: &Device) -> Tensor<1, Int> {
+    let v: Vec<i64> = values.iter().map(|&p| p as i64).collect();
+    let n = v.len();
+    Tensor::from_data(TensorData::new(v, [n]), device)
+}
+
+impl Constants {
+    /// Uploads the setup (and the canonical face model, once it exists).
+    pub fn new(
+        setup: &Setup,
+        config: &TrainConfig,
+        face_base: Option<&FaceBase>,
+        device: &Device,
+    ) -> Self {
+        let maps = &setup.maps;
+        let face = match (&setup.head, face_base) {
+            (Some(head), Some(base)) => Some(FaceConstants {
+                pixels: index(&head.pixels, device),
+                size: head.size,
+                positions: t2(base.positions.clone(), 3, device),
+                colours: t2(base.colours.clone(), 3, device),
+                opacity_logits: t1(base.opacity_logits.clone(), device),
+                log_scales: t2(base.log_scales.clone(), 3, device),
+                quats: t2(base.quats.clone(), 4, device),
+            }),
+            _ => None,
+        };
+        Self {
+            body_pixels: index(&maps.pixels, device),
+            body_positions: t2(
+                maps.positions.iter().flat_map(|p| p.to_array()).collect(),
+                3,
+                device,
+            ),
+            body_log_scales: t2(
+                setup
+                    .body_log_scales
+                    .iter()
+                    .flat_map(|&s| [s, s, s])
+                    .collect(),
+                3,
+                device,
+            ),
+            face,
+            net_input_size: config.body_net.input_size,
+            face_input_size: config.face_net.input_size,
+        }
+    }
+
+    /// Whether the face Gaussians are part of the model.
+    pub fn has_face(&self) -> bool {
+        self.face.is_some()
+    }
+}
+
+/// Reads `[1, C, R, R]` front and back outputs at the given texels of the `[R, 2R]` layout:
+/// `[N, C]`.
+fn gather(front: Tensor<4>, back: Tensor<4>, pixels: &Tensor<1, Int>) -> Tensor<2> {
+    let [_, c, h, w] = front.dims();
+    let both = Tensor::cat(vec![front, back], 3).reshape([c, h * 2 * w]);
+    both.select(1, pixels.clone()).transpose()
+}
+
+/// Columns `a..b` of `[N, C]`.
+fn cols(t: &Tensor<2>, a: usize, b: usize) -> Tensor<2> {
+    let n = t.dims()[0];
+    t.clone().slice([0..n, a..b])
+}
+
+/// The body branch alone: per-Gaussian raw outputs `[N_b, 14]`.
+pub fn body_outputs(
+    nets: &AvatarNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+) -> Result<Tensor<2>, AvatarError> {
+    let out = nets.body.forward(
+        inputs.body_map.clone(),
+        Some((inputs.body_view.0.clone(), inputs.body_view.1.clone())),
+    )?;
+    Ok(gather(out.front, out.back, &constants.body_pixels))
+}
+
+/// Body attributes from raw outputs: (means, colours, opacity logits, log-scales, quats,
+/// offsets).
+fn body_attributes(
+    raw: &Tensor<2>,
+    constants: &Constants,
+) -> (
+    Tensor<2>,
+    Tensor<2>,
+    Tensor<1>,
+    Tensor<2>,
+    Tensor<2>,
+    Tensor<2>,
+) {
+    let n = raw.dims()[0];
+    let offsets = cols(raw, 0, 3) * OFFSET_SCALE;
+    let means = constants.body_positions.clone() + offsets.clone();
+    let colours = cols(raw, 3, 6) + 0.5;
+    let opacity = (cols(raw, 6, 7) + logit(INITIAL_OPACITY)).reshape([n]);
+    let log_scales = constants.body_log_scales.clone() + cols(raw, 7, 10);
+    let identity = Tensor::<2>::from_data(
+        TensorData::new(vec![1.0f32, 0.0, 0.0, 0.0], [1, 4]),
+        &raw.device(),
+    );
+    let quats = cols(raw, 10, 14) + identity;
+    (means, colours, opacity, log_scales, quats, offsets)
+}
+
+/// The body branch's activated attributes on the host (used to build the canonical face
+/// model).
+pub fn body_attributes_host(raw: &Tensor<2>, constants: &Constants) -> BodyAttributes {
+    let (means, colours, opacity, log_scales, quats, _) = body_attributes(raw, constants);
+    let v2 = |t: Tensor<2>| t.into_data().try_into_vec::<f32>().expect("f32");
+    BodyAttributes {
+        positions: v2(means),
+        colours: v2(colours),
+        opacity_logits: opacity.into_data().try_into_vec::<f32>().expect("f32"),
+        log_scales: v2(log_scales),
+        quats: v2(quats),
+    }
+}
+
+/// The face networks' raw per-Gaussian outputs `[N_f, 14]` (position 3, colour 3, aux 8).
+fn face_outputs(
+    face: &FaceNets,
+    fc: &FaceConstants,
+    inputs: &NetInputs,
+) -> Result<Tensor<2>, AvatarError> {
+    let map = inputs
+        .face_map
+        .clone()
+        .ok_or_else(|| AvatarError::Invalid("the face branch needs its head map".into()))?;
+    let view = inputs
+        .face_view
+        .clone()
+        .ok_or_else(|| AvatarError::Invalid("the face branch needs its view maps".into()))?;
+    let p = face.position.forward(map.clone(), None)?;
+    let p_hat = map + Tensor::cat(vec![p.front.clone(), p.back.clone()], 1) * OFFSET_SCALE;
+    let c = face.colour.forward(p_hat.clone(), Some(view))?;
+    let a = face.aux.forward(p_hat, None)?;
+    let s = fc.size;
+    let side = |front: Tensor<4>, back: Tensor<4>| {
+        gather(resize(front, s, s), resize(back, s, s), &fc.pixels)
+    };
+    Ok(Tensor::cat(
+        vec![
+            side(p.front, p.back),
+            side(c.front, c.back),
+            side(a.front, a.back),
+        ],
+        1,
+    ))
+}
+
+/// Runs the networks: the fused canonical Gaussians (body, then face when present).
+pub fn canonical(
+    nets: &AvatarNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+) -> Result<Canonical, AvatarError> {
+    let raw = body_outputs(nets, constants, inputs)?;
+    let (means, colours, opacity, log_scales, quats, body_offsets) =
+        body_attributes(&raw, constants);
+    let mut out = Canonical {
+        means,
+        log_scales,
+        quats,
+        opacity_logits: opacity,
+        colours,
+        body_offsets,
+        face_offsets: None,
+        face_residuals: None,
+    };
+    if let (Some(face), Some(fc)) = (&nets.face, &constants.face) {
+        let r = face_outputs(face, fc, inputs)?;
+        let n = r.dims()[0];
+        let offsets = cols(&r, 0, 3) * OFFSET_SCALE;
+        let means = fc.positions.clone() + offsets.clone();
+        let colours = fc.colours.clone() + cols(&r, 3, 6);
+        let opacity = fc.opacity_logits.clone() + cols(&r, 6, 7).reshape([n]);
+        let log_scales = (fc.log_scales.clone() + cols(&r, 7, 10)).clamp_max(FACE_MAX_SCALE.ln());
+        let quats = fc.quats.clone() + cols(&r, 10, 14);
+        out = Canonical {
+            means: Tensor::cat(vec![out.means, means], 0),
+            log_scales: Tensor::cat(vec![out.log_scales, log_scales], 0),
+            quats: Tensor::cat(vec![out.quats, quats], 0),
+            opacity_logits: Tensor::cat(vec![out.opacity_logits, opacity], 0),
+            colours: Tensor::cat(vec![out.colours, colours], 0),
+            body_offsets: out.body_offsets,
+            face_offsets: Some(offsets),
+            face_residuals: Some(r),
+        };
+    }
+    Ok(out)
+}
+
+/// Skinning transforms as tensors: `A [N, 3, 3]`, `t [N, 3]`, rotation `q [N, 4]` (w, x, y, z).
+pub fn transform_tensors(
+    transforms: &[PointTransform],
+    count: usize,
+    device: &Device,
+) -> (Tensor<3>, Tensor<2>, Tensor<2>) {
+    let t = &transforms[..count];
+    let mut a = Vec::with_capacity(9 * count);
+    let mut b = Vec::with_capacity(3 * count);
+    let mut q = Vec::with_capacity(4 * count);
+    for p in t {
+        let m = glam::Mat3::from(p.affine.matrix3);
+        // Row-major: a[n, i, j] = M_ij.
+        for i in 0..3 {
+            for j in 0..3 {
+                a.push(m.col(j)[i]);
+            }
+        }
+        b.extend(glam::Vec3::from(p.affine.translation).to_array());
+        q.extend([p.rotation.w, p.rotation.x, p.rotation.y, p.rotation.z]);
+    }
+    (
+        Tensor::from_data(TensorData::new(a, [count, 3, 3]), device),
+        t2(b, 3, device),
+        t2(q, 4, device),
+    )
+}
+
+/// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
+pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
+    let c = |t: &Tensor<2>, k: usize| cols(t, k, k + 1);
+    let (w1, x1, y1, z1) = (c(&a, 0), c(&a, 1), c(&a, 2), c(&a, 3));
+    let (w2, x2, y2, z2) = (c(&b, 0), c(&b, 1), c(&b, 2), c(&b, 3));
+    let w = w1.clone() * w2.clone()
+        - x1.clone() * x2.clone()
+        - y1.clone() * y2.clone()
+        - z1.clone() * z2.clone();
+    let x = w1.clone() * x2.clone() + x1.clone() * w2.clone() + y1.clone() * z2.clone()
+        - z1.clone() * y2.clone();
+    let y = w1.clone() * y2.clone() - x1.clone() * z2.clone()
+        + y1.clone() * w2.clone()
+        + z1.clone() * x2.clone();
+    let z = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
+    Tensor::cat(vec![w, x, y, z], 1)
+}
+
+/// Poses canonical Gaussians with their skinning transforms: `(means, quats)`.
+pub fn pose(canonical: &Canonical, transforms: &[PointTransform]) -> (Tensor<2>, Tensor<2>) {
+    let n = canonical.means.dims()[0];
+    let device = canonical.means.device();
+    let (a, t, q) = transform_tensors(transforms, n, &device);
+    let x = canonical.means.clone().reshape([n, 1, 3]);
+    let means = (a * x).sum_dim(2).reshape([n, 3]) + t;
+    (means, quat_mul(q, canonical.quats.clone()))
+}
+
+/// Poses and renders the canonical Gaussians from `camera` over `background`.
+pub fn render_posed(
+    canonical: &Canonical,
+    transforms: &[PointTransform],
+    camera: &Camera,
+    background: [f32; 3],
+    device: &Device,
+) -> Result<Rendered, AvatarError> {
+    let (means, quats) = pose(canonical, transforms);
+    let n = means.dims()[0];
+    let gaussians = Gaussians {
+        means,
+        log_scales: canonical.log_scales.clone(),
+        quats,
+        opacity_logits: canonical.opacity_logits.clone(),
+        sh: ((canonical.colours.clone() - 0.5) / SH_C0).reshape([n, 1, 3]),
+    };
+    let bg = t1(background.to_vec(), device);
+    Ok(render(&gaussians, camera, bg, &RenderOptions::default())?)
+}
+
+/// A rendered `[H, W, 3]` colour as `[1, 3, H, W]`.
+pub fn nchw(color: Tensor<3>) -> Tensor<4> {
+    color.permute([2, 0, 1]).unsqueeze()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::{Affine3A, Mat3, Quat, Vec3};
+
+    #[test]
+    fn tensor_posing_equals_the_rig_s_gaussian_skinning() {
+        let device = Device::flex();
+        let rot = Quat::from_euler(glam::EulerRot::XYZ, 0.3, -0.5, 0.9);
+        let affine =
+            Affine3A::from_mat3_translation(Mat3::from_quat(rot) * 1.2, Vec3::new(0.1, -0.2, 0.3));
+        let transforms = vec![
+            PointTransform {
+                affine,
+                rotation: rot,
+            };
+            2
+        ];
+        let means = vec![0.5, 0.1, -0.2, -1.0, 0.4, 0.7];
+        let quat = Quat::from_euler(glam::EulerRot::XYZ, -0.2, 0.1, 0.4);
+        let canonical = Canonical {
+            means: t2(means.clone(), 3, &device),
+            log_scales: t2(vec![0.0; 6], 3, &device),
+            quats: t2([quat.w, quat.x, quat.y, quat.z].repeat(2), 4, &device),
+            opacity_logits: t1(vec![0.0; 2], &device),
+            colours: t2(vec![0.5; 6], 3, &device),
+            body_offsets: t2(vec![0.0; 6], 3, &device),
+            face_offsets: None,
+            face_residuals: None,
+        };
+        let (m, q) = pose(&canonical, &transforms);
+        let m = m.into_data().try_into_vec::<f32>().unwrap();
+        let q = q.into_data().try_into_vec::<f32>().unwrap();
+        for g in 0..2 {
+            let x = Vec3::from_slice(&means[3 * g..3 * g + 3]);
+            let e = affine.transform_point3(x);
+            assert!((Vec3::from_slice(&m[3 * g..3 * g + 3]) - e).length() < 1e-5);
+            let eq = rot * quat;
+            let got = Quat::from_xyzw(q[4 * g + 1], q[4 * g + 2], q[4 * g + 3], q[4 * g]);
+            assert!(got.dot(eq).abs() > 1.0 - 1e-6);
+        }
+    }
+}

@@ -1,0 +1,445 @@
+//! What a run derives from its body model and configuration before any training: the canonical
+//! template, its position maps (one body Gaussian per covered texel), the densified head maps
+//! (one face Gaussian per kept texel), the initial Gaussian attributes, and per-frame inputs
+//! of the networks (posed maps, view maps, skinning transforms).
+//!
+//! Conventions: positions in metres, +Y up, the body facing +Z. Maps are `[R, 2R]` front | back
+//! (see `f3g_template::posmap`); network inputs are `[1, 6, S, S]` (front xyz ‖ back xyz) of
+//! root-relative posed positions, reduced from the maps by a masked box filter. Gaussian order:
+//! body Gaussians (row-major over the body map), then face Gaussians (row-major over the head
+//! map).
+
+use std::num::NonZeroUsize;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use glam::{Quat, Vec3};
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+use rayon::prelude::*;
+
+use crate::AvatarError;
+use crate::config::{TemplateChoice, TrainConfig};
+use f3g_rig::{ModelSpec, PointTransform, Rig, RigParams, point_transforms};
+use f3g_splat::Camera;
+use f3g_template::canonical::CanonicalPose;
+use f3g_template::template::builtin_skirt;
+use f3g_template::{HeadMaps, PosePca, Poser, PositionMaps, Template, TransferOptions};
+
+/// Initial opacity of every Gaussian (Animatable Gaussians): 0.1.
+pub const INITIAL_OPACITY: f32 = 0.1;
+
+/// The static part of an avatar.
+pub struct Setup {
+    pub model: ModelSpec,
+    pub rig: Rig,
+    pub template: Template,
+    pub maps: PositionMaps,
+    /// The face Gaussians, when the face branch is on.
+    pub head: Option<HeadMaps>,
+    /// Initial natural-log scale (isotropic) of each body Gaussian.
+    pub body_log_scales: Vec<f32>,
+    /// Rig vertices of the head, for face boxes.
+    pub head_vertices: Vec<usize>,
+}
+
+/// `ln(p / (1 − p))`.
+pub fn logit(p: f32) -> f32 {
+    (p / (1.0 - p)).ln()
+}
+
+impl Setup {
+    /// Builds the template of `config` for the body model `model` (as named by the capture).
+    pub fn new(model_text: &str, config: &TrainConfig) -> Result<Self, AvatarError> {
+        let model: ModelSpec = model_text
+            .parse()
+            .map_err(|e: String| AvatarError::config("model", e))?;
+        let rig = model.load()?;
+        let pose = CanonicalPose::default();
+        let garment = match (&config.template, &model, &config.garment) {
+            (TemplateChoice::Body, _, _) => None,
+            (TemplateChoice::Clothed, _, Some(path)) => {
+                let path = std::path::PathBuf::from(path);
+                Some((f3g_template::mesh::read_mesh(&path)?, path))
+            }
+            (TemplateChoice::Clothed, ModelSpec::Builtin, None) => Some((
+                builtin_skirt(&pose)?,
+                std::path::PathBuf::from("builtin:skirt"),
+            )),
+            (TemplateChoice::Clothed, _, None) => {
+                return Err(AvatarError::config(
+                    "garment",
+                    "template = clothed needs a garment mesh for this body model (or use template = body)",
+                ));
+            }
+        };
+        let (template, _) = Template::build(
+            &model,
+            model_text,
+            &pose,
+            garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
+            &TransferOptions::default(),
+        )?;
+        let maps = PositionMaps::build(&template, config.map_resolution, None)?;
+        let head = if config.face_branch {
+            Some(HeadMaps::build(&maps, &rig.skeleton)?)
+        } else {
+            None
+        };
+        let body_log_scales = knn_log_scales(&maps.positions)?;
+        let head_vertices = f3g_data::crop::head_vertices(&rig)?;
+        Ok(Self {
+            model,
+            rig,
+            template,
+            maps,
+            head,
+            body_log_scales,
+            head_vertices,
+        })
+    }
+
+    pub fn body_count(&self) -> usize {
+        self.maps.len()
+    }
+
+    pub fn face_count(&self) -> usize {
+        self.head.as_ref().map_or(0, HeadMaps::len)
+    }
+
+    /// Checks that a capture's parameters belong to this avatar's body model.
+    pub fn check_params(&self, params: &RigParams, what: &str) -> Result<(), AvatarError> {
+        let expected = (
+            self.rig.num_pose_params(),
+            self.rig.identity.len(),
+            self.rig.expression.len(),
+        );
+        let got = (
+            params.pose.len(),
+            params.identity.len(),
+            params.expression.len(),
+        );
+        if got != expected {
+            return Err(AvatarError::Invalid(format!(
+                "{what}: body parameters with {} pose, {} identity and {} expression values do not belong to the avatar's body model `{}` ({} / {} / {})",
+                got.0, got.1, got.2, self.template.model, expected.0, expected.1, expected.2
+            )));
+        }
+        Ok(())
+    }
+
+    /// Root-relative posed positions of the body Gaussians (and of the face Gaussians).
+    pub fn posed_root_free(
+        &self,
+        params: &RigParams,
+    ) -> Result<(Vec<Vec3>, Option<Vec<Vec3>>), AvatarError> {
+        let poser = Poser::new(&self.rig, &self.template)?;
+        let body = poser.pose_points(&self.maps.positions, &self.maps.skin, params, false)?;
+        let face = match &self.head {
+            Some(h) => Some(poser.pose_points(&h.positions, &h.skin, params, false)?),
+            None => None,
+        };
+        Ok((body, face))
+    }
+
+    /// Skinning transforms (with the global root motion) of every Gaussian, body then face.
+    pub fn gaussian_transforms(
+        &self,
+        params: &RigParams,
+    ) -> Result<Vec<PointTransform>, AvatarError> {
+        let poser = Poser::new(&self.rig, &self.template)?;
+        let joints = poser.transforms(params, true)?;
+        let mut all = point_transforms(&joints, &self.maps.skin);
+        if let Some(h) = &self.head {
+            all.extend(point_transforms(&joints, &h.skin));
+        }
+        Ok(all)
+    }
+
+    /// The body network's input: the posed map reduced to `[1, 6, S, S]`.
+    pub fn body_input(&self, posed: &[Vec3], size: usize, device: &Device) -> Tensor<4> {
+        let r = self.maps.resolution;
+        let values: Vec<[f32; 3]> = posed.iter().map(|p| p.to_array()).collect();
+        let map = self.maps.scatter(&values);
+        let mask = self.maps.mask();
+        two_sided_input(&map, &mask, r, 3, size, device)
+    }
+
+    /// The face networks' input: the posed head map resampled to `[1, 6, F, F]`.
+    pub fn face_input(&self, posed_face: &[Vec3], size: usize, device: &Device) -> Tensor<4> {
+        let head = self.head.as_ref().expect("face branch");
+        let values: Vec<[f32; 3]> = posed_face.iter().map(|p| p.to_array()).collect();
+        two_sided_input(
+            &head.scatter(&values),
+            &head_mask(head),
+            head.size,
+            3,
+            size,
+            device,
+        )
+    }
+
+    /// View-conditioning maps `n · v` of the body (`[1, 1, S, S]` front and back), from the
+    /// posed normals and the camera centre, with optional noise on the view direction.
+    pub fn body_view_maps(
+        &self,
+        transforms: &[PointTransform],
+        camera: &Camera,
+        size: usize,
+        noise: Option<(f32, u64)>,
+        device: &Device,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let n = self.maps.len();
+        let values = view_cosines(
+            &self.maps.positions,
+            &self.maps.normals,
+            &transforms[..n],
+            camera,
+            noise,
+        );
+        let map = self.maps.scatter(&values);
+        split_view(&map, &self.maps.mask(), self.maps.resolution, size, device)
+    }
+
+    /// View-conditioning maps of the face Gaussians, resampled to `[1, 1, F, F]` per side.
+    pub fn face_view_maps(
+        &self,
+        transforms: &[PointTransform],
+        camera: &Camera,
+        size: usize,
+        noise: Option<(f32, u64)>,
+        device: &Device,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let head = self.head.as_ref().expect("face branch");
+        let n = self.maps.len();
+        let values = view_cosines(
+            &head.positions,
+            &head.normals,
+            &transforms[n..],
+            camera,
+            noise,
+        );
+        split_view(
+            &head.scatter(&values),
+            &head_mask(head),
+            head.size,
+            size,
+            device,
+        )
+    }
+
+    /// Fits the pose PCA on the posed maps of `frames` (body Gaussians, root-relative).
+    pub fn fit_pca(
+        &self,
+        frames: &[RigParams],
+        components: usize,
+        sigma: f32,
+    ) -> Result<PosePca, AvatarError> {
+        let samples = frames
+            .par_iter()
+            .map(|p| {
+                self.posed_root_free(p)
+                    .map(|(b, _)| b.iter().flat_map(|v| v.to_array()).collect::<Vec<f32>>())
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(PosePca::fit(&samples, components, sigma)?)
+    }
+}
+
+fn head_mask(head: &HeadMaps) -> Vec<bool> {
+    let mut m = vec![false; head.size * 2 * head.size];
+    for &p in &head.pixels {
+        m[p] = true;
+    }
+    m
+}
+
+/// `n · v` per Gaussian: canonical normals rotated by the skinning rotation, `v` the unit
+/// direction to the camera (jittered by `N(0, σ²)` per component when `noise` is given, as
+/// Animatable Gaussians does in training).
+fn view_cosines(
+    positions: &[Vec3],
+    normals: &[Vec3],
+    transforms: &[PointTransform],
+    camera: &Camera,
+    noise: Option<(f32, u64)>,
+) -> Vec<[f32; 1]> {
+    let c = camera.center();
+    let centre = Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32);
+    positions
+        .par_iter()
+        .zip(normals)
+        .zip(transforms)
+        .enumerate()
+        .map(|(i, ((p, n), t))| {
+            let posed = t.affine.transform_point3(*p);
+            let normal = (t.rotation * *n).normalize_or_zero();
+            let mut v = centre - posed;
+            v = v.normalize_or_zero();
+            if let Some((sigma, seed)) = noise {
+                v = (v + sigma * gaussian3(seed, i as u64)).normalize_or_zero();
+            }
+            [normal.dot(v)]
+        })
+        .collect()
+}
+
+/// Three standard normal values from a counter-based hash (order-independent, so parallel
+/// evaluation stays deterministic).
+fn gaussian3(seed: u64, i: u64) -> Vec3 {
+    let mut state = seed ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let mut uniform = || {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    let pair = |u1: f64, u2: f64| {
+        let r = (-2.0 * u1.ln()).sqrt();
+        let a = std::f64::consts::TAU * u2;
+        (r * a.cos(), r * a.sin())
+    };
+    let (a, b) = pair(uniform(), uniform());
+    let (c, _) = pair(uniform(), uniform());
+    Vec3::new(a as f32, b as f32, c as f32)
+}
+
+/// Initial log-scales: `ln √(mean squared distance to the 3 nearest neighbours)` (AG §2d).
+fn knn_log_scales(points: &[Vec3]) -> Result<Vec<f32>, AvatarError> {
+    if points.len() < 4 {
+        return Err(AvatarError::Invalid(format!(
+            "the position maps hold {} Gaussians; raise map_resolution",
+            points.len()
+        )));
+    }
+    let array: Vec<[f32; 3]> = points.iter().map(|p| p.to_array()).collect();
+    let tree: ImmutableKdTree<f32, 3> = ImmutableKdTree::new_from_slice(&array)
+        .map_err(|e| AvatarError::Invalid(format!("k-d tree of the Gaussians: {e:?}")))?;
+    let k = NonZeroUsize::new(4).expect("non-zero");
+    Ok(array
+        .par_iter()
+        .map(|p| {
+            let hits = tree
+                .query(p)
+                .nearest_n::<SquaredEuclidean<f32>>(k)
+                .execute();
+            let mean = hits.iter().map(|h| h.distance).sum::<f32>() / 3.0;
+            0.5 * mean.max(1e-14).ln()
+        })
+        .collect())
+}
+
+/// Reduces a `[n, 2n, C]` two-sided map with validity `mask` to a `[1, 2C, S, S]` tensor
+/// (front channels, then back), averaging the valid texels inside each output pixel's
+/// footprint (box filter; when up-sampling, the texel under the pixel centre).
+fn two_sided_input(
+    map: &[f32],
+    mask: &[bool],
+    n: usize,
+    channels: usize,
+    size: usize,
+    device: &Device,
+) -> Tensor<4> {
+    let mut out = vec![0.0f32; 2 * channels * size * size];
+    let ratio = n as f32 / size as f32;
+    for side in 0..2 {
+        for y in 0..size {
+            for x in 0..size {
+                let (y0, y1) = footprint(y, ratio, n);
+                let (x0, x1) = footprint(x, ratio, n);
+                let mut acc = vec![0.0f32; channels];
+                let mut count = 0.0f32;
+                for sy in y0..y1 {
+                    for sx in x0..x1 {
+                        let p = sy * 2 * n + side * n + sx;
+                        if mask[p] {
+                            count += 1.0;
+                            for (a, v) in acc.iter_mut().zip(&map[p * channels..(p + 1) * channels])
+                            {
+                                *a += v;
+                            }
+                        }
+                    }
+                }
+                if count > 0.0 {
+                    for (c, a) in acc.iter().enumerate() {
+                        out[((side * channels + c) * size + y) * size + x] = a / count;
+                    }
+                }
+            }
+        }
+    }
+    Tensor::from_data(TensorData::new(out, [1, 2 * channels, size, size]), device)
+}
+
+/// Source rows/columns `[a, b)` covered by output pixel `i` at `ratio` source texels per pixel.
+fn footprint(i: usize, ratio: f32, n: usize) -> (usize, usize) {
+    if ratio <= 1.0 {
+        let s = (((i as f32 + 0.5) * ratio) as usize).min(n - 1);
+        (s, s + 1)
+    } else {
+        let a = (i as f32 * ratio).floor() as usize;
+        let b = (((i + 1) as f32 * ratio).ceil() as usize).min(n);
+        (a.min(n - 1), b.max(a + 1))
+    }
+}
+
+fn split_view(
+    map: &[f32],
+    mask: &[bool],
+    n: usize,
+    size: usize,
+    device: &Device,
+) -> (Tensor<4>, Tensor<4>) {
+    let both = two_sided_input(map, mask, n, 1, size, device);
+    (
+        both.clone().slice([0..1, 0..1, 0..size, 0..size]),
+        both.slice([0..1, 1..2, 0..size, 0..size]),
+    )
+}
+
+/// Rotation of a quaternion as `[w, x, y, z]`.
+pub fn quat_wxyz(q: Quat) -> [f32; 4] {
+    [q.w, q.x, q.y, q.z]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn knn_scales_of_a_grid_are_its_spacing() {
+        let pts: Vec<Vec3> = (0..100)
+            .map(|i| Vec3::new((i % 10) as f32 * 0.02, (i / 10) as f32 * 0.02, 0.0))
+            .collect();
+        let s = knn_log_scales(&pts).unwrap();
+        // An interior point has 4 neighbours at 2 cm: the 3 nearest are all at 2 cm.
+        assert!((s[55].exp() - 0.02).abs() < 1e-5, "{}", s[55].exp());
+    }
+
+    #[test]
+    fn masked_reduction_averages_valid_texels_only() {
+        // n = 4, two sides, 1 channel; reduce to 2×2.
+        let n = 4;
+        let mut map = vec![0.0f32; n * 2 * n];
+        let mut mask = vec![false; n * 2 * n];
+        for (y, x, v) in [(0, 0, 1.0), (0, 1, 3.0), (1, 0, 0.0)] {
+            map[y * 2 * n + x] = v;
+            mask[y * 2 * n + x] = true;
+        }
+        map[3 * 2 * n + n + 3] = 5.0;
+        mask[3 * 2 * n + n + 3] = true;
+        let t = two_sided_input(&map, &mask, n, 1, 2, &Device::flex());
+        let v = t.into_data().try_into_vec::<f32>().unwrap();
+        assert_eq!(v, vec![4.0 / 3.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 5.0]);
+    }
+
+    #[test]
+    fn counter_noise_is_deterministic_and_standard() {
+        let a: Vec<Vec3> = (0..2000).map(|i| gaussian3(7, i)).collect();
+        let b: Vec<Vec3> = (0..2000).map(|i| gaussian3(7, i)).collect();
+        assert_eq!(a, b);
+        let var = a.iter().map(|v| v.length_squared()).sum::<f32>() / (3.0 * a.len() as f32);
+        assert!((var - 1.0).abs() < 0.1, "{var}");
+    }
+}

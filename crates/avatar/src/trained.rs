@@ -1,0 +1,158 @@
+//! A trained avatar loaded from its run folder for inference: rendering new poses and views,
+//! and exporting posed Gaussians.
+
+use std::path::Path;
+
+use burn::tensor::Device;
+
+use crate::AvatarError;
+use crate::config::TrainConfig;
+use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
+use crate::report::tensor_to_image;
+use crate::run::{Run, RunInfo, load_face_base};
+use crate::setup::Setup;
+use crate::train::inputs_for;
+use f3g_io::Image;
+use f3g_rig::RigParams;
+use f3g_splat::{Camera, GaussianCloud};
+use f3g_template::PosePca;
+
+/// The networks, canonical face model and setup of a run, on the CPU without autodiff.
+pub struct TrainedAvatar {
+    pub config: TrainConfig,
+    pub info: RunInfo,
+    pub setup: Setup,
+    pub nets: AvatarNets,
+    pub face_base: Option<FaceBase>,
+    pub pca: Option<PosePca>,
+    constants: Constants,
+    device: Device,
+    /// The training step of the loaded checkpoint.
+    pub step: u64,
+}
+
+impl TrainedAvatar {
+    /// Loads the newest checkpoint of `run_dir`.
+    pub fn load(run_dir: &Path) -> Result<Self, AvatarError> {
+        let run = Run::new(run_dir);
+        let config = run.config()?;
+        let info = run.info()?;
+        let checkpoint = run
+            .latest()?
+            .ok_or_else(|| AvatarError::file(run_dir, "has no checkpoint yet: train it first"))?;
+        let step = crate::run::read_state(&checkpoint)?.step;
+        let setup = Setup::new(&info.model, &config)?;
+        let device = Device::flex();
+        let nets = f3g_nets::checkpoint::load(
+            AvatarNets::new(&config, &device)?,
+            &checkpoint.join("nets.bpk"),
+        )?;
+        let face_path = checkpoint.join("face_base.npz");
+        let face_base = if face_path.exists() {
+            Some(load_face_base(&face_path, setup.face_count())?)
+        } else {
+            None
+        };
+        let pca = if run.dir.join("pca.npz").exists() {
+            let p = run.pca()?;
+            if p.mean.len() != 3 * setup.body_count() {
+                return Err(AvatarError::file(
+                    &run.dir.join("pca.npz"),
+                    format!(
+                        "has {} values per map, the avatar {} Gaussians",
+                        p.mean.len(),
+                        setup.body_count()
+                    ),
+                ));
+            }
+            Some(p)
+        } else {
+            None
+        };
+        let constants = Constants::new(&setup, &config, face_base.as_ref(), &device);
+        Ok(Self {
+            config,
+            info,
+            setup,
+            nets,
+            face_base,
+            pca,
+            constants,
+            device,
+            step,
+        })
+    }
+
+    /// Number of Gaussians rendered (body + face when the face model exists).
+    pub fn gaussian_count(&self) -> usize {
+        self.setup.body_count()
+            + if self.constants.has_face() {
+                self.setup.face_count()
+            } else {
+                0
+            }
+    }
+
+    fn canonical_for(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        use_pca: bool,
+    ) -> Result<(crate::model::Canonical, Vec<f3g_rig::PointTransform>), AvatarError> {
+        self.setup.check_params(params, "pose")?;
+        let pca = if use_pca { self.pca.as_ref() } else { None };
+        let inputs = inputs_for(
+            &self.setup,
+            &self.constants,
+            params,
+            camera,
+            None,
+            pca,
+            &self.device,
+        )?;
+        let c = canonical(&self.nets, &self.constants, &inputs)?;
+        Ok((c, inputs.transforms))
+    }
+
+    /// Renders body parameters from `camera` over `background`. With `use_pca`, the posed map
+    /// is projected onto the training poses' principal components first (for unseen poses).
+    pub fn render(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        background: [f32; 3],
+        use_pca: bool,
+    ) -> Result<Image, AvatarError> {
+        let (c, transforms) = self.canonical_for(params, camera, use_pca)?;
+        let out = render_posed(&c, &transforms, camera, background, &self.device)?;
+        Ok(tensor_to_image(out.color))
+    }
+
+    /// The posed Gaussians of a frame (colour as seen from `camera`), for `.ply` export.
+    pub fn posed_cloud(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        use_pca: bool,
+    ) -> Result<GaussianCloud, AvatarError> {
+        let (c, transforms) = self.canonical_for(params, camera, use_pca)?;
+        let (means, quats) = pose(&c, &transforms);
+        let v = |t: burn::tensor::Tensor<2>| t.into_data().try_into_vec::<f32>().expect("f32");
+        let colours = v(c.colours);
+        Ok(GaussianCloud {
+            means: v(means),
+            log_scales: v(c.log_scales),
+            quats: v(quats),
+            opacity_logits: c
+                .opacity_logits
+                .into_data()
+                .try_into_vec::<f32>()
+                .expect("f32"),
+            sh: colours
+                .iter()
+                .map(|x| (x - 0.5) / f3g_splat::sh::SH_C0 as f32)
+                .collect(),
+            sh_degree: 0,
+        })
+    }
+}

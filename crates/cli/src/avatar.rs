@@ -1,0 +1,443 @@
+//! `f3g train`, `f3g eval`, `f3g animate` and `f3g export-ply`: train an avatar (or resume a
+//! run), measure it on held-out views and poses, drive it with new poses, export it.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use f3g_avatar::animate::{AnimateOptions, CameraPath};
+use f3g_avatar::eval::EvalOptions;
+use f3g_avatar::trained::TrainedAvatar;
+use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
+use f3g_data::split::{SplitKind, parse_indices};
+use f3g_nets::LpipsNet;
+use f3g_rig::ModelSpec;
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// Options of `f3g train`.
+#[derive(Args, Debug, Clone)]
+pub struct TrainArgs {
+    /// Capture folder (AvatarReX or THuman4.0 layout, or one made by `f3g synth`).
+    #[arg(long, required_unless_present = "resume")]
+    pub data: Option<PathBuf>,
+    /// Run folder to create.
+    #[arg(long, required_unless_present = "resume")]
+    pub out: Option<PathBuf>,
+    /// Resume the run in this folder from its newest checkpoint.
+    #[arg(long, conflicts_with_all = ["data", "out", "config", "preset", "set"])]
+    pub resume: Option<PathBuf>,
+    /// Configuration file (JSON; any subset of the keys, over the preset it names).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Preset when no config file is given: cpu (the demo's) or paper (AvatarReX scale).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
+    #[arg(long)]
+    pub model: Option<ModelSpec>,
+    /// Training cameras (`0,1,5` or `A..B`), instead of the capture's preset.
+    #[arg(long)]
+    pub cameras: Option<String>,
+    /// Training frames (`A..B` or a list), instead of the capture's preset.
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Ablation: no face branch (body Gaussians only; same number of steps).
+    #[arg(long)]
+    pub no_face_branch: bool,
+    /// Ablation: no adversarial face loss.
+    #[arg(long)]
+    pub no_adversarial: bool,
+    /// Ablation: canonical template (body or clothed).
+    #[arg(long)]
+    pub template: Option<String>,
+    /// Ablation: input (= output) resolution of the face networks.
+    #[arg(long)]
+    pub face_input: Option<usize>,
+    /// Ablation: channel multiplier of the face networks.
+    #[arg(long)]
+    pub face_cm: Option<usize>,
+    /// Ablation: depth of the face networks' mapping network.
+    #[arg(long)]
+    pub face_n_mlp: Option<usize>,
+    /// Seed of the weights, the samples and every random choice.
+    #[arg(long)]
+    pub seed: Option<u64>,
+    /// Stop after this many steps of this invocation (a checkpoint is written), e.g. to
+    /// split training into sessions.
+    #[arg(long)]
+    pub max_steps: Option<u64>,
+}
+
+/// The configuration of a new run from the command line.
+pub fn config_of(a: &TrainArgs) -> Result<TrainConfig> {
+    let mut c = match &a.config {
+        Some(path) => TrainConfig::from_file(path)?,
+        None => TrainConfig::preset(&a.preset)?,
+    };
+    let mut set = a.set.clone();
+    if a.no_face_branch {
+        set.push("face_branch=false".into());
+    }
+    if a.no_adversarial {
+        set.push("adversarial=false".into());
+    }
+    if let Some(t) = &a.template {
+        match t.as_str() {
+            "body" | "clothed" => set.push(format!("template={t}")),
+            other => bail!("--template `{other}`: expected body or clothed"),
+        }
+    }
+    if let Some(s) = a.face_input {
+        set.push(format!("face_net.input_size={s}"));
+        set.push(format!("face_net.output_size={s}"));
+    }
+    if let Some(cm) = a.face_cm {
+        set.push(format!("face_net.channel_multiplier={cm}"));
+    }
+    if let Some(n) = a.face_n_mlp {
+        set.push(format!("face_net.n_mlp={n}"));
+    }
+    if let Some(seed) = a.seed {
+        set.push(format!("seed={seed}"));
+    }
+    c = c.with_overrides(&set)?;
+    Ok(c)
+}
+
+/// Raised by Ctrl-C: the trainer writes a checkpoint and returns.
+fn stop_flag() -> Arc<AtomicBool> {
+    let flag = Arc::new(AtomicBool::new(false));
+    let f = flag.clone();
+    // A second handler cannot be installed (e.g. demo after train in one process): keep the
+    // first, which raises the same kind of flag.
+    let _ = ctrlc::set_handler(move || f.store(true, Ordering::Relaxed));
+    flag
+}
+
+pub fn train(a: &TrainArgs) -> Result<PathBuf> {
+    let mut trainer = match &a.resume {
+        Some(dir) => Trainer::resume(dir, a.model.as_ref())
+            .with_context(|| format!("resuming {}", dir.display()))?,
+        None => {
+            let data = a.data.as_ref().context("--data is required")?;
+            let out = a.out.as_ref().context("--out is required")?;
+            let config = config_of(a)?;
+            let ds_probe = f3g_data::Dataset::open(data, a.model.as_ref())?;
+            let cameras = a
+                .cameras
+                .as_deref()
+                .map(|t| parse_indices(t, ds_probe.cameras.len(), "--cameras"))
+                .transpose()?;
+            let frames = a
+                .frames
+                .as_deref()
+                .map(|t| parse_indices(t, ds_probe.frames(), "--frames"))
+                .transpose()?;
+            drop(ds_probe);
+            Trainer::create(
+                out,
+                data,
+                a.model.as_ref(),
+                config,
+                cameras.as_deref(),
+                frames.as_deref(),
+            )?
+        }
+    };
+    let run_dir = trainer.run.dir.clone();
+    let total = trainer.total_steps();
+    println!(
+        "training {} ({} body + {} face Gaussians, preset {}) on {} cameras × {} frames; {} of {} steps done",
+        run_dir.display(),
+        trainer.setup.body_count(),
+        trainer.setup.face_count(),
+        trainer.config.preset,
+        trainer.split.cameras.len(),
+        trainer.split.frames.len(),
+        trainer.step(),
+        total
+    );
+    let bar = ProgressBar::new(total).with_style(ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} {msg} [{per_sec} · {elapsed} < {eta}]",
+    )?);
+    bar.set_position(trainer.step());
+    let stop = stop_flag();
+    let limit = a.max_steps.map(|m| trainer.step() + m);
+    let mut on_step = |r: &StepReport| {
+        bar.set_position(r.step + 1);
+        bar.set_message(format!("{:?} loss {:.4}", r.stage, r.total));
+        if limit.is_some_and(|l| r.step + 1 >= l) {
+            stop.store(true, Ordering::Relaxed);
+        }
+    };
+    let outcome = trainer.train(&stop, &mut on_step)?;
+    bar.finish_and_clear();
+    match outcome {
+        Outcome::Finished => println!(
+            "finished {} steps; loss curve {}, validation {}",
+            total,
+            run_dir.join("loss.png").display(),
+            run_dir.join("validation.png").display()
+        ),
+        Outcome::Stopped => println!(
+            "stopped at step {}; checkpoint written — continue with `f3g train --resume {}`",
+            trainer.step(),
+            run_dir.display()
+        ),
+    }
+    Ok(run_dir)
+}
+
+/// Options of `f3g eval`.
+#[derive(Args, Debug, Clone)]
+pub struct EvalArgs {
+    /// Run folder.
+    pub run: PathBuf,
+    /// Split: novel-view, novel-pose or train.
+    #[arg(long, default_value = "novel-view")]
+    pub split: SplitKind,
+    /// Capture folder (default: the run's).
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
+    #[arg(long)]
+    pub model: Option<ModelSpec>,
+    /// Cameras to evaluate instead of the split's.
+    #[arg(long)]
+    pub cameras: Option<String>,
+    /// Frames to evaluate instead of the split's.
+    #[arg(long)]
+    pub frames: Option<String>,
+    /// Evaluate every N-th frame.
+    #[arg(long, default_value_t = 1)]
+    pub every: usize,
+    /// Body images at this fraction of the capture's resolution (default: the training scale).
+    #[arg(long)]
+    pub scale: Option<f32>,
+    /// Side of the head crops (default: the training face crop size).
+    #[arg(long)]
+    pub face_size: Option<usize>,
+    /// LPIPS backbone (default: the training one).
+    #[arg(long)]
+    pub lpips: Option<LpipsNet>,
+    /// Output folder (default RUN/eval/<split>).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
+    let config = f3g_avatar::run::Run::new(&a.run).config()?;
+    let (mut cameras, mut frames) = (None, None);
+    if a.cameras.is_some() || a.frames.is_some() {
+        let info = f3g_avatar::run::Run::new(&a.run).info()?;
+        let ds = f3g_data::Dataset::open(a.data.as_ref().unwrap_or(&info.data), a.model.as_ref())?;
+        cameras = a
+            .cameras
+            .as_deref()
+            .map(|t| parse_indices(t, ds.cameras.len(), "--cameras"))
+            .transpose()?;
+        frames = a
+            .frames
+            .as_deref()
+            .map(|t| parse_indices(t, ds.frames(), "--frames"))
+            .transpose()?;
+    }
+    let options = EvalOptions {
+        split: a.split,
+        cameras,
+        frames,
+        every: a.every,
+        scale: a.scale.unwrap_or(config.body_scale),
+        face_size: a.face_size.unwrap_or(config.face_crop_size),
+        lpips_size: config.lpips_size,
+        lpips_net: a.lpips.unwrap_or(config.lpips_net),
+        out: a.out.clone(),
+    };
+    let bar = ProgressBar::new(0).with_style(ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} images [{elapsed} < {eta}]",
+    )?);
+    let report = f3g_avatar::eval::evaluate(
+        &a.run,
+        a.data.as_deref(),
+        a.model.as_ref(),
+        &options,
+        &mut |i, n| {
+            bar.set_length(n as u64);
+            bar.set_position(i as u64);
+        },
+    )?;
+    bar.finish_and_clear();
+    print!(
+        "{}",
+        f3g_avatar::eval::markdown(&report)
+            .lines()
+            .take(7)
+            .collect::<Vec<_>>()
+            .join("\n")
+    );
+    println!(
+        "\n\nwrote {}",
+        a.out
+            .clone()
+            .unwrap_or_else(|| a.run.join("eval").join(a.split.to_string()))
+            .join("metrics.json")
+            .display()
+    );
+    Ok(report)
+}
+
+/// Options of `f3g animate`.
+#[derive(Args, Debug, Clone)]
+pub struct AnimateArgs {
+    /// Run folder.
+    pub run: PathBuf,
+    /// Pose sequence: an f3g .npz (e.g. a capture's body_params.npz) or smpl_params.npz.
+    #[arg(long)]
+    pub motion: PathBuf,
+    /// `orbit`, or a camera JSON (`f3g render-ply`'s cam.json format).
+    #[arg(long, default_value = "orbit")]
+    pub camera: String,
+    /// Output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write every frame's posed Gaussians as a 3DGS .ply.
+    #[arg(long)]
+    pub export_ply: bool,
+    /// Image size of the orbit camera, WIDTHxHEIGHT.
+    #[arg(long, default_value = "384x512")]
+    pub size: String,
+    /// Orbit turns over the sequence.
+    #[arg(long, default_value_t = 1.0)]
+    pub turns: f32,
+    /// Orbit elevation, degrees.
+    #[arg(long, default_value_t = 5.0)]
+    pub elevation: f32,
+    /// Frames per second of the GIF.
+    #[arg(long, default_value_t = 8.0)]
+    pub fps: f32,
+    /// Feed poses as they are, without the pose-PCA projection.
+    #[arg(long)]
+    pub no_pca: bool,
+}
+
+fn parse_size(text: &str) -> Result<(u32, u32)> {
+    let (w, h) = text
+        .split_once('x')
+        .with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT"))?;
+    let (w, h): (u32, u32) = (
+        w.parse()
+            .with_context(|| format!("--size `{text}`: bad width"))?,
+        h.parse()
+            .with_context(|| format!("--size `{text}`: bad height"))?,
+    );
+    anyhow::ensure!(
+        w >= 16 && h >= 16 && w <= 8192 && h <= 8192,
+        "--size `{text}`: 16..8192 pixels per side"
+    );
+    Ok((w, h))
+}
+
+pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
+    let avatar = TrainedAvatar::load(&a.run)?;
+    let motion = f3g_avatar::animate::read_motion(&a.motion, &avatar)?;
+    let (width, height) = parse_size(&a.size)?;
+    let camera = if a.camera == "orbit" {
+        CameraPath::Orbit {
+            turns: a.turns,
+            elevation_deg: a.elevation,
+        }
+    } else {
+        let path = PathBuf::from(&a.camera);
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
+        let cam: f3g_splat::Camera = serde_json::from_str(&text)
+            .with_context(|| format!("{}: not a camera JSON", path.display()))?;
+        cam.validate().with_context(|| path.display().to_string())?;
+        CameraPath::Fixed(cam)
+    };
+    let options = AnimateOptions {
+        camera,
+        width,
+        height,
+        out: a.out.clone(),
+        export_ply: a.export_ply,
+        fps: a.fps,
+        use_pca: !a.no_pca,
+        background: [1.0; 3],
+    };
+    let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
+        "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",
+    )?);
+    let report = f3g_avatar::animate::animate(&avatar, &motion, &options, &mut |i, _| {
+        bar.set_position(i as u64)
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "wrote {} frames ({:.2} s per frame) and {}{}",
+        report.frames,
+        report.seconds_per_frame,
+        report.gif.display(),
+        if a.export_ply {
+            format!(" and {} .ply files", report.plys.len())
+        } else {
+            String::new()
+        }
+    );
+    Ok(report)
+}
+
+/// Options of `f3g export-ply`.
+#[derive(Args, Debug, Clone)]
+pub struct ExportPlyArgs {
+    /// Run folder.
+    pub run: PathBuf,
+    /// Output .ply (standard 3DGS layout).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Frame of the capture (or of --motion) to pose the avatar in.
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+    /// Pose sequence to take the frame from instead of the capture.
+    #[arg(long)]
+    pub motion: Option<PathBuf>,
+}
+
+pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
+    let avatar = TrainedAvatar::load(&a.run)?;
+    let (params, use_pca) = match &a.motion {
+        Some(m) => {
+            let motion = f3g_avatar::animate::read_motion(m, &avatar)?;
+            let p = motion.get(a.frame).cloned().with_context(|| {
+                format!(
+                    "--frame {}: {} has {} frames",
+                    a.frame,
+                    m.display(),
+                    motion.len()
+                )
+            })?;
+            (p, true)
+        }
+        None => {
+            let ds = f3g_data::Dataset::open(&avatar.info.data, None)?;
+            let p = ds.params.get(a.frame).cloned().with_context(|| {
+                format!(
+                    "--frame {}: the capture has {} frames",
+                    a.frame,
+                    ds.frames()
+                )
+            })?;
+            (p, !avatar.info.train_frames.contains(&a.frame))
+        }
+    };
+    // View-dependent colour is baked as seen from the front.
+    let camera = f3g_avatar::animate::orbit_camera(glam::Vec3::ZERO, 0, 1, 0.0, 0.0, 512, 512);
+    let cloud = avatar.posed_cloud(&params, &camera, use_pca)?;
+    f3g_splat::ply::write_ply(&a.out, &cloud)?;
+    println!("wrote {} Gaussians to {}", cloud.len(), a.out.display());
+    Ok(())
+}
