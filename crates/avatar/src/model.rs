@@ -14,6 +14,10 @@
 //! branch averaged over training frames, densified; [`FaceBase`]). Face scales are capped at
 //! 0.15 m as in the reference.
 //!
+//! Every Gaussian's canonical position also moves with the frame's blend shapes and pose
+//! correctives (the displacement of its template point), so expressions and correctives reach
+//! the Gaussians through the posed template, as in the paper, before the networks' offsets.
+//!
 //! Fusion concatenates body and face Gaussians; the body keeps its own head Gaussians (the
 //! paper concatenates the two sets and does not remove any), so the face branch adds detail on
 //! top. The fused set is posed by LBS (means by the blended transform, rotations by its polar
@@ -112,6 +116,9 @@ pub struct NetInputs {
     pub body_view: (Tensor<4>, Tensor<4>),
     pub face_map: Option<Tensor<4>>,
     pub face_view: Option<(Tensor<4>, Tensor<4>)>,
+    /// `[N, 3]` canonical displacement of every Gaussian by the frame's blend shapes and
+    /// correctives (body then face).
+    pub displacement: Tensor<2>,
     /// Skinning transforms of every Gaussian (body then face).
     pub transforms: Vec<PointTransform>,
 }
@@ -324,6 +331,9 @@ pub fn canonical(
     let raw = body_outputs(nets, constants, inputs)?;
     let (means, colours, opacity, log_scales, quats, body_offsets) =
         body_attributes(&raw, constants);
+    let nb = means.dims()[0];
+    let total = inputs.displacement.dims()[0];
+    let means = means + inputs.displacement.clone().slice([0..nb, 0..3]);
     let mut out = Canonical {
         means,
         log_scales,
@@ -338,7 +348,9 @@ pub fn canonical(
         let r = face_outputs(face, fc, inputs)?;
         let n = r.dims()[0];
         let offsets = cols(&r, 0, 3) * OFFSET_SCALE;
-        let means = fc.positions.clone() + offsets.clone();
+        let means = fc.positions.clone()
+            + offsets.clone()
+            + inputs.displacement.clone().slice([nb..total, 0..3]);
         let colours = fc.colours.clone() + cols(&r, 3, 6);
         let opacity = fc.opacity_logits.clone() + cols(&r, 6, 7).reshape([n]);
         let log_scales = (fc.log_scales.clone() + cols(&r, 7, 10)).clamp_max(FACE_MAX_SCALE.ln());

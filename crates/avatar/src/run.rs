@@ -34,6 +34,8 @@ pub struct RunInfo {
     pub data: PathBuf,
     /// The body model, as the capture names it.
     pub model: String,
+    /// The subject's shape parameters the template was built with.
+    pub identity: Vec<f32>,
     pub train_cameras: Vec<usize>,
     pub train_frames: Vec<usize>,
 }

@@ -5,7 +5,9 @@
 //!
 //! Conventions: positions in metres, +Y up, the body facing +Z. Maps are `[R, 2R]` front | back
 //! (see `f3g_template::posmap`); network inputs are `[1, 6, S, S]` (front xyz ‖ back xyz) of
-//! root-relative posed positions, reduced from the maps by a masked box filter. Gaussian order:
+//! root-relative posed positions, reduced from the maps by a masked box filter. The template
+//! follows each frame's blend shapes (expressions) and pose correctives before it is posed, as
+//! the posed body model does. Gaussian order:
 //! body Gaussians (row-major over the body map), then face Gaussians (row-major over the head
 //! map).
 
@@ -27,6 +29,20 @@ use f3g_template::{HeadMaps, PosePca, Poser, PositionMaps, Template, TransferOpt
 /// Initial opacity of every Gaussian (Animatable Gaussians): 0.1.
 pub const INITIAL_OPACITY: f32 = 0.1;
 
+/// What one frame's body parameters make of the avatar's Gaussians (body first, then face).
+pub struct FrameGeometry {
+    /// Canonical positions moved by the frame's blend shapes and correctives.
+    pub canonical: Vec<Vec3>,
+    /// That displacement alone.
+    pub displacement: Vec<Vec3>,
+    /// Root-relative posed positions of the body Gaussians (the body network's input).
+    pub posed_body: Vec<Vec3>,
+    /// Root-relative posed positions of the face Gaussians (the face networks' input).
+    pub posed_face: Option<Vec<Vec3>>,
+    /// Skinning transforms with the global root motion.
+    pub transforms: Vec<PointTransform>,
+}
+
 /// The static part of an avatar.
 pub struct Setup {
     pub model: ModelSpec,
@@ -47,8 +63,13 @@ pub fn logit(p: f32) -> f32 {
 }
 
 impl Setup {
-    /// Builds the template of `config` for the body model `model` (as named by the capture).
-    pub fn new(model_text: &str, config: &TrainConfig) -> Result<Self, AvatarError> {
+    /// Builds the template of `config` for the body model `model` (as named by the capture),
+    /// with the subject's `identity` (shape) parameters.
+    pub fn new(
+        model_text: &str,
+        identity: &[f32],
+        config: &TrainConfig,
+    ) -> Result<Self, AvatarError> {
         let model: ModelSpec = model_text
             .parse()
             .map_err(|e: String| AvatarError::config("model", e))?;
@@ -75,6 +96,7 @@ impl Setup {
             &model,
             model_text,
             &pose,
+            Some(identity),
             garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
             &TransferOptions::default(),
         )?;
@@ -126,32 +148,43 @@ impl Setup {
         Ok(())
     }
 
-    /// Root-relative posed positions of the body Gaussians (and of the face Gaussians).
-    pub fn posed_root_free(
-        &self,
-        params: &RigParams,
-    ) -> Result<(Vec<Vec3>, Option<Vec<Vec3>>), AvatarError> {
+    /// Everything a frame's body parameters determine: the frame's blend shapes and
+    /// correctives as canonical displacements, the root-relative posed positions (the network
+    /// input) and the skinning transforms with the root motion (to pose the Gaussians).
+    pub fn frame(&self, params: &RigParams) -> Result<FrameGeometry, AvatarError> {
         let poser = Poser::new(&self.rig, &self.template)?;
-        let body = poser.pose_points(&self.maps.positions, &self.maps.skin, params, false)?;
-        let face = match &self.head {
-            Some(h) => Some(poser.pose_points(&h.positions, &h.skin, params, false)?),
+        let (root_free, posed) = poser.frame(params, false)?;
+        let joints = poser.transforms(params, true)?;
+        let per_vertex = poser.displacements(&self.template, &posed);
+        let mut displacement = self.maps.interpolate(&per_vertex);
+        let mut canonical: Vec<Vec3> = self
+            .maps
+            .positions
+            .iter()
+            .zip(&displacement)
+            .map(|(p, d)| *p + *d)
+            .collect();
+        let posed_body = f3g_rig::skin_points(&root_free, &self.maps.skin, &canonical);
+        let mut transforms = point_transforms(&joints, &self.maps.skin);
+        let posed_face = match &self.head {
+            Some(h) => {
+                let d = h.from_body(&displacement);
+                let c: Vec<Vec3> = h.positions.iter().zip(&d).map(|(p, d)| *p + *d).collect();
+                let posed = f3g_rig::skin_points(&root_free, &h.skin, &c);
+                transforms.extend(point_transforms(&joints, &h.skin));
+                displacement.extend(d);
+                canonical.extend(c);
+                Some(posed)
+            }
             None => None,
         };
-        Ok((body, face))
-    }
-
-    /// Skinning transforms (with the global root motion) of every Gaussian, body then face.
-    pub fn gaussian_transforms(
-        &self,
-        params: &RigParams,
-    ) -> Result<Vec<PointTransform>, AvatarError> {
-        let poser = Poser::new(&self.rig, &self.template)?;
-        let joints = poser.transforms(params, true)?;
-        let mut all = point_transforms(&joints, &self.maps.skin);
-        if let Some(h) = &self.head {
-            all.extend(point_transforms(&joints, &h.skin));
-        }
-        Ok(all)
+        Ok(FrameGeometry {
+            canonical,
+            displacement,
+            posed_body,
+            posed_face,
+            transforms,
+        })
     }
 
     /// The body network's input: the posed map reduced to `[1, 6, S, S]`.
@@ -181,7 +214,7 @@ impl Setup {
     /// posed normals and the camera centre, with optional noise on the view direction.
     pub fn body_view_maps(
         &self,
-        transforms: &[PointTransform],
+        frame: &FrameGeometry,
         camera: &Camera,
         size: usize,
         noise: Option<(f32, u64)>,
@@ -189,9 +222,9 @@ impl Setup {
     ) -> (Tensor<4>, Tensor<4>) {
         let n = self.maps.len();
         let values = view_cosines(
-            &self.maps.positions,
+            &frame.canonical[..n],
             &self.maps.normals,
-            &transforms[..n],
+            &frame.transforms[..n],
             camera,
             noise,
         );
@@ -202,7 +235,7 @@ impl Setup {
     /// View-conditioning maps of the face Gaussians, resampled to `[1, 1, F, F]` per side.
     pub fn face_view_maps(
         &self,
-        transforms: &[PointTransform],
+        frame: &FrameGeometry,
         camera: &Camera,
         size: usize,
         noise: Option<(f32, u64)>,
@@ -211,9 +244,9 @@ impl Setup {
         let head = self.head.as_ref().expect("face branch");
         let n = self.maps.len();
         let values = view_cosines(
-            &head.positions,
+            &frame.canonical[n..],
             &head.normals,
-            &transforms[n..],
+            &frame.transforms[n..],
             camera,
             noise,
         );
@@ -236,8 +269,12 @@ impl Setup {
         let samples = frames
             .par_iter()
             .map(|p| {
-                self.posed_root_free(p)
-                    .map(|(b, _)| b.iter().flat_map(|v| v.to_array()).collect::<Vec<f32>>())
+                self.frame(p).map(|f| {
+                    f.posed_body
+                        .iter()
+                        .flat_map(|v| v.to_array())
+                        .collect::<Vec<f32>>()
+                })
             })
             .collect::<Result<Vec<_>, _>>()?;
         Ok(PosePca::fit(&samples, components, sigma)?)

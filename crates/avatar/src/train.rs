@@ -151,7 +151,8 @@ impl Trainer {
         let dataset = Arc::new(Dataset::open(data, model)?);
         dataset.rig()?;
         let split = training_split(&dataset, cameras, frames)?;
-        let setup = Setup::new(&dataset.model, &config)?;
+        let identity = dataset.params[split.frames[0]].identity.clone();
+        let setup = Setup::new(&dataset.model, &identity, &config)?;
         let train_params: Vec<_> = split
             .frames
             .iter()
@@ -164,6 +165,7 @@ impl Trainer {
         run.write_info(&RunInfo {
             data: std::fs::canonicalize(data).unwrap_or_else(|_| data.to_path_buf()),
             model: dataset.model.clone(),
+            identity,
             train_cameras: split.cameras.clone(),
             train_frames: split.frames.clone(),
         })?;
@@ -198,7 +200,7 @@ impl Trainer {
             cameras: info.train_cameras.clone(),
             frames: info.train_frames.clone(),
         };
-        let setup = Setup::new(&dataset.model, &config)?;
+        let setup = Setup::new(&dataset.model, &info.identity, &config)?;
         let checkpoint = run.latest()?;
         let state = match &checkpoint {
             Some(c) => read_state(c)?,
@@ -859,7 +861,8 @@ pub fn inputs_for(
     pca: Option<&f3g_template::PosePca>,
     device: &Device,
 ) -> Result<NetInputs, AvatarError> {
-    let (mut posed_body, posed_face) = setup.posed_root_free(params)?;
+    let frame = setup.frame(params)?;
+    let mut posed_body = frame.posed_body.clone();
     if let Some(pca) = pca {
         let flat: Vec<f32> = posed_body.iter().flat_map(|v| v.to_array()).collect();
         posed_body = pca
@@ -868,16 +871,15 @@ pub fn inputs_for(
             .map(glam::Vec3::from_slice)
             .collect();
     }
-    let transforms = setup.gaussian_transforms(params)?;
     let s = constants.net_input_size;
     let body_map = setup.body_input(&posed_body, s, device);
-    let body_view = setup.body_view_maps(&transforms, camera, s, noise, device);
-    let (face_map, face_view) = match (&posed_face, constants.has_face()) {
+    let body_view = setup.body_view_maps(&frame, camera, s, noise, device);
+    let (face_map, face_view) = match (&frame.posed_face, constants.has_face()) {
         (Some(pf), true) => {
             let f = constants.face_input_size;
             (
                 Some(setup.face_input(pf, f, device)),
-                Some(setup.face_view_maps(&transforms, camera, f, noise, device)),
+                Some(setup.face_view_maps(&frame, camera, f, noise, device)),
             )
         }
         _ => (None, None),
@@ -888,12 +890,17 @@ pub fn inputs_for(
         } else {
             0
         };
+    let displacement: Vec<f32> = frame.displacement[..count]
+        .iter()
+        .flat_map(|v| v.to_array())
+        .collect();
     Ok(NetInputs {
         body_map,
         body_view,
         face_map,
         face_view,
-        transforms: transforms[..count].to_vec(),
+        displacement: Tensor::from_data(TensorData::new(displacement, [count, 3]), device),
+        transforms: frame.transforms[..count].to_vec(),
     })
 }
 

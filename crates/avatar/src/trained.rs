@@ -41,7 +41,7 @@ impl TrainedAvatar {
             .latest()?
             .ok_or_else(|| AvatarError::file(run_dir, "has no checkpoint yet: train it first"))?;
         let step = crate::run::read_state(&checkpoint)?.step;
-        let setup = Setup::new(&info.model, &config)?;
+        let setup = Setup::new(&info.model, &info.identity, &config)?;
         let device = Device::flex();
         let nets = f3g_nets::checkpoint::load(
             AvatarNets::new(&config, &device)?,

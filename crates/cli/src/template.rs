@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use clap::Args;
+use clap::{Args, Subcommand};
 use f3g_io::Image;
 use f3g_rig::{ModelSpec, sequence};
 use f3g_template::canonical::CanonicalPose;
@@ -14,9 +14,52 @@ use f3g_template::{HeadMaps, Poser, PositionMaps, TransferOptions, posed_positio
 
 /// Build a canonical template: the body model in the canonical pose, optionally with a garment.
 #[derive(Args, Debug)]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct TemplateArgs {
+    #[command(subcommand)]
+    pub command: Option<TemplateCommand>,
     #[command(flatten)]
     pub build: BuildArgs,
+}
+
+/// Template subcommands.
+#[derive(Subcommand, Debug)]
+pub enum TemplateCommand {
+    /// Reconstruct the clothed geometry of a capture frame (visual hull of its masks), bring
+    /// it to the canonical pose and write the garment part as a mesh for `--clothes`.
+    Reconstruct(ReconstructArgs),
+}
+
+/// Options of `f3g template reconstruct`.
+#[derive(Args, Debug)]
+pub struct ReconstructArgs {
+    /// Capture folder.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Frame to carve (an A-pose-like frame sees most of the surface).
+    #[arg(long, default_value_t = 0)]
+    pub frame: usize,
+    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
+    #[arg(long)]
+    pub model: Option<ModelSpec>,
+    /// Garment mesh to write (OBJ, canonical pose).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Also write the carved hull in the frame's pose (OBJ).
+    #[arg(long)]
+    pub hull: Option<PathBuf>,
+    /// Voxels along the longest side.
+    #[arg(long, default_value_t = 128)]
+    pub resolution: usize,
+    /// Hull points farther than this from the body are garment, metres.
+    #[arg(long, default_value_t = 0.015)]
+    pub garment_distance: f32,
+    /// Hip rotation of the canonical pose, degrees (as `f3g template`).
+    #[arg(long, default_value_t = 25.0)]
+    pub leg_spread: f32,
+    /// Upper-arm rotation of the canonical pose, degrees (as `f3g template`).
+    #[arg(long, default_value_t = 0.0)]
+    pub arm_raise: f32,
 }
 
 /// Options of `f3g template`.
@@ -48,7 +91,78 @@ pub struct BuildArgs {
 }
 
 pub fn run(args: &TemplateArgs) -> Result<()> {
-    build(&args.build)
+    match &args.command {
+        Some(TemplateCommand::Reconstruct(a)) => reconstruct(a),
+        None => build(&args.build),
+    }
+}
+
+fn reconstruct(a: &ReconstructArgs) -> Result<()> {
+    use f3g_template::reconstruct::{HullOptions, Silhouette, reconstruct};
+    let ds = f3g_data::Dataset::open(&a.data, a.model.as_ref())?;
+    let rig = ds.rig()?;
+    anyhow::ensure!(
+        a.frame < ds.frames(),
+        "--frame {}: the capture has {} frames",
+        a.frame,
+        ds.frames()
+    );
+    let cams: Vec<usize> = (0..ds.cameras.len())
+        .filter(|&c| ds.has_image(c, a.frame))
+        .collect();
+    let masks = cams
+        .iter()
+        .map(|&c| ds.mask(c, a.frame))
+        .collect::<Result<Vec<_>, _>>()?;
+    let views: Vec<Silhouette> = cams
+        .iter()
+        .zip(&masks)
+        .map(|(&c, m)| Silhouette {
+            camera: &ds.cameras[c].camera,
+            mask: m,
+        })
+        .collect();
+    let params = &ds.params[a.frame];
+    let posed = rig.pose(params)?;
+    let model: ModelSpec = ds
+        .model
+        .parse()
+        .map_err(|e: String| anyhow::anyhow!("{e}"))?;
+    let surface = f3g_template::template::body_surface(&model, rig)?;
+    let pose = CanonicalPose {
+        leg_spread_deg: a.leg_spread,
+        arm_raise_deg: a.arm_raise,
+    };
+    let (mut canonical, _) = f3g_template::canonical_params(rig, &pose);
+    canonical.identity = params.identity.clone();
+    let options = HullOptions {
+        resolution: a.resolution,
+        garment_distance: a.garment_distance,
+        ..Default::default()
+    };
+    let start = std::time::Instant::now();
+    let r = reconstruct(&views, rig, &posed, &surface, &canonical, &options)
+        .with_context(|| format!("reconstructing frame {} of {}", a.frame, a.data.display()))?;
+    f3g_rig::obj::write_obj(&a.out, &r.garment.vertices, &r.garment.triangles)?;
+    if let Some(h) = &a.hull {
+        f3g_rig::obj::write_obj(h, &r.hull.vertices, &r.hull.triangles)?;
+    }
+    println!(
+        "carved {} views at {} voxels in {:.1} s: hull {} vertices; garment {} vertices, {} triangles (canonical pose) -> {}",
+        views.len(),
+        a.resolution,
+        start.elapsed().as_secs_f32(),
+        r.hull.vertices.len(),
+        r.garment_vertices,
+        r.garment.triangles.len(),
+        a.out.display()
+    );
+    println!(
+        "next: f3g template --clothes {} --out template.npz (or train with --set garment={})",
+        a.out.display(),
+        a.out.display()
+    );
+    Ok(())
 }
 
 fn build(a: &BuildArgs) -> Result<()> {
@@ -82,6 +196,7 @@ fn build(a: &BuildArgs) -> Result<()> {
         &a.body,
         &model_text,
         &pose,
+        None,
         garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
         &options,
     )?;

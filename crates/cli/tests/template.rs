@@ -92,3 +92,109 @@ fn bad_meshes_are_reported() {
         .unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("broken.npz"));
 }
+
+#[test]
+fn reconstructs_the_skirt_of_a_synthetic_capture() {
+    use f3g_template::canonical::CanonicalPose;
+    use f3g_template::mesh::SurfaceQuery;
+    let dir = tempfile::tempdir().unwrap();
+    let run = |args: &[&str]| {
+        let out = f3g().args(args).current_dir(dir.path()).output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        out
+    };
+    run(&[
+        "synth",
+        "--out",
+        "cap",
+        "--frames",
+        "2",
+        "--resolution",
+        "256",
+    ]);
+    run(&[
+        "template",
+        "reconstruct",
+        "--data",
+        "cap",
+        "--frame",
+        "0",
+        "--out",
+        "garment.obj",
+        "--hull",
+        "hull.obj",
+        "--resolution",
+        "96",
+    ]);
+    // The hull is closed around the body with outward normals (positive signed volume, a
+    // person's worth of it) and projects inside the masks.
+    let ds = f3g_data::Dataset::open(&dir.path().join("cap"), None).unwrap();
+    let hull = f3g_rig::obj::read_obj(&dir.path().join("hull.obj")).unwrap();
+    let volume: f32 = hull
+        .triangles
+        .iter()
+        .map(|t| {
+            let [a, b, c] = t.map(|i| hull.vertices[i as usize]);
+            a.dot(b.cross(c)) / 6.0
+        })
+        .sum();
+    assert!((0.03..0.15).contains(&volume), "hull volume {volume} m³");
+    for c in 0..ds.cameras.len() {
+        let mask = ds.mask(c, 0).unwrap();
+        let cam = &ds.cameras[c].camera;
+        let inside = hull
+            .vertices
+            .iter()
+            .filter(|v| {
+                cam.project([v.x as f64, v.y as f64, v.z as f64])
+                    .is_some_and(|(uv, _)| {
+                        let (x, y) = (uv[0] as usize, uv[1] as usize);
+                        x < mask.width && y < mask.height && mask.data[y * mask.width + x] > 0.2
+                    })
+            })
+            .count();
+        assert!(
+            inside * 100 >= 97 * hull.vertices.len(),
+            "camera {c}: {inside} of {}",
+            hull.vertices.len()
+        );
+    }
+    // The garment lies on the true skirt, in the canonical pose with the capture's shape.
+    let human = f3g_rig::builtin::load().unwrap();
+    let (mut canonical, _) = f3g_template::canonical_params(&human.rig, &CanonicalPose::default());
+    canonical.identity = ds.params[0].identity.clone();
+    let posed = human.rig.pose(&canonical).unwrap();
+    let skirt_part = human.part("skirt").unwrap();
+    let keep: Vec<bool> = human.vertex_part.iter().map(|p| *p == skirt_part).collect();
+    let (skirt, _) = f3g_template::template::submesh(
+        &f3g_rig::Mesh {
+            vertices: posed.vertices,
+            triangles: human.rig.mesh.triangles.clone(),
+        },
+        &keep,
+    );
+    let query = SurfaceQuery::new(&skirt).unwrap();
+    let garment = f3g_rig::obj::read_obj(&dir.path().join("garment.obj")).unwrap();
+    assert!(
+        garment.triangles.len() > 100,
+        "{} triangles",
+        garment.triangles.len()
+    );
+    let close = garment
+        .vertices
+        .iter()
+        .filter(|v| query.closest(**v).distance < 0.03)
+        .count();
+    assert!(
+        close * 100 >= 80 * garment.vertices.len(),
+        "{close} of {} garment vertices within 3 cm of the skirt",
+        garment.vertices.len()
+    );
+    // It feeds the template builder.
+    let out = run(&["template", "--clothes", "garment.obj", "--out", "t.npz"]);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("body + garment"));
+}

@@ -8,7 +8,8 @@
 //!   skirt (loose, skinned to the legs) with stripes, polka dots and seams; hair painted on the
 //!   scalp with strand noise; dark brows; red lips; eyes with sclera, iris and pupil; teeth,
 //!   tongue and shoes.
-//! - Motion: in-place walking, arm swings, torso and head turns, jaw opening and closing,
+//! - Motion: from a still A-pose-like first frame, easing in over four frames: in-place
+//!   walking, arm swings, torso and head turns, jaw opening and closing,
 //!   blinks (eyelid closure shapes), smiles and brow raises, with seeded phases. The last 20 %
 //!   of the frames switch to different poses (arms raised, a wider stance, a head tilt): the
 //!   synthetic novel-pose split.
@@ -153,7 +154,11 @@ pub fn motion(rig: &Rig, frames: usize, seed: u64) -> Vec<RigParams> {
     (0..frames)
         .map(|f| {
             let t = f as f32 / fps;
-            let s = |freq: f32, k: usize| (std::f32::consts::TAU * freq * t + phase[k]).sin();
+            // The sequence starts still, in an A-pose-like frame (as captures usually do, and
+            // what `f3g template reconstruct` carves best), and eases into the motion.
+            let ease = (f as f32 / 4.0).min(1.0);
+            let s =
+                |freq: f32, k: usize| ease * (std::f32::consts::TAU * freq * t + phase[k]).sin();
             let mut p = rig.zero_params();
             set(rig, &mut p, "gender", gender);
             set(rig, &mut p, "weight", weight);
@@ -182,7 +187,7 @@ pub fn motion(rig: &Rig, frames: usize, seed: u64) -> Vec<RigParams> {
             set(rig, &mut p, "upperarm01.R_rz", arm_r);
             set(rig, &mut p, "upperarm01.L_rx", 0.3 * s(0.45, 4));
             set(rig, &mut p, "upperarm01.R_rx", -0.3 * s(0.45, 4));
-            let elbow = 0.45 + 0.35 * s(0.4, 7);
+            let elbow = 0.45 * ease + 0.35 * s(0.4, 7);
             set(rig, &mut p, "lowerarm01.L_rx", -elbow * 0.7);
             set(rig, &mut p, "lowerarm01.L_ry", elbow * 0.7);
             set(rig, &mut p, "lowerarm01.R_rx", -elbow * 0.7);

@@ -173,6 +173,15 @@ impl HeadMaps {
         self.pixels.is_empty()
     }
 
+    /// Per-face-Gaussian values blended from per-body-Gaussian values with the densification
+    /// taps.
+    pub fn from_body(&self, body: &[Vec3]) -> Vec<Vec3> {
+        self.sources
+            .iter()
+            .map(|taps| taps.iter().map(|&(g, w)| body[g] * w).sum())
+            .collect()
+    }
+
     /// Scatters per-face-Gaussian values into a `[size, 2·size, C]` map.
     pub fn scatter<const C: usize>(&self, values: &[[f32; C]]) -> Vec<f32> {
         let mut map = vec![0.0f32; self.size * 2 * self.size * C];

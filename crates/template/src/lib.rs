@@ -5,6 +5,7 @@
 //! - [`canonical`]: the canonical pose (legs apart, configurable arms) and root-free posing.
 //! - [`template`], [`transfer`], [`mesh`]: the clothed template (body, optionally a garment
 //!   whose skin weights are transferred robustly), its file format, mesh import and operators.
+//! - [`reconstruct`]: clothed geometry from a capture (visual hull → canonical garment).
 //! - [`posmap`]: front/back orthographic position maps, one Gaussian per covered pixel, and
 //!   posed maps; [`head`]: the densified head maps of the face branch; [`pca`]: pose PCA.
 //!
@@ -18,6 +19,7 @@ pub mod mesh;
 pub mod pca;
 pub mod posmap;
 pub mod raster;
+pub mod reconstruct;
 pub mod template;
 pub mod transfer;
 

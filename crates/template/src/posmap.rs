@@ -32,6 +32,9 @@ pub struct PositionMaps {
     pub skin: SkinWeights,
     /// Template vertex label (body or garment) of the triangle each Gaussian lies on.
     pub labels: Vec<u8>,
+    /// Template triangle corners and barycentric coordinates of each Gaussian.
+    pub corners: Vec<[u32; 3]>,
+    pub bary: Vec<[f32; 3]>,
 }
 
 impl PositionMaps {
@@ -66,6 +69,8 @@ impl PositionMaps {
         let mut gaussian_normals = Vec::new();
         let mut lists = Vec::new();
         let mut labels = Vec::new();
+        let mut corners = Vec::new();
+        let mut barys = Vec::new();
         let views = [View::Front, View::Back].map(|view| {
             rasterize(
                 &mesh.vertices,
@@ -103,6 +108,8 @@ impl PositionMaps {
                         (tri[2] as usize, b[2]),
                     ]));
                     labels.push(template.vertex_label[tri[0] as usize]);
+                    corners.push(tri);
+                    barys.push(b);
                 }
             }
         }
@@ -129,7 +136,18 @@ impl PositionMaps {
             normals: gaussian_normals,
             skin,
             labels,
+            corners,
+            bary: barys,
         })
+    }
+
+    /// Per-Gaussian values interpolated from per-template-vertex values.
+    pub fn interpolate(&self, per_vertex: &[Vec3]) -> Vec<Vec3> {
+        self.corners
+            .iter()
+            .zip(&self.bary)
+            .map(|(t, b)| (0..3).map(|k| per_vertex[t[k] as usize] * b[k]).sum())
+            .collect()
     }
 
     /// Number of Gaussians (covered pixels).
@@ -190,15 +208,48 @@ impl<'a> Poser<'a> {
         params: &RigParams,
         root: bool,
     ) -> Result<Vec<glam::Affine3A>, TemplateError> {
+        Ok(self.frame(params, root)?.0)
+    }
+
+    /// The frame's transforms (as [`Self::transforms`]) and its posed body model, whose rest
+    /// vertices carry the frame's blend shapes and pose correctives.
+    pub fn frame(
+        &self,
+        params: &RigParams,
+        root: bool,
+    ) -> Result<(Vec<glam::Affine3A>, Posed), TemplateError> {
         let frame = if root {
             params.clone()
         } else {
             crate::canonical::without_root(self.rig, params)
         };
-        Ok(Rig::relative_transforms(
-            &self.canonical,
-            &self.rig.pose(&frame)?,
-        ))
+        let posed = self.rig.pose(&frame)?;
+        Ok((Rig::relative_transforms(&self.canonical, &posed), posed))
+    }
+
+    /// How a frame's blend shapes and pose correctives move each template vertex, expressed in
+    /// the canonical pose: for a body vertex `v`, `A_canon(v) · (rest_frame(v) − rest_canon(v))`
+    /// with `A_canon(v)` the linear part of its canonical skinning transform (so that skinning
+    /// the displaced canonical point equals skinning the displaced rest vertex); garment
+    /// vertices do not move.
+    pub fn displacements(&self, template: &Template, frame: &Posed) -> Vec<Vec3> {
+        template
+            .body_vertex
+            .par_iter()
+            .map(|b| match b {
+                Some(v) => {
+                    let v = *v as usize;
+                    let a = f3g_rig::skin::blend(
+                        &self.canonical.skinning,
+                        &self.rig.skin.joints[v],
+                        &self.rig.skin.weights[v],
+                    );
+                    let delta = frame.rest_vertices[v] - self.canonical.rest_vertices[v];
+                    glam::Mat3::from(a.matrix3) * delta
+                }
+                None => Vec3::ZERO,
+            })
+            .collect()
     }
 
     /// Posed positions of points with skin weights (root-relative when `root` is false).

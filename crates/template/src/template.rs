@@ -30,6 +30,9 @@ pub struct Template {
     pub mesh: Mesh,
     pub skin: SkinWeights,
     pub vertex_label: Vec<u8>,
+    /// The body model's vertex each template vertex copies (`None` for garment vertices), so
+    /// that a frame's blend shapes and pose correctives can move the template too.
+    pub body_vertex: Vec<Option<u32>>,
 }
 
 /// How a template was made.
@@ -102,16 +105,29 @@ pub fn builtin_skirt(pose: &CanonicalPose) -> Result<Mesh, TemplateError> {
 
 impl Template {
     /// The body alone in the canonical pose, or the body plus a garment mesh (aligned with the
-    /// canonical body) whose skin weights are transferred from the body.
+    /// canonical body) whose skin weights are transferred from the body. `identity` gives the
+    /// body its subject's shape (zero when `None`).
     pub fn build(
         model: &ModelSpec,
         model_text: &str,
         pose: &CanonicalPose,
+        identity: Option<&[f32]>,
         garment: Option<(Mesh, &Path)>,
         transfer: &TransferOptions,
     ) -> Result<(Self, BuildReport), TemplateError> {
         let rig = model.load()?;
-        let (canonical, legs_spread) = canonical_params(&rig, pose);
+        let (mut canonical, legs_spread) = canonical_params(&rig, pose);
+        if let Some(id) = identity {
+            if id.len() != canonical.identity.len() || id.iter().any(|v| !v.is_finite()) {
+                return Err(TemplateError::Invalid(format!(
+                    "identity of {} finite values expected for {}, got {}",
+                    canonical.identity.len(),
+                    rig.name,
+                    id.len()
+                )));
+            }
+            canonical.identity = id.to_vec();
+        }
         let posed = rig.pose(&canonical)?;
         let keep = body_surface(model, &rig)?;
         let (body, kept) = submesh(
@@ -129,6 +145,7 @@ impl Template {
         let mut mesh = body.clone();
         let mut skin = body_skin.clone();
         let mut vertex_label = vec![LABEL_BODY; mesh.vertices.len()];
+        let mut body_vertex: Vec<Option<u32>> = kept.iter().map(|&v| Some(v as u32)).collect();
         if let Some((mut g, label)) = garment {
             report.garment = Some(clean(&mut g, label)?);
             let Transfer {
@@ -146,6 +163,7 @@ impl Template {
             skin.joints.extend(gs.joints);
             skin.weights.extend(gs.weights);
             vertex_label.extend(std::iter::repeat_n(LABEL_GARMENT, g.vertices.len()));
+            body_vertex.extend(std::iter::repeat_n(None, g.vertices.len()));
         }
         Ok((
             Self {
@@ -154,6 +172,7 @@ impl Template {
                 mesh,
                 skin,
                 vertex_label,
+                body_vertex,
             },
             report,
         ))
@@ -185,6 +204,11 @@ impl Template {
             .collect();
         let sw: Vec<f32> = self.skin.weights.iter().flatten().copied().collect();
         let labels: Vec<i64> = self.vertex_label.iter().map(|&l| l as i64).collect();
+        let sources: Vec<i64> = self
+            .body_vertex
+            .iter()
+            .map(|b| b.map_or(-1, i64::from))
+            .collect();
         let bytes = |s: &str| s.bytes().map(i64::from).collect::<Vec<i64>>();
         let (model, names) = (
             bytes(&self.model),
@@ -198,6 +222,7 @@ impl Template {
                 ("skin_joints", &[v, MAX_INFLUENCES], I64(&sj)),
                 ("skin_weights", &[v, MAX_INFLUENCES], F32(&sw)),
                 ("vertex_label", &[v], I64(&labels)),
+                ("body_vertex", &[v], I64(&sources)),
                 (
                     "canonical_pose",
                     &[self.canonical.pose.len()],
@@ -291,6 +316,24 @@ impl Template {
             .map_err(|e| TemplateError::file(path, format!("`skin_weights`: {e}")))?;
         let (ls, labels) = npz.i64("vertex_label")?;
         shape_check("vertex_label", &ls, &[v])?;
+        // Templates written before blend-shape support have no `body_vertex`: nothing moves.
+        let body_vertex = if npz.contains("body_vertex") {
+            let (bs, b) = npz.i64("body_vertex")?;
+            shape_check("body_vertex", &bs, &[v])?;
+            let count = rig.mesh.vertices.len() as i64;
+            if b.iter().any(|&i| i < -1 || i >= count) {
+                return Err(TemplateError::file(
+                    path,
+                    format!(
+                        "`body_vertex` must be -1 or a vertex of {} (< {count})",
+                        rig.name
+                    ),
+                ));
+            }
+            b.into_iter().map(|i| u32::try_from(i).ok()).collect()
+        } else {
+            vec![None; v]
+        };
         let mut block = |name: &str, len: usize| -> Result<Vec<f32>, TemplateError> {
             let (s, values) = npz.f32(name)?;
             shape_check(name, &s, &[len])?;
@@ -318,6 +361,7 @@ impl Template {
                 mesh,
                 skin,
                 vertex_label: labels.into_iter().map(|l| l as u8).collect(),
+                body_vertex,
             },
             rig,
         ))

@@ -1,0 +1,155 @@
+//! `f3g train`, `train --resume`, `eval`, `animate` and `export-ply` end to end on a tiny
+//! synthetic capture with a tiny configuration file.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn f3g(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_f3g"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap()
+}
+
+fn ok(out: &Output) {
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The cpu preset shrunk so that a step takes a fraction of a second.
+const TINY: &str = r#"{
+  "preset": "cpu",
+  "map_resolution": 32,
+  "body_net": {"input_size": 16, "output_size": 32, "max_channels": 16, "channel_base": 256,
+               "style_dim": 16, "middle_size": 4},
+  "face_net": {"input_size": 16, "output_size": 16, "max_channels": 16, "channel_base": 128,
+               "style_dim": 16, "middle_size": 4},
+  "face_crop_size": 32, "lpips_size": 32, "face_init_frames": 2,
+  "discriminator": {"resolution": 32, "max_channels": 16, "channel_base": 128},
+  "steps": {"pretrain": 2, "body": 2, "face_pretrain": 1, "joint": 2, "face_finetune": 1}
+}"#;
+
+#[test]
+fn train_resume_evaluate_animate_and_export() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(&f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "5",
+            "--resolution",
+            "128",
+        ],
+    ));
+    std::fs::write(d.join("tiny.json"), TINY).unwrap();
+    let out = f3g(
+        d,
+        &[
+            "train",
+            "--data",
+            "cap",
+            "--out",
+            "run",
+            "--config",
+            "tiny.json",
+            "--max-steps",
+            "3",
+        ],
+    );
+    ok(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("stopped at step 3"));
+    // Training into the same folder again is refused; resuming finishes the run.
+    let again = f3g(
+        d,
+        &[
+            "train",
+            "--data",
+            "cap",
+            "--out",
+            "run",
+            "--config",
+            "tiny.json",
+        ],
+    );
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("already holds a run"));
+    let out = f3g(d, &["train", "--resume", "run"]);
+    ok(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("finished 8 steps"));
+    assert_eq!(
+        std::fs::read_to_string(d.join("run/log.jsonl"))
+            .unwrap()
+            .lines()
+            .count(),
+        8
+    );
+
+    ok(&f3g(d, &["eval", "run", "--every", "2", "--lpips", "alex"]));
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("run/eval/novel-view/metrics.json")).unwrap(),
+    )
+    .unwrap();
+    assert!(metrics["mean_body"]["psnr"].as_f64().unwrap() > 5.0);
+    assert!(metrics["mean_head"]["ssim"].as_f64().is_some());
+    ok(&f3g(d, &["eval", "run", "--split", "novel-pose"]));
+
+    ok(&f3g(
+        d,
+        &[
+            "animate",
+            "run",
+            "--motion",
+            "cap/body_params.npz",
+            "--out",
+            "anim",
+            "--export-ply",
+            "--size",
+            "48x64",
+        ],
+    ));
+    assert!(d.join("anim/animation.gif").exists());
+    let frame = f3g_io::read_rgb(&d.join("anim/frames/frame_00004.png")).unwrap();
+    assert_eq!((frame.width, frame.height), (48, 64));
+    let cloud = f3g_splat::ply::read_ply(&d.join("anim/ply/frame_00004.ply")).unwrap();
+    ok(&f3g(
+        d,
+        &["export-ply", "run", "--out", "one.ply", "--frame", "4"],
+    ));
+    let one = f3g_splat::ply::read_ply(&d.join("one.ply")).unwrap();
+    assert_eq!(one.len(), cloud.len());
+    assert!(one.means.iter().all(|v| v.is_finite()));
+
+    // Clear errors.
+    let e = f3g(d, &["eval", "cap"]);
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("not a training run"));
+    let e = f3g(
+        d,
+        &["animate", "run", "--motion", "tiny.json", "--out", "x"],
+    );
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("tiny.json"));
+    let e = f3g(
+        d,
+        &[
+            "train",
+            "--data",
+            "cap",
+            "--out",
+            "r2",
+            "--set",
+            "steps.joint=-3",
+        ],
+    );
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("--set"));
+}
