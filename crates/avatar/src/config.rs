@@ -97,6 +97,9 @@ pub struct TrainConfig {
     /// Whether the face adversarial loss is used (`--no-adversarial` turns it off).
     pub adversarial: bool,
     pub discriminator: DiscriminatorConfig,
+    /// Pretrained discriminator weights (a module file saved by f3g, e.g. the `disc.bpk` of
+    /// another run's checkpoint) to start from instead of training it from scratch.
+    pub discriminator_weights: Option<String>,
     pub steps: Stages,
     /// Training frames whose body-branch outputs are averaged into the canonical face model.
     pub face_init_frames: usize,
@@ -149,6 +152,7 @@ impl TrainConfig {
             },
             adversarial: true,
             discriminator: DiscriminatorConfig::cpu(64),
+            discriminator_weights: None,
             steps: Stages {
                 pretrain: 100,
                 body: 150,

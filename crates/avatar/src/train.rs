@@ -239,11 +239,15 @@ impl Trainer {
         let mut optim_face = config.face_branch.then(adam);
         let with_disc = config.face_branch && config.adversarial;
         let mut disc = if with_disc {
-            Some(
-                config
-                    .discriminator
-                    .init(config.seed.wrapping_add(20), &device)?,
-            )
+            let d = config
+                .discriminator
+                .init(config.seed.wrapping_add(20), &device)?;
+            // A new run may start from pretrained discriminator weights; a resumed one has its
+            // own in the checkpoint.
+            Some(match (&config.discriminator_weights, &checkpoint) {
+                (Some(path), None) => f3g_nets::checkpoint::load(d, Path::new(path))?,
+                _ => d,
+            })
         } else {
             None
         };
@@ -683,7 +687,14 @@ impl Trainer {
             &view.camera,
             background,
             &self.device,
-        )?;
+        )
+        .map_err(|e| match e {
+            // Diverged networks produce non-finite Gaussians before any loss sees them.
+            AvatarError::Splat(f3g_splat::SplatError::NonFinite { name, value, .. }) => {
+                self.non_finite(self.state.step, &format!("gaussians.{name}"), value as f32)
+            }
+            other => other,
+        })?;
         let pred = nchw(out.color);
         // The boundary band is the background in the ground truth: the same in the render.
         let (h, w) = (view.image.height, view.image.width);

@@ -186,6 +186,31 @@ fn every_network_and_the_discriminator_are_updated() {
     .unwrap();
     assert_ne!(values(&d0), values(&d1), "the discriminator did not learn");
     assert!(a.face_base.is_some() && b.face_base.is_none());
+    // A new run can start from those discriminator weights.
+    let mut config = tiny([1, 0, 0, 0, 0]);
+    let weights = after.join("checkpoints").join(ckpt.trim()).join("disc.bpk");
+    config.discriminator_weights = Some(weights.to_string_lossy().into_owned());
+    let third = dir.path().join("third");
+    Trainer::create(&third, &cap, None, config.clone(), None, None)
+        .unwrap()
+        .train(&stop, &mut |_| {})
+        .unwrap();
+    let ckpt3 = std::fs::read_to_string(third.join("checkpoints/latest")).unwrap();
+    let d3 = f3g_nets::checkpoint::load(
+        face_init.discriminator.init(0, &device).unwrap(),
+        &third
+            .join("checkpoints")
+            .join(ckpt3.trim())
+            .join("disc.bpk"),
+    )
+    .unwrap();
+    assert_eq!(values(&d1), values(&d3));
+    config.discriminator_weights = Some("missing.bpk".into());
+    let e = Trainer::create(&dir.path().join("fourth"), &cap, None, config, None, None)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("missing.bpk"), "{e}");
 }
 
 #[test]
@@ -281,6 +306,57 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
     assert!((mean - report.mean_body.psnr).abs() < 1e-9);
     let md = std::fs::read_to_string(run.join("eval/novel-view/metrics.md")).unwrap();
     assert!(md.contains("body PSNR") && md.contains("head LPIPS"));
+}
+
+/// Replaces every float parameter by NaN, as a diverged optimiser would leave them.
+struct Poison;
+impl burn::module::ModuleMapper for Poison {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        param.map(|t| t * f32::NAN)
+    }
+}
+
+#[test]
+fn a_diverged_run_stops_at_the_first_non_finite_loss_and_keeps_its_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("cap");
+    capture(&cap);
+    let run = dir.path().join("run");
+    let config = tiny([4, 2, 0, 0, 0]);
+    let mut t = Trainer::create(&run, &cap, None, config.clone(), None, None).unwrap();
+    t.train(&AtomicBool::new(true), &mut |_| {}).unwrap();
+    assert_eq!(t.step(), 1);
+    drop(t);
+    // Poison the networks of the checkpoint and resume: step 1 meets a NaN loss.
+    let ckpt = run.join("checkpoints/step-000000001");
+    let nets = f3g_nets::checkpoint::load(
+        f3g_avatar::model::AvatarNets::new(&config, &burn::tensor::Device::flex()).unwrap(),
+        &ckpt.join("nets.bpk"),
+    )
+    .unwrap();
+    f3g_nets::checkpoint::save(nets.map(&mut Poison), &ckpt.join("nets.bpk")).unwrap();
+    let log_before = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
+    let mut t = Trainer::resume(&run, None).unwrap();
+    let e = t.train(&AtomicBool::new(false), &mut |_| {}).unwrap_err();
+    let text = e.to_string();
+    assert!(
+        matches!(e, f3g_avatar::AvatarError::NonFinite { step: 1, .. }),
+        "{text}"
+    );
+    assert!(
+        text.contains("pretrain") && text.contains("step-000000001"),
+        "{text}"
+    );
+    // Nothing was written over: the checkpoint and the log are as they were.
+    assert_eq!(
+        std::fs::read_to_string(run.join("log.jsonl")).unwrap(),
+        log_before
+    );
+    assert!(ckpt.join("state.json").exists());
+    assert_eq!(
+        std::fs::read_to_string(run.join("checkpoints/latest")).unwrap(),
+        "step-000000001"
+    );
 }
 
 #[test]
