@@ -24,7 +24,7 @@ use crate::report::{comparison_row, stack_rows};
 use crate::trained::TrainedAvatar;
 use f3g_data::Dataset;
 use f3g_data::crop::{crop_view, head_box};
-use f3g_data::imgops::{crop_resize, resize, resized_camera, scaled_size};
+use f3g_data::imgops::{crop_resize, mask_bounds, resize, resized_camera, scaled_size};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_io::Image;
 use f3g_nets::metrics::{image_tensor, psnr, ssim_images};
@@ -134,21 +134,11 @@ fn scores(lpips: Option<&Lpips>, render: &Image, gt: &Image) -> Result<Scores, A
 /// The square `(x0, y0, side)` around the mask's bounding box, padded by `pad` pixels (it may
 /// extend past the image; the crop fills with white there).
 fn body_crop(mask: &Image, pad: f32) -> Option<(f32, f32, f32)> {
-    let (w, h) = (mask.width, mask.height);
-    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
-    for y in 0..h {
-        for x in 0..w {
-            if mask.data[y * w + x] > 0.5 {
-                (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-            }
-        }
-    }
-    (x0 <= x1).then(|| {
-        let side = (x1 - x0 + 1).max(y1 - y0 + 1) as f32 + 2.0 * pad;
-        let cx = 0.5 * (x0 + x1 + 1) as f32;
-        let cy = 0.5 * (y0 + y1 + 1) as f32;
-        (cx - 0.5 * side, cy - 0.5 * side, side)
-    })
+    let [x0, y0, x1, y1] = mask_bounds(mask, 0.5)?;
+    let side = (x1 - x0 + 1).max(y1 - y0 + 1) as f32 + 2.0 * pad;
+    let cx = 0.5 * (x0 + x1 + 1) as f32;
+    let cy = 0.5 * (y0 + y1 + 1) as f32;
+    Some((cx - 0.5 * side, cy - 0.5 * side, side))
 }
 
 /// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`).

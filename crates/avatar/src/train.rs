@@ -46,7 +46,7 @@ use f3g_data::loader::{Loader, LoaderOptions, Sample, View};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_nets::discriminator::{discriminator_loss, generator_loss, r1_penalty};
 use f3g_nets::layers::resize;
-use f3g_nets::metrics::l1_loss;
+use f3g_nets::metrics::{image_tensor, l1_loss};
 use f3g_nets::{Discriminator, Lpips};
 use f3g_rig::ModelSpec;
 
@@ -403,6 +403,7 @@ impl Trainer {
             let done = self.state.step == total;
             if self.state.step.is_multiple_of(self.config.validate_every) || done {
                 self.validate()?;
+                report::loss_curve(&self.run.log_path(), &self.run.dir.join("loss.png"))?;
             }
             let stopping = stop.load(Ordering::Relaxed);
             if self.state.step.is_multiple_of(self.config.checkpoint_every) || done || stopping {
@@ -412,7 +413,6 @@ impl Trainer {
                 return Ok(Outcome::Stopped);
             }
         }
-        report::loss_curve(&self.run.log_path(), &self.run.dir.join("loss.png"))?;
         Ok(Outcome::Finished)
     }
 
@@ -620,10 +620,10 @@ impl Trainer {
         let w = &self.config.losses;
         let view = &sample.body;
         let pred = self.render_view(c, inputs, view, sample.background)?;
-        let gt = image_nchw(&view.image, &self.device);
+        let gt = image_tensor(&view.image, &self.device);
         terms.push(("l1".into(), l1_loss(pred.clone(), gt.clone()) * w.l1));
         if w.lpips > 0.0
-            && let Some((y0, x0, side)) = square_box(&view.mask, 0)
+            && let Some((y0, x0, side)) = square_box(&view.mask)
         {
             let crop = |t: Tensor<4>| {
                 resize(
@@ -657,7 +657,7 @@ impl Trainer {
         };
         let w = &self.config.losses;
         let pred = self.render_view(c, inputs, view, sample.background)?;
-        let gt = image_nchw(&view.image, &self.device);
+        let gt = image_tensor(&view.image, &self.device);
         terms.push((
             "face_l1".into(),
             l1_loss(pred.clone(), gt.clone()) * w.face_l1,
@@ -717,7 +717,7 @@ impl Trainer {
         let (Some(d), Some(optim)) = (self.disc.take(), self.optim_disc.as_mut()) else {
             return Ok(0.0);
         };
-        let real = image_nchw(&real.image, &self.device);
+        let real = image_tensor(&real.image, &self.device);
         let mut loss = discriminator_loss(d.forward(real.clone())?, d.forward(fake)?);
         let interval = self.config.losses.r1_interval;
         if self.state.disc_steps.is_multiple_of(interval) && self.config.losses.r1_gamma > 0.0 {
@@ -915,36 +915,19 @@ pub fn inputs_for(
     })
 }
 
-/// A host image `[H, W, 3]` as `[1, 3, H, W]`.
-pub fn image_nchw(img: &f3g_io::Image, device: &Device) -> Tensor<4> {
-    f3g_nets::metrics::image_tensor(img, device)
-}
-
 /// Mean length of per-Gaussian offsets (smooth at zero).
 fn offset_norm(offsets: Tensor<2>) -> Tensor<1> {
     (offsets.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt().mean()
 }
 
-/// The square `(top, left, side)` around the mask's `α > 0.5` pixels, grown by `pad` pixels
-/// and kept inside the image.
-pub fn square_box(mask: &f3g_io::Image, pad: usize) -> Option<(usize, usize, usize)> {
+/// The square `(top, left, side)` around the mask's `α > 0.5` pixels, kept inside the image
+/// (the LPIPS crop of Animatable Gaussians).
+fn square_box(mask: &f3g_io::Image) -> Option<(usize, usize, usize)> {
     let (w, h) = (mask.width, mask.height);
-    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
-    for y in 0..h {
-        for x in 0..w {
-            if mask.data[y * w + x] > 0.5 {
-                (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-            }
-        }
-    }
-    if x0 > x1 {
-        return None;
-    }
-    let side = ((x1 - x0 + 1).max(y1 - y0 + 1) + 2 * pad).min(w.min(h));
-    let cx = (x0 + x1) / 2;
-    let cy = (y0 + y1) / 2;
-    let left = cx.saturating_sub(side / 2).min(w - side);
-    let top = cy.saturating_sub(side / 2).min(h - side);
+    let [x0, y0, x1, y1] = f3g_data::imgops::mask_bounds(mask, 0.5)?;
+    let side = (x1 - x0 + 1).max(y1 - y0 + 1).min(w.min(h));
+    let left = ((x0 + x1) / 2).saturating_sub(side / 2).min(w - side);
+    let top = ((y0 + y1) / 2).saturating_sub(side / 2).min(h - side);
     Some((top, left, side))
 }
 

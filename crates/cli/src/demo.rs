@@ -12,12 +12,9 @@ use serde::Serialize;
 use crate::avatar::{AnimateArgs, EvalArgs, TrainArgs, animate, eval, train};
 use crate::data::{SynthArgs, synth};
 
-/// Options of `f3g demo`.
+/// The synthetic capture and training overrides shared by `f3g demo` and `f3g bench quality`.
 #[derive(Args, Debug)]
-pub struct DemoArgs {
-    /// Output folder (capture, run, evaluation, animation, report.html).
-    #[arg(long, default_value = "runs/demo")]
-    pub out: PathBuf,
+pub struct CaptureAndTraining {
     /// Seed of the capture's motion and of training.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -32,8 +29,18 @@ pub struct DemoArgs {
     pub set: Vec<String>,
 }
 
+/// Options of `f3g demo`.
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Output folder (capture, run, evaluation, animation, report.html).
+    #[arg(long, default_value = "runs/demo")]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub capture: CaptureAndTraining,
+}
+
 /// Makes the capture unless the folder already holds one.
-fn ensure_capture(dir: &Path, frames: usize, resolution: usize, seed: u64) -> Result<()> {
+fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
     if dir.join("calibration_full.json").exists() {
         println!("reusing the capture in {}", dir.display());
         return Ok(());
@@ -41,10 +48,10 @@ fn ensure_capture(dir: &Path, frames: usize, resolution: usize, seed: u64) -> Re
     synth(&SynthArgs {
         out: dir.to_path_buf(),
         cameras: Some(16),
-        frames: Some(frames),
-        resolution: Some(resolution),
+        frames: Some(c.frames),
+        resolution: Some(c.resolution),
         elevation: None,
-        seed,
+        seed: c.seed,
         preset: None,
     })
 }
@@ -107,9 +114,9 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     let capture = a.out.join("capture");
     let run = a.out.join("run");
     println!("1/4 synthetic capture");
-    ensure_capture(&capture, a.frames, a.resolution, a.seed)?;
+    ensure_capture(&capture, &a.capture)?;
     println!("2/4 training (cpu preset)");
-    train_or_resume(&run, &capture, a.seed, &a.set)?;
+    train_or_resume(&run, &capture, a.capture.seed, &a.capture.set)?;
     println!("3/4 evaluation");
     let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4))?;
     let novel_pose = eval(&eval_args(&run, SplitKind::NovelPose, 1))?;
@@ -245,17 +252,8 @@ pub struct QualityArgs {
     /// Output folder (capture and the two runs).
     #[arg(long, default_value = "runs/quality")]
     pub out: PathBuf,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Frames of the synthetic capture.
-    #[arg(long, default_value_t = 20)]
-    pub frames: usize,
-    /// Image height of the synthetic capture.
-    #[arg(long, default_value_t = 512)]
-    pub resolution: usize,
-    /// Override a training configuration key for both runs (repeatable).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
+    #[command(flatten)]
+    pub capture: CaptureAndTraining,
     /// Evaluate every N-th frame of the novel-view split.
     #[arg(long, default_value_t = 2)]
     pub every: usize,
@@ -269,14 +267,14 @@ struct Quality {
 
 pub fn quality(a: &QualityArgs) -> Result<()> {
     let capture = a.out.join("capture");
-    ensure_capture(&capture, a.frames, a.resolution, a.seed)?;
+    ensure_capture(&capture, &a.capture)?;
     let mut reports = Vec::new();
     for (name, extra) in [("face", None), ("no-face", Some("face_branch=false"))] {
         let run = a.out.join(name);
-        let mut set = a.set.clone();
+        let mut set = a.capture.set.clone();
         set.extend(extra.map(String::from));
         println!("training `{name}`");
-        train_or_resume(&run, &capture, a.seed, &set)?;
+        train_or_resume(&run, &capture, a.capture.seed, &set)?;
         reports.push(eval(&eval_args(&run, SplitKind::NovelView, a.every))?);
     }
     let no_face = reports.pop().expect("two runs");

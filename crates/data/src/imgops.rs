@@ -102,6 +102,21 @@ pub fn crop_resize(img: &Image, x0: f32, y0: f32, side: f32, size: usize, fill: 
     out
 }
 
+/// Inclusive pixel bounds `[x0, y0, x1, y1]` of the mask's pixels above `threshold`; `None`
+/// when there are none.
+pub fn mask_bounds(mask: &Image, threshold: f32) -> Option<[usize; 4]> {
+    let (w, h) = (mask.width, mask.height);
+    let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+    for y in 0..h {
+        for x in 0..w {
+            if mask.data[(y * w + x) * mask.channels] > threshold {
+                (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+            }
+        }
+    }
+    (x0 <= x1).then_some([x0, y0, x1, y1])
+}
+
 /// Square dilation (`grow`) or erosion of a boolean mask with a `(2r+1)²` window.
 pub fn morph(mask: &[bool], width: usize, height: usize, r: usize, grow: bool) -> Vec<bool> {
     let pass = |src: &[bool], horizontal: bool| -> Vec<bool> {
