@@ -6,6 +6,7 @@ use std::path::Path;
 use burn::tensor::Tensor;
 
 use crate::AvatarError;
+use f3g_data::imgops::paste;
 use f3g_io::Image;
 
 /// Gap between grid cells, pixels.
@@ -78,17 +79,6 @@ pub fn stack_rows(rows: &[Image]) -> Image {
         y += r.height + GAP;
     }
     out
-}
-
-fn paste(canvas: &mut Image, tile: &Image, x: usize, y: usize) {
-    for j in 0..tile.height.min(canvas.height.saturating_sub(y)) {
-        for i in 0..tile.width.min(canvas.width.saturating_sub(x)) {
-            for c in 0..3 {
-                let v = tile.data[(j * tile.width + i) * tile.channels + c.min(tile.channels - 1)];
-                canvas.data[((y + j) * canvas.width + x + i) * 3 + c] = v;
-            }
-        }
-    }
 }
 
 /// 5×7 glyphs (one byte per row, low 5 bits, MSB left) for the characters plots need.

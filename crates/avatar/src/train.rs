@@ -595,16 +595,12 @@ impl Trainer {
         let scales = ((base.clone() + col(7, 10)).exp() - base.exp())
             .abs()
             .mean();
-        let q = col(10, 14)
-            + Tensor::<2>::from_data(
-                TensorData::new(vec![1.0f32, 0.0, 0.0, 0.0], [1, 4]),
-                &self.device,
-            );
-        let norm = (q.clone().powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
         let identity = Tensor::<2>::from_data(
             TensorData::new(vec![1.0f32, 0.0, 0.0, 0.0], [1, 4]),
             &self.device,
         );
+        let q = col(10, 14) + identity.clone();
+        let norm = (q.clone().powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
         let rotation = (q / norm - identity).abs().mean();
         offsets + opacity + scales + rotation
     }
