@@ -1,7 +1,11 @@
 #!/usr/bin/env python3
 """Golden SSIM/PSNR values for crates/nets/tests (scikit-image, independent of our code).
 
-SSIM in the 3DGS convention (11-tap Gaussian window, sigma 1.5, zero padding, mean over the
+"ssim": scikit-image's structural_similarity(a, b, channel_axis=-1, data_range=1) with its
+defaults (7x7 uniform window, sample covariance): what Animatable Gaussians' eval/score.py,
+hence the paper's tables, report.
+
+"ssim_3dgs": SSIM in the 3DGS convention (11-tap Gaussian window, sigma 1.5, zero padding, mean over the
 whole map) equals scikit-image's SSIM on images zero-padded by 5 pixels, with
 gaussian_weights=True, use_sample_covariance=False, data_range=1 and channel_axis=-1:
 scikit-image then crops exactly the 5-pixel border it pads, and every kept window sees the zeros.
@@ -51,7 +55,9 @@ def main(folder):
     out = []
     for a, b in pairs:
         ia, ib = load(f"{folder}/{a}"), load(f"{folder}/{b}")
-        out.append({"a": a, "b": b, "ssim": ssim_3dgs(ia, ib),
+        out.append({"a": a, "b": b,
+                    "ssim": structural_similarity(ia, ib, channel_axis=-1, data_range=1.0),
+                    "ssim_3dgs": ssim_3dgs(ia, ib),
                     "psnr": peak_signal_noise_ratio(ia, ib, data_range=1.0)})
     with open(f"{folder}/metrics_golden.json", "w") as f:
         json.dump({"generator": "tools/metrics_golden.py (scikit-image)", "pairs": out}, f, indent=1)

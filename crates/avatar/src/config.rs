@@ -24,6 +24,31 @@ pub enum TemplateChoice {
     Clothed,
 }
 
+/// How the body branch's outputs are split between networks.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum BodyLayout {
+    /// One view-conditioned network predicts all 14 channels (so the camera also moves the
+    /// geometry; kept for comparison).
+    Single,
+    /// A geometry network (position offset, opacity, scale, rotation: 11 channels) and a
+    /// view-conditioned colour network (3): the camera changes colours only.
+    Split,
+    /// Animatable Gaussians' three networks: position (3), view-conditioned colour (3) and
+    /// other (opacity, scale, rotation: 8).
+    Three,
+}
+
+/// How the colour channels of the networks become colours.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ColourActivation {
+    /// `0.5 + o` (Animatable Gaussians: the raw output, unbounded).
+    Linear,
+    /// `sigmoid(o)`: colours stay in [0, 1].
+    Sigmoid,
+}
+
 /// Loss weights (the paper's λ values in the `paper` preset).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -76,12 +101,20 @@ pub struct TrainConfig {
     pub garment: Option<String>,
     /// Side of each canonical position map (front and back), R.
     pub map_resolution: usize,
-    /// Body StyleUNet: inputs the posed front and back maps (6 channels) at
-    /// `input_size = R / 2` and outputs `3 + 3 + 8` channels (offset, colour, opacity + scale +
-    /// rotation) per side at `R`; view-conditioned.
+    /// The body StyleUNets: input the posed front and back maps (6 channels) at `input_size`,
+    /// output per side at `output_size` (the paper: `R/2 → R`; a smaller output is upsampled
+    /// bilinearly to `R`, the per-texel detail then coming from the learnable canonical
+    /// attributes); their `out_channels` and `view_conditioned` are set per network by
+    /// `body_layout`.
     pub body_net: StyleUNetConfig,
-    /// Whether the face branch exists (`--no-face-branch` turns it off).
+    pub body_layout: BodyLayout,
+    /// Whether the face branch exists: the three face StyleUNets and their Gaussians
+    /// (`--no-face-branch` and `--no-face-networks` turn it off).
     pub face_branch: bool,
+    /// Whether head crops are rendered and supervised (L1, LPIPS, adversarial) in the joint
+    /// and fine-tuning stages; without the face branch they train the body Gaussians
+    /// (`--no-face-networks`: the face-crop losses alone). `--no-face-branch` turns both off.
+    pub face_losses: bool,
     /// The three face StyleUNets (their `out_channels` are set per network: 3, 3, 8).
     pub face_net: StyleUNetConfig,
     /// Side of the rendered face crops.
@@ -94,7 +127,8 @@ pub struct TrainConfig {
     /// Side the body's mask-bounding-box crop is resized to for LPIPS.
     pub lpips_size: usize,
     pub losses: LossWeights,
-    /// Whether the face adversarial loss is used (`--no-adversarial` turns it off).
+    /// Whether the face adversarial loss is used with the face losses (`--no-adversarial`
+    /// turns it off).
     pub adversarial: bool,
     pub discriminator: DiscriminatorConfig,
     /// Pretrained discriminator weights (a module file saved by f3g, e.g. the `disc.bpk` of
@@ -106,6 +140,23 @@ pub struct TrainConfig {
     /// Adam learning rate of the body and face networks (cosine schedule over the rendering
     /// stages, as Animatable Gaussians).
     pub lr: f64,
+    /// Radius (capture pixels) of the boundary band left out of the losses; `null`: 0 for
+    /// synthetic captures (their masks are exact), 2 otherwise (Animatable Gaussians, for
+    /// matted masks).
+    pub band_radius: Option<f32>,
+    /// Initial thickness of the Gaussians: the scale along the surface normal relative to the
+    /// tangent scale (1: isotropic, as Animatable Gaussians; below 1: discs on the surface).
+    pub initial_thickness: f32,
+    /// Initial opacity of every Gaussian (Animatable Gaussians: 0.1).
+    pub initial_opacity: f32,
+    pub colour_activation: ColourActivation,
+    /// Learnable per-Gaussian canonical attributes added to the networks' outputs.
+    pub learn_canonical: bool,
+    /// Step-size multiplier of the canonical attributes relative to `lr`.
+    pub canonical_lr_scale: f32,
+    /// Adam's ε of the avatar networks (PyTorch's default 1e-8, as Animatable Gaussians runs
+    /// it; Burn's default 1e-5 swamps the small gradients of the per-texel outputs).
+    pub adam_epsilon: f32,
     /// Adam learning rate of the discriminator (β = (0, 0.99), StyleGAN2).
     pub lr_discriminator: f64,
     /// Standard deviation of the noise added to view directions during training.
@@ -131,13 +182,15 @@ impl TrainConfig {
             seed: 0,
             template: TemplateChoice::Clothed,
             garment: None,
-            map_resolution: 128,
+            map_resolution: 256,
             body_net: body,
+            body_layout: BodyLayout::Split,
             face_branch: true,
+            face_losses: true,
             face_net: face,
-            face_crop_size: 64,
+            face_crop_size: 128,
             face_padding: 1.3,
-            body_scale: 0.5,
+            body_scale: 1.0,
             lpips_net: LpipsNet::Alex,
             lpips_size: 128,
             losses: LossWeights {
@@ -151,17 +204,24 @@ impl TrainConfig {
                 r1_interval: 16,
             },
             adversarial: true,
-            discriminator: DiscriminatorConfig::cpu(64),
+            discriminator: DiscriminatorConfig::cpu(128),
             discriminator_weights: None,
             steps: Stages {
                 pretrain: 100,
-                body: 150,
+                body: 300,
                 face_pretrain: 30,
-                joint: 200,
-                face_finetune: 50,
+                joint: 400,
+                face_finetune: 100,
             },
             face_init_frames: 8,
             lr: 1e-3,
+            adam_epsilon: 1e-8,
+            initial_opacity: 0.5,
+            band_radius: None,
+            initial_thickness: 0.3,
+            colour_activation: ColourActivation::Linear,
+            learn_canonical: true,
+            canonical_lr_scale: 8.0,
             lr_discriminator: 2e-3,
             view_noise: 0.1,
             pca_components: 20,
@@ -186,8 +246,12 @@ impl TrainConfig {
             map_resolution: 1024,
             body_net: body,
             face_net: face,
+            body_layout: BodyLayout::Three,
             face_crop_size: 512,
             body_scale: 1.0,
+            initial_opacity: 0.1,
+            initial_thickness: 1.0,
+            learn_canonical: false,
             lpips_net: LpipsNet::Vgg,
             lpips_size: 512,
             losses: LossWeights {
@@ -275,27 +339,19 @@ impl TrainConfig {
         self.body_net
             .validate()
             .map_err(|e| AvatarError::config("body_net", e))?;
-        if self.body_net.output_size != r || self.body_net.input_size != r / 2 {
+        if self.body_net.output_size > r {
             return bad(
-                "body_net",
+                "body_net.output_size",
                 format!(
-                    "input_size/output_size must be map_resolution / 2 = {} and map_resolution = {r} (got {} → {})",
-                    r / 2,
-                    self.body_net.input_size,
+                    "{} exceeds map_resolution ({r}): the outputs are read at the map's texels",
                     self.body_net.output_size
                 ),
             );
         }
-        if self.body_net.in_channels != 6 || self.body_net.out_channels != 14 {
+        if self.body_net.in_channels != 6 {
             return bad(
-                "body_net",
-                "in_channels must be 6 (front and back maps) and out_channels 14".into(),
-            );
-        }
-        if !self.body_net.view_conditioned {
-            return bad(
-                "body_net.view_conditioned",
-                "the body network predicts view-dependent colour: must be true".into(),
+                "body_net.in_channels",
+                "must be 6 (front and back maps)".into(),
             );
         }
         self.face_net
@@ -367,6 +423,13 @@ impl TrainConfig {
         if self.steps.total() == 0 {
             return bad("steps", "all stages have zero steps".into());
         }
+        if self.face_branch && !self.face_losses {
+            return bad(
+                "face_losses",
+                "the face branch trains on the face-crop losses: must be true with face_branch"
+                    .into(),
+            );
+        }
         if self.face_branch && self.face_init_frames == 0 {
             return bad(
                 "face_init_frames",
@@ -383,6 +446,21 @@ impl TrainConfig {
             return bad("pca_sigma", format!("{} must be positive", self.pca_sigma));
         }
         Ok(())
+    }
+
+    /// The body networks' configurations, in the order of `BodyNets` (`net`, then `colour`
+    /// and `other` when the layout has them).
+    pub fn body_nets(&self) -> Vec<StyleUNetConfig> {
+        let with = |out: usize, view: bool| StyleUNetConfig {
+            out_channels: out,
+            view_conditioned: view,
+            ..self.body_net.clone()
+        };
+        match self.body_layout {
+            BodyLayout::Single => vec![with(14, true)],
+            BodyLayout::Split => vec![with(11, false), with(3, true)],
+            BodyLayout::Three => vec![with(3, false), with(3, true), with(8, false)],
+        }
     }
 
     /// The face networks' configurations: position, colour (view-conditioned), auxiliary.
@@ -429,7 +507,7 @@ mod tests {
         let path = dir.path().join("c.json");
         std::fs::write(&path, r#"{"steps": {"joint": 7}, "lr": 0.002}"#).unwrap();
         let c = TrainConfig::from_file(&path).unwrap();
-        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 150));
+        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 300));
         std::fs::write(&path, r#"{"stepz": 3}"#).unwrap();
         let e = TrainConfig::from_file(&path).unwrap_err().to_string();
         assert!(e.contains("c.json") && e.contains("stepz"), "{e}");

@@ -24,10 +24,12 @@ use crate::report::{comparison_row, stack_rows};
 use crate::trained::TrainedAvatar;
 use f3g_data::Dataset;
 use f3g_data::crop::{crop_view, head_box};
-use f3g_data::imgops::{crop_resize, mask_bounds, resize, resized_camera, scaled_size};
+use f3g_data::imgops::{
+    CentredSquare, crop_resize, resize, resized_camera, scaled_size, square_image,
+};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_io::Image;
-use f3g_nets::metrics::{image_tensor, psnr, ssim_images};
+use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{Lpips, LpipsNet};
 
 /// What to evaluate and how.
@@ -52,7 +54,10 @@ pub struct EvalOptions {
 #[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct Scores {
     pub psnr: f64,
+    /// scikit-image's SSIM (7×7 uniform window), as the paper's evaluation.
     pub ssim: f64,
+    /// SSIM as 3DGS computes it (11×11 Gaussian window), for comparison with 3DGS papers.
+    pub ssim_3dgs: f64,
     pub lpips: Option<f64>,
 }
 
@@ -90,6 +95,7 @@ fn mean(scores: &[&Scores]) -> Option<Scores> {
     Some(Scores {
         psnr: scores.iter().map(|s| s.psnr).sum::<f64>() / n,
         ssim: scores.iter().map(|s| s.ssim).sum::<f64>() / n,
+        ssim_3dgs: scores.iter().map(|s| s.ssim_3dgs).sum::<f64>() / n,
         lpips: lpips.map(|v| v.iter().sum::<f64>() / n),
     })
 }
@@ -126,20 +132,14 @@ fn lpips_distance(lpips: Option<&Lpips>, a: &Image, b: &Image) -> Result<Option<
 fn scores(lpips: Option<&Lpips>, render: &Image, gt: &Image) -> Result<Scores, AvatarError> {
     Ok(Scores {
         psnr: psnr(render, gt)?,
-        ssim: ssim_images(render, gt)?,
+        ssim: ssim_skimage(render, gt)?,
+        ssim_3dgs: ssim_images(render, gt)?,
         lpips: lpips_distance(lpips, render, gt)?,
     })
 }
 
-/// The square `(x0, y0, side)` around the mask's bounding box, padded by `pad` pixels (it may
-/// extend past the image; the crop fills with white there).
-fn body_crop(mask: &Image, pad: f32) -> Option<(f32, f32, f32)> {
-    let [x0, y0, x1, y1] = mask_bounds(mask, 0.5)?;
-    let side = (x1 - x0 + 1).max(y1 - y0 + 1) as f32 + 2.0 * pad;
-    let cx = 0.5 * (x0 + x1 + 1) as f32;
-    let cy = 0.5 * (y0 + y1 + 1) as f32;
-    Some((cx - 0.5 * side, cy - 0.5 * side, side))
-}
+/// Padding (capture pixels) of the body's LPIPS box (Animatable Gaussians' `eval/score.py`).
+const LPIPS_PAD: f32 = 50.0;
 
 /// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`).
 pub fn evaluate(
@@ -216,29 +216,23 @@ pub fn evaluate(
         let gt = quantise(whiten(&resize(&full, w, h), &resize(&mask, w, h)));
         let render = quantise(avatar.render(params, &camera, [1.0; 3], use_pca)?);
         let mut body = Scores {
-            psnr: psnr(&render, &gt)?,
-            ssim: ssim_images(&render, &gt)?,
             lpips: None,
+            ..scores(None, &render, &gt)?
         };
-        if let Some((x0, y0, side)) = body_crop(&mask, 50.0) {
-            // The render at full resolution would be costly on a CPU: crop the scaled one.
-            let s = options.scale;
-            let a = quantise(crop_resize(
-                &render,
-                x0 * s,
-                y0 * s,
-                side * s,
-                options.lpips_size,
-                &[1.0; 3],
-            ));
-            let b = quantise(crop_resize(
-                &gt_full,
-                x0,
-                y0,
-                side,
-                options.lpips_size,
-                &[1.0; 3],
-            ));
+        let pad = (LPIPS_PAD * options.scale).round() as usize;
+        if let Some(square) = CentredSquare::around_mask(&resize(&mask, w, h), pad) {
+            let lpips_crop = |img: &Image| {
+                let sq = square_image(img, &square, &[1.0; 3]);
+                quantise(crop_resize(
+                    &sq,
+                    0.0,
+                    0.0,
+                    square.side as f32,
+                    options.lpips_size,
+                    &[1.0; 3],
+                ))
+            };
+            let (a, b) = (lpips_crop(&render), lpips_crop(&gt));
             body.lpips = lpips_distance(lpips.as_ref(), &a, &b)?;
             let name = format!("{}_{f:08}_lpips", cam.name);
             f3g_io::write_png(&renders.join(format!("{name}.png")), &a)?;

@@ -23,12 +23,13 @@
 //! top. The fused set is posed by LBS (means by the blended transform, rotations by its polar
 //! rotation, scales unchanged) and splatted with SH degree 0.
 
-use burn::module::Module;
+use burn::module::{Module, Param};
+use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::AvatarError;
-use crate::config::TrainConfig;
-use crate::setup::{INITIAL_OPACITY, Setup, logit};
+use crate::config::{ColourActivation, TrainConfig};
+use crate::setup::{Setup, logit};
 use f3g_nets::DualStyleUNet;
 use f3g_nets::layers::resize;
 use f3g_rig::PointTransform;
@@ -46,30 +47,89 @@ pub struct FaceNets {
     pub position: DualStyleUNet,
     pub colour: DualStyleUNet,
     pub aux: DualStyleUNet,
+    /// Learnable per-Gaussian residuals `[N_f, 14]` (with `learn_canonical`).
+    pub canonical: Option<Param<Tensor<2>>>,
 }
 
 /// The trainable networks.
 #[derive(Module, Debug)]
 pub struct AvatarNets {
-    pub body: DualStyleUNet,
+    pub body: BodyNets,
     pub face: Option<FaceNets>,
+}
+
+/// The body branch: one to three StyleUNets (see [`crate::config::BodyLayout`]) and the
+/// optional learnable canonical attributes.
+#[derive(Module, Debug)]
+pub struct BodyNets {
+    /// All 14 channels (`single`), the geometry (`split`: offset ‖ other) or the position
+    /// offset (`three`).
+    pub net: DualStyleUNet,
+    /// The view-conditioned colour network (`split`, `three`).
+    pub colour: Option<DualStyleUNet>,
+    /// Opacity, scale and rotation (`three`).
+    pub other: Option<DualStyleUNet>,
+    /// Learnable per-Gaussian canonical attributes `[N_b, 14]` (with `learn_canonical`).
+    pub canonical: Option<Param<Tensor<2>>>,
+}
+
+/// Per-column step multipliers of the learnable canonical attributes (3DGS's relative
+/// learning rates: position, colour, opacity ×20, scale ×2, rotation ×0.4).
+const CANONICAL_COLUMN_SCALE: [f32; 14] = [
+    1.6, 1.6, 1.6, 1.0, 1.0, 1.0, 10.0, 2.0, 2.0, 2.0, 0.4, 0.4, 0.4, 0.4,
+];
+
+fn canonical_delta(p: &Param<Tensor<2>>, scale: f32) -> Tensor<2> {
+    let v = p.val();
+    let cols = Tensor::<2>::from_data(
+        TensorData::new(
+            CANONICAL_COLUMN_SCALE
+                .iter()
+                .map(|c| c * scale)
+                .collect::<Vec<f32>>(),
+            [1, 14],
+        ),
+        &v.device(),
+    );
+    v * cols
 }
 
 impl AvatarNets {
     /// Networks of `config`, weights drawn from its seed.
-    pub fn new(config: &TrainConfig, device: &Device) -> Result<Self, AvatarError> {
+    pub fn new(config: &TrainConfig, setup: &Setup, device: &Device) -> Result<Self, AvatarError> {
+        let zeros = |n: usize| {
+            config
+                .learn_canonical
+                .then(|| Param::from_tensor(Tensor::<2>::zeros([n, 14], device)))
+        };
         let face = if config.face_branch {
             let [p, c, a] = config.face_nets();
             Some(FaceNets {
                 position: p.init(config.seed.wrapping_add(11), device)?,
                 colour: c.init(config.seed.wrapping_add(12), device)?,
                 aux: a.init(config.seed.wrapping_add(13), device)?,
+                canonical: zeros(setup.face_count()),
             })
         } else {
             None
         };
+        let mut body = config.body_nets().into_iter().enumerate().map(|(i, c)| {
+            // The first network keeps the seed offset it always had.
+            let seed = config
+                .seed
+                .wrapping_add(if i == 0 { 10 } else { 13 + i as u64 });
+            c.init(seed, device)
+        });
+        let net = body.next().expect("at least one body network")?;
+        let colour = body.next().transpose()?;
+        let other = body.next().transpose()?;
         Ok(Self {
-            body: config.body_net.init(config.seed.wrapping_add(10), device)?,
+            body: BodyNets {
+                net,
+                colour,
+                other,
+                canonical: zeros(setup.body_count()),
+            },
             face,
         })
     }
@@ -142,9 +202,14 @@ pub struct Constants {
     body_pixels: Tensor<1, Int>,
     body_positions: Tensor<2>,
     body_log_scales: Tensor<2>,
+    body_quats: Tensor<2>,
     face: Option<FaceConstants>,
     pub net_input_size: usize,
     pub face_input_size: usize,
+    map_resolution: usize,
+    initial_opacity_logit: f32,
+    sigmoid_colours: bool,
+    canonical_scale: f32,
 }
 
 struct FaceConstants {
@@ -174,6 +239,11 @@ fn index(values: &[usize], device: &Device) -> Tensor<1, Int> {
 }
 
 impl Constants {
+    /// Initial log-scales and rotations of the body Gaussians (`[N, 3]`, `[N, 4]`).
+    pub fn initial_body(&self) -> (Tensor<2>, Tensor<2>) {
+        (self.body_log_scales.clone(), self.body_quats.clone())
+    }
+
     /// Uploads the setup (and the canonical face model, once it exists).
     pub fn new(
         setup: &Setup,
@@ -202,17 +272,18 @@ impl Constants {
                 device,
             ),
             body_log_scales: t2(
-                setup
-                    .body_log_scales
-                    .iter()
-                    .flat_map(|&s| [s, s, s])
-                    .collect(),
+                setup.initial_log_scales(config.initial_thickness),
                 3,
                 device,
             ),
+            body_quats: t2(setup.initial_quats(config.initial_thickness), 4, device),
             face,
             net_input_size: config.body_net.input_size,
             face_input_size: config.face_net.input_size,
+            map_resolution: config.map_resolution,
+            initial_opacity_logit: logit(config.initial_opacity),
+            sigmoid_colours: config.colour_activation == ColourActivation::Sigmoid,
+            canonical_scale: config.canonical_lr_scale,
         }
     }
 
@@ -236,17 +307,49 @@ fn cols(t: &Tensor<2>, a: usize, b: usize) -> Tensor<2> {
     t.clone().slice([0..n, a..b])
 }
 
-/// The body branch alone: per-Gaussian raw outputs `[N_b, 14]`.
+/// The body branch alone: per-Gaussian raw outputs `[N_b, 14]` (offset 3, colour 3, opacity
+/// 1, scale 3, rotation 4), whatever the layout.
 pub fn body_outputs(
     nets: &AvatarNets,
     constants: &Constants,
     inputs: &NetInputs,
 ) -> Result<Tensor<2>, AvatarError> {
-    let out = nets.body.forward(
-        inputs.body_map.clone(),
-        Some((inputs.body_view.0.clone(), inputs.body_view.1.clone())),
-    )?;
-    Ok(gather(out.front, out.back, &constants.body_pixels))
+    let body = &nets.body;
+    let view = || Some((inputs.body_view.0.clone(), inputs.body_view.1.clone()));
+    let r = constants.map_resolution;
+    let full = |t: Tensor<4>| {
+        if t.dims()[2] == r { t } else { resize(t, r, r) }
+    };
+    let read = |net: &DualStyleUNet, view: Option<(Tensor<4>, Tensor<4>)>| {
+        net.forward(inputs.body_map.clone(), view)
+            .map(|out| gather(full(out.front), full(out.back), &constants.body_pixels))
+    };
+    let raw = match (&body.colour, &body.other) {
+        (None, _) => read(&body.net, view())?,
+        (Some(colour), None) => {
+            let geometry = read(&body.net, None)?;
+            Tensor::cat(
+                vec![
+                    cols(&geometry, 0, 3),
+                    read(colour, view())?,
+                    cols(&geometry, 3, 11),
+                ],
+                1,
+            )
+        }
+        (Some(colour), Some(other)) => Tensor::cat(
+            vec![
+                read(&body.net, None)?,
+                read(colour, view())?,
+                read(other, None)?,
+            ],
+            1,
+        ),
+    };
+    Ok(match &body.canonical {
+        Some(p) => raw + canonical_delta(p, constants.canonical_scale),
+        None => raw,
+    })
 }
 
 /// Body attributes from raw outputs: (means, colours, opacity logits, log-scales, quats,
@@ -265,14 +368,14 @@ fn body_attributes(
     let n = raw.dims()[0];
     let offsets = cols(raw, 0, 3) * OFFSET_SCALE;
     let means = constants.body_positions.clone() + offsets.clone();
-    let colours = cols(raw, 3, 6) + 0.5;
-    let opacity = (cols(raw, 6, 7) + logit(INITIAL_OPACITY)).reshape([n]);
+    let colours = if constants.sigmoid_colours {
+        cols(raw, 3, 6)
+    } else {
+        cols(raw, 3, 6) + 0.5
+    };
+    let opacity = (cols(raw, 6, 7) + constants.initial_opacity_logit).reshape([n]);
     let log_scales = constants.body_log_scales.clone() + cols(raw, 7, 10);
-    let identity = Tensor::<2>::from_data(
-        TensorData::new(vec![1.0f32, 0.0, 0.0, 0.0], [1, 4]),
-        &raw.device(),
-    );
-    let quats = cols(raw, 10, 14) + identity;
+    let quats = cols(raw, 10, 14) + constants.body_quats.clone();
     (means, colours, opacity, log_scales, quats, offsets)
 }
 
@@ -295,6 +398,7 @@ fn face_outputs(
     face: &FaceNets,
     fc: &FaceConstants,
     inputs: &NetInputs,
+    scale: f32,
 ) -> Result<Tensor<2>, AvatarError> {
     let map = inputs
         .face_map
@@ -312,14 +416,18 @@ fn face_outputs(
     let side = |front: Tensor<4>, back: Tensor<4>| {
         gather(resize(front, s, s), resize(back, s, s), &fc.pixels)
     };
-    Ok(Tensor::cat(
+    let raw = Tensor::cat(
         vec![
             side(p.front, p.back),
             side(c.front, c.back),
             side(a.front, a.back),
         ],
         1,
-    ))
+    );
+    Ok(match &face.canonical {
+        Some(p) => raw + canonical_delta(p, scale),
+        None => raw,
+    })
 }
 
 /// Runs the networks: the fused canonical Gaussians (body, then face when present).
@@ -345,7 +453,7 @@ pub fn canonical(
         face_residuals: None,
     };
     if let (Some(face), Some(fc)) = (&nets.face, &constants.face) {
-        let r = face_outputs(face, fc, inputs)?;
+        let r = face_outputs(face, fc, inputs, constants.canonical_scale)?;
         let n = r.dims()[0];
         let offsets = cols(&r, 0, 3) * OFFSET_SCALE;
         let means = fc.positions.clone()
@@ -365,6 +473,9 @@ pub fn canonical(
             face_offsets: Some(offsets),
             face_residuals: Some(r),
         };
+    }
+    if constants.sigmoid_colours {
+        out.colours = sigmoid(out.colours);
     }
     Ok(out)
 }

@@ -26,9 +26,6 @@ use f3g_template::canonical::CanonicalPose;
 use f3g_template::template::builtin_skirt;
 use f3g_template::{HeadMaps, PosePca, Poser, PositionMaps, Template, TransferOptions};
 
-/// Initial opacity of every Gaussian (Animatable Gaussians): 0.1.
-pub const INITIAL_OPACITY: f32 = 0.1;
-
 /// What one frame's body parameters make of the avatar's Gaussians (body first, then face).
 pub struct FrameGeometry {
     /// Canonical positions moved by the frame's blend shapes and correctives.
@@ -55,6 +52,8 @@ pub struct Setup {
     pub body_log_scales: Vec<f32>,
     /// Rig vertices of the head, for face boxes.
     pub head_vertices: Vec<usize>,
+    /// Pose parameters of the fingers, left out of the networks' inputs.
+    finger_params: Vec<usize>,
 }
 
 /// `ln(p / (1 − p))`.
@@ -108,6 +107,7 @@ impl Setup {
         };
         let body_log_scales = knn_log_scales(&maps.positions)?;
         let head_vertices = f3g_data::crop::head_vertices(&rig)?;
+        let finger_params = rig.finger_params();
         Ok(Self {
             model,
             rig,
@@ -116,7 +116,35 @@ impl Setup {
             head,
             body_log_scales,
             head_vertices,
+            finger_params,
         })
+    }
+
+    /// Initial log-scales `[N, 3]`: the k-NN scale in the surface's tangent plane and
+    /// `thickness` times it along the normal (the third axis of [`Self::initial_quats`]).
+    pub fn initial_log_scales(&self, thickness: f32) -> Vec<f32> {
+        let t = thickness.ln();
+        self.body_log_scales
+            .iter()
+            .flat_map(|&s| [s, s, s + t])
+            .collect()
+    }
+
+    /// Initial rotations `[N, 4]` (w, x, y, z): identity for isotropic Gaussians, otherwise the
+    /// rotation taking the local z axis to the canonical surface normal.
+    pub fn initial_quats(&self, thickness: f32) -> Vec<f32> {
+        self.maps
+            .normals
+            .iter()
+            .flat_map(|n| {
+                let q = if thickness == 1.0 || n.length_squared() < 1e-12 {
+                    Quat::IDENTITY
+                } else {
+                    Quat::from_rotation_arc(Vec3::Z, n.normalize())
+                };
+                quat_wxyz(q)
+            })
+            .collect()
     }
 
     pub fn body_count(&self) -> usize {
@@ -164,13 +192,18 @@ impl Setup {
             .zip(&displacement)
             .map(|(p, d)| *p + *d)
             .collect();
-        let posed_body = f3g_rig::skin_points(&root_free, &self.maps.skin, &canonical);
+        // The networks see the pose without root motion and without finger articulation.
+        let input_pose = match self.hand_free(params) {
+            None => root_free,
+            Some(p) => poser.transforms(&p, false)?,
+        };
+        let posed_body = f3g_rig::skin_points(&input_pose, &self.maps.skin, &canonical);
         let mut transforms = point_transforms(&joints, &self.maps.skin);
         let posed_face = match &self.head {
             Some(h) => {
                 let d = h.from_body(&displacement);
                 let c: Vec<Vec3> = h.positions.iter().zip(&d).map(|(p, d)| *p + *d).collect();
-                let posed = f3g_rig::skin_points(&root_free, &h.skin, &c);
+                let posed = f3g_rig::skin_points(&input_pose, &h.skin, &c);
                 transforms.extend(point_transforms(&joints, &h.skin));
                 displacement.extend(d);
                 canonical.extend(c);
@@ -184,6 +217,20 @@ impl Setup {
             posed_body,
             posed_face,
             transforms,
+        })
+    }
+
+    /// `params` with the fingers at rest (Animatable Gaussians feeds its networks hand-free
+    /// poses, so noisy hand poses of real captures do not reach them); `None` when they
+    /// already are.
+    fn hand_free(&self, params: &RigParams) -> Option<RigParams> {
+        let moved = |i: &usize| params.pose.get(*i).is_some_and(|v| *v != 0.0);
+        self.finger_params.iter().any(moved).then(|| {
+            let mut p = params.clone();
+            for &i in &self.finger_params {
+                p.pose[i] = 0.0;
+            }
+            p
         })
     }
 

@@ -40,8 +40,9 @@ use crate::model::{
 };
 use crate::report;
 use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
-use crate::setup::{INITIAL_OPACITY, Setup};
+use crate::setup::Setup;
 use f3g_data::Dataset;
+use f3g_data::imgops::CentredSquare;
 use f3g_data::loader::{Loader, LoaderOptions, Sample, View};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_nets::discriminator::{discriminator_loss, generator_loss, r1_penalty};
@@ -122,8 +123,8 @@ pub struct Trainer {
     validation_view: Option<(usize, usize)>,
 }
 
-fn adam() -> ModuleOptimizer {
-    AdamConfig::new().init()
+fn adam(epsilon: f32) -> ModuleOptimizer {
+    AdamConfig::new().with_epsilon(epsilon).init()
 }
 
 fn adam_disc() -> ModuleOptimizer {
@@ -234,10 +235,10 @@ impl Trainer {
         face_base: Option<FaceBase>,
     ) -> Result<Self, AvatarError> {
         let device = Device::flex().autodiff();
-        let mut nets = AvatarNets::new(&config, &device)?;
-        let mut optim_body = adam();
-        let mut optim_face = config.face_branch.then(adam);
-        let with_disc = config.face_branch && config.adversarial;
+        let mut nets = AvatarNets::new(&config, &setup, &device)?;
+        let mut optim_body = adam(config.adam_epsilon);
+        let mut optim_face = config.face_branch.then(|| adam(config.adam_epsilon));
+        let with_disc = config.face_losses && config.adversarial;
         let mut disc = if with_disc {
             let d = config
                 .discriminator
@@ -337,8 +338,13 @@ impl Trainer {
             return Stage::Pretrain;
         }
         end += st.body;
-        if s < end || !self.config.face_branch {
+        let c = &self.config;
+        if s < end || !(c.face_branch || c.face_losses) {
             return Stage::Body;
+        }
+        if !c.face_branch {
+            // Face-crop losses without face networks: nothing to pretrain or fine-tune alone.
+            return Stage::Joint;
         }
         end += st.face_pretrain;
         if s < end {
@@ -380,6 +386,13 @@ impl Trainer {
             cache_bytes: self.config.cache_bytes,
             prefetch: 4,
             random_background: true,
+            band_radius: self.config.band_radius.unwrap_or(
+                if Protocol::of(&self.dataset) == Protocol::Synthetic {
+                    0.0
+                } else {
+                    2.0
+                },
+            ),
             seed: self.config.seed,
         };
         let mut loader = Loader::new(self.dataset.clone(), &self.split, options, self.state.step)?;
@@ -468,12 +481,14 @@ impl Trainer {
         let lr = self.lr(s);
         if s == self.config.steps.pretrain && s > 0 {
             // Animatable Gaussians resets Adam after pretraining.
-            self.optim_body = adam();
+            self.optim_body = adam(self.config.adam_epsilon);
         }
-        if matches!(
-            stage,
-            Stage::FacePretrain | Stage::Joint | Stage::FaceFinetune
-        ) && self.face_base.is_none()
+        if self.config.face_branch
+            && matches!(
+                stage,
+                Stage::FacePretrain | Stage::Joint | Stage::FaceFinetune
+            )
+            && self.face_base.is_none()
         {
             self.build_face_base()?;
         }
@@ -495,7 +510,7 @@ impl Trainer {
             Stage::Body | Stage::Joint => {
                 let c = canonical(&self.nets, &self.constants, &inputs)?;
                 self.body_terms(&c, &inputs, sample, &mut terms)?;
-                if stage == Stage::Joint {
+                if stage == Stage::Joint && self.config.face_losses {
                     face_fake = self.face_terms(&c, &inputs, sample, &mut terms)?;
                 }
             }
@@ -582,26 +597,17 @@ impl Trainer {
         let n = raw.dims()[0];
         let col = |a: usize, b: usize| raw.clone().slice([0..n, a..b]);
         let offsets = col(0, 3).abs().mean() + col(3, 6).abs().mean();
-        let opacity = (sigmoid(col(6, 7) + crate::setup::logit(INITIAL_OPACITY)) - INITIAL_OPACITY)
+        let o0 = self.config.initial_opacity;
+        let opacity = (sigmoid(col(6, 7) + crate::setup::logit(o0)) - o0)
             .abs()
             .mean();
-        let base: Vec<f32> = self
-            .setup
-            .body_log_scales
-            .iter()
-            .flat_map(|&s| [s, s, s])
-            .collect();
-        let base = Tensor::<2>::from_data(TensorData::new(base, [n, 3]), &self.device);
+        let (base, base_quats) = self.constants.initial_body();
         let scales = ((base.clone() + col(7, 10)).exp() - base.exp())
             .abs()
             .mean();
-        let identity = Tensor::<2>::from_data(
-            TensorData::new(vec![1.0f32, 0.0, 0.0, 0.0], [1, 4]),
-            &self.device,
-        );
-        let q = col(10, 14) + identity.clone();
+        let q = col(10, 14) + base_quats.clone();
         let norm = (q.clone().powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt();
-        let rotation = (q / norm - identity).abs().mean();
+        let rotation = (q / norm - base_quats).abs().mean();
         offsets + opacity + scales + rotation
     }
 
@@ -619,15 +625,11 @@ impl Trainer {
         let gt = image_tensor(&view.image, &self.device);
         terms.push(("l1".into(), l1_loss(pred.clone(), gt.clone()) * w.l1));
         if w.lpips > 0.0
-            && let Some((y0, x0, side)) = square_box(&view.mask)
+            && let Some(square) = CentredSquare::around_mask(&view.mask, 0)
         {
-            let crop = |t: Tensor<4>| {
-                resize(
-                    t.slice([0..1, 0..3, y0..y0 + side, x0..x0 + side]),
-                    self.config.lpips_size,
-                    self.config.lpips_size,
-                )
-            };
+            let size = self.config.lpips_size;
+            let bg = sample.background;
+            let crop = |t: Tensor<4>| resize(square_crop(t, &square, bg), size, size);
             let d = self.lpips.forward(crop(pred), crop(gt))?.mean();
             terms.push(("lpips".into(), d * w.lpips));
         }
@@ -916,15 +918,36 @@ fn offset_norm(offsets: Tensor<2>) -> Tensor<1> {
     (offsets.powf_scalar(2.0).sum_dim(1) + 1e-12).sqrt().mean()
 }
 
-/// The square `(top, left, side)` around the mask's `α > 0.5` pixels, kept inside the image
-/// (the LPIPS crop of Animatable Gaussians).
-fn square_box(mask: &f3g_io::Image) -> Option<(usize, usize, usize)> {
-    let (w, h) = (mask.width, mask.height);
-    let [x0, y0, x1, y1] = f3g_data::imgops::mask_bounds(mask, 0.5)?;
-    let side = (x1 - x0 + 1).max(y1 - y0 + 1).min(w.min(h));
-    let left = ((x0 + x1) / 2).saturating_sub(side / 2).min(w - side);
-    let top = ((y0 + y1) / 2).saturating_sub(side / 2).min(h - side);
-    Some((top, left, side))
+/// The LPIPS square of Animatable Gaussians cut from `[1, 3, H, W]`: the mask's box, padded
+/// with the background colour to the square (never clipped, so portrait frames keep the head).
+fn square_crop(t: Tensor<4>, square: &CentredSquare, background: [f32; 3]) -> Tensor<4> {
+    let [x0, y0, x1, y1] = square.bounds;
+    let device = t.device();
+    let region = t.slice([0..1, 0..3, y0..y1, x0..x1]);
+    let fill = |h: usize, w: usize| {
+        Tensor::<4>::from_data(TensorData::new(background.to_vec(), [1, 3, 1, 1]), &device)
+            .expand([1, 3, h, w])
+    };
+    let (w, h, side) = (x1 - x0, y1 - y0, square.side);
+    let (left, top) = (
+        (x0 as i64 - square.x0) as usize,
+        (y0 as i64 - square.y0) as usize,
+    );
+    let mut row = vec![region];
+    if left > 0 {
+        row.insert(0, fill(h, left));
+    }
+    if side - w - left > 0 {
+        row.push(fill(h, side - w - left));
+    }
+    let mut column = vec![Tensor::cat(row, 3)];
+    if top > 0 {
+        column.insert(0, fill(top, side));
+    }
+    if side - h - top > 0 {
+        column.push(fill(side - h - top, side));
+    }
+    Tensor::cat(column, 2)
 }
 
 /// `n` items spread evenly over `items` (all of them when there are fewer).

@@ -44,7 +44,7 @@ impl TrainedAvatar {
         let setup = Setup::new(&info.model, &info.identity, &config)?;
         let device = Device::flex();
         let nets = f3g_nets::checkpoint::load(
-            AvatarNets::new(&config, &device)?,
+            AvatarNets::new(&config, &setup, &device)?,
             &checkpoint.join("nets.bpk"),
         )?;
         let face_path = checkpoint.join("face_base.npz");

@@ -46,9 +46,14 @@ pub struct TrainArgs {
     /// Training frames (`A..B` or a list), instead of the capture's preset.
     #[arg(long)]
     pub frames: Option<String>,
-    /// Ablation: no face branch (body Gaussians only; same number of steps).
+    /// Ablation: no face branch — no face networks and no face-crop losses (body Gaussians
+    /// and body losses only; same number of steps).
     #[arg(long)]
     pub no_face_branch: bool,
+    /// Ablation: no face networks, but the face-crop losses (L1, LPIPS, adversarial) train the
+    /// body Gaussians.
+    #[arg(long, conflicts_with = "no_face_branch")]
+    pub no_face_networks: bool,
     /// Ablation: no adversarial face loss.
     #[arg(long)]
     pub no_adversarial: bool,
@@ -81,6 +86,10 @@ pub fn config_of(a: &TrainArgs) -> Result<TrainConfig> {
     };
     let mut set = a.set.clone();
     if a.no_face_branch {
+        set.push("face_branch=false".into());
+        set.push("face_losses=false".into());
+    }
+    if a.no_face_networks {
         set.push("face_branch=false".into());
     }
     if a.no_adversarial {
@@ -216,12 +225,16 @@ pub struct EvalArgs {
     /// Evaluate every N-th frame.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
-    /// Body images at this fraction of the capture's resolution (default: the training scale).
+    /// Body images at this fraction of the capture's resolution (1: the paper's protocol;
+    /// smaller is faster on a CPU and not comparable with the paper).
     #[arg(long)]
     pub scale: Option<f32>,
     /// Side of the head crops (default: the training face crop size).
     #[arg(long)]
     pub face_size: Option<usize>,
+    /// Side the body's LPIPS square is resized to (512: the paper's protocol).
+    #[arg(long, default_value_t = 512)]
+    pub lpips_size: usize,
     /// LPIPS backbone (default: the training one).
     #[arg(long)]
     pub lpips: Option<LpipsNet>,
@@ -252,9 +265,9 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         cameras,
         frames,
         every: a.every,
-        scale: a.scale.unwrap_or(config.body_scale),
+        scale: a.scale.unwrap_or(1.0),
         face_size: a.face_size.unwrap_or(config.face_crop_size),
-        lpips_size: config.lpips_size,
+        lpips_size: a.lpips_size,
         lpips_net: a.lpips.unwrap_or(config.lpips_net),
         out: a.out.clone(),
     };

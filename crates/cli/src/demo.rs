@@ -69,6 +69,7 @@ fn train_or_resume(run: &Path, data: &Path, seed: u64, set: &[String]) -> Result
         cameras: None,
         frames: None,
         no_face_branch: false,
+        no_face_networks: false,
         no_adversarial: false,
         template: None,
         face_input: None,
@@ -103,6 +104,7 @@ fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs {
         every,
         scale: None,
         face_size: None,
+        lpips_size: 512,
         lpips: None,
         out: None,
     }

@@ -11,7 +11,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use clap::{Args, Subcommand};
 use f3g_io::Image;
 use f3g_nets::lpips::{Lpips, LpipsNet, weights_dir, weights_file};
-use f3g_nets::metrics::{image_tensor, psnr, ssim_images};
+use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 use serde::Serialize;
 
@@ -37,7 +37,10 @@ pub struct MetricsArgs {
 #[derive(Serialize)]
 struct Metrics {
     psnr: f64,
+    /// scikit-image's SSIM (the paper's evaluation).
     ssim: f64,
+    /// SSIM as 3DGS computes it (Gaussian window).
+    ssim_3dgs: f64,
     /// `None` when the LPIPS weights are not installed.
     lpips: Option<f64>,
     lpips_net: String,
@@ -93,7 +96,8 @@ pub fn metrics(a: &MetricsArgs) -> Result<()> {
     };
     let out = Metrics {
         psnr: psnr(&x, &y)?,
-        ssim: ssim_images(&x, &y)?,
+        ssim: ssim_skimage(&x, &y)?,
+        ssim_3dgs: ssim_images(&x, &y)?,
         lpips,
         lpips_net: a.lpips.to_string(),
         lpips_error,

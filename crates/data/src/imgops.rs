@@ -102,6 +102,63 @@ pub fn crop_resize(img: &Image, x0: f32, y0: f32, side: f32, size: usize, fill: 
     out
 }
 
+/// Animatable Gaussians' LPIPS square: the box `[x0, x1) × [y0, y1)` centred in a square of
+/// its longer side (offset `⌊(side − len) / 2⌋` along the shorter axis). The square may reach
+/// past the image; its pixels outside the box are background (see [`square_image`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CentredSquare {
+    /// The box `[x0, y0, x1, y1]` (end-exclusive), inside the image.
+    pub bounds: [usize; 4],
+    /// Top-left corner of the square in image pixels.
+    pub x0: i64,
+    pub y0: i64,
+    pub side: usize,
+}
+
+impl CentredSquare {
+    /// The square around `bounds` (end-exclusive, non-empty).
+    pub fn new(bounds: [usize; 4]) -> Self {
+        let [x0, y0, x1, y1] = bounds;
+        let (w, h) = (x1 - x0, y1 - y0);
+        let side = w.max(h);
+        Self {
+            bounds,
+            x0: x0 as i64 - ((side - w) / 2) as i64,
+            y0: y0 as i64 - ((side - h) / 2) as i64,
+            side,
+        }
+    }
+
+    /// The square around the mask's pixels above 0.5, their bounding box grown by `pad` pixels
+    /// and clipped to the image first (the evaluation's 50-pixel padding; 0 in training).
+    pub fn around_mask(mask: &Image, pad: usize) -> Option<Self> {
+        let [x0, y0, x1, y1] = mask_bounds(mask, 0.5)?;
+        Some(Self::new([
+            x0.saturating_sub(pad),
+            y0.saturating_sub(pad),
+            (x1 + 1 + pad).min(mask.width),
+            (y1 + 1 + pad).min(mask.height),
+        ]))
+    }
+}
+
+/// The square of `sq` cut from `img`: the box's pixels, `fill` everywhere else.
+pub fn square_image(img: &Image, sq: &CentredSquare, fill: &[f32]) -> Image {
+    let c = img.channels;
+    let mut out = Image::filled(sq.side, sq.side, c, 0.0);
+    out.data
+        .chunks_exact_mut(c)
+        .for_each(|p| p.copy_from_slice(&fill[..c]));
+    let [x0, y0, x1, y1] = sq.bounds;
+    let (ox, oy) = ((x0 as i64 - sq.x0) as usize, (y0 as i64 - sq.y0) as usize);
+    for y in y0..y1 {
+        let src = (y * img.width + x0) * c;
+        let dst = ((y - y0 + oy) * sq.side + ox) * c;
+        out.data[dst..dst + (x1 - x0) * c].copy_from_slice(&img.data[src..src + (x1 - x0) * c]);
+    }
+    out
+}
+
 /// Inclusive pixel bounds `[x0, y0, x1, y1]` of the mask's pixels above `threshold`; `None`
 /// when there are none.
 pub fn mask_bounds(mask: &Image, threshold: f32) -> Option<[usize; 4]> {

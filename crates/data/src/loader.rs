@@ -40,6 +40,9 @@ pub struct LoaderOptions {
     pub prefetch: usize,
     /// Random background colour per sample (otherwise white).
     pub random_background: bool,
+    /// Radius in capture pixels of the dilation/erosion that makes the boundary band (scaled
+    /// to each view and rounded; Animatable Gaussians uses 2, captures with exact masks 0).
+    pub band_radius: f32,
     pub seed: u64,
 }
 
@@ -52,6 +55,7 @@ impl Default for LoaderOptions {
             cache_bytes: 1 << 30,
             prefetch: 4,
             random_background: true,
+            band_radius: 2.0,
             seed: 0,
         }
     }
@@ -125,13 +129,19 @@ impl ImageCache {
 }
 
 /// Composites over `background`, finds the boundary band and blanks it.
-fn finish_view(image: Image, mask: Image, camera: Camera, background: [f32; 3]) -> View {
+fn finish_view(
+    image: Image,
+    mask: Image,
+    camera: Camera,
+    background: [f32; 3],
+    radius: usize,
+) -> View {
     let (w, h) = (image.width, image.height);
     let alpha = &mask.data;
     let inside: Vec<bool> = alpha.iter().map(|&a| a > 0.5).collect();
     let (grown, shrunk) = (
-        morph(&inside, w, h, 2, true),
-        morph(&inside, w, h, 2, false),
+        morph(&inside, w, h, radius, true),
+        morph(&inside, w, h, radius, false),
     );
     let band: Vec<bool> = (0..w * h)
         .map(|p| (grown[p] && !shrunk[p]) || (alpha[p] > 5.0 / 255.0 && alpha[p] < 250.0 / 255.0))
@@ -149,6 +159,11 @@ fn finish_view(image: Image, mask: Image, camera: Camera, background: [f32; 3]) 
         band,
         camera,
     }
+}
+
+/// A band radius in capture pixels as whole pixels of a view at `scale`.
+fn view_radius(radius: f32, scale: f32) -> usize {
+    (radius * scale).round().max(0.0) as usize
 }
 
 /// A view of `(camera, frame)` with a given background (evaluation and sampling share this).
@@ -169,6 +184,7 @@ pub fn make_view(
         resize(full_mask, w, h),
         resized_camera(cam, w, h),
         background,
+        view_radius(options.band_radius, options.body_scale),
     );
     let rig = ds.rig()?;
     let posed = rig.pose(&ds.params[frame])?;
@@ -180,7 +196,14 @@ pub fn make_view(
     let face = b.map(|b| {
         let (img, crop_cam) = crop_view(full_image, cam, &b, options.face_size, &background);
         let (mask, _) = crop_view(full_mask, cam, &b, options.face_size, &[0.0]);
-        finish_view(img, mask, crop_cam, background)
+        let scale = options.face_size as f32 / b.side;
+        finish_view(
+            img,
+            mask,
+            crop_cam,
+            background,
+            view_radius(options.band_radius, scale),
+        )
     });
     Ok((body, face, b))
 }

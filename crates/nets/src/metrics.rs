@@ -1,9 +1,15 @@
 //! Image metrics as the field reports them, and their differentiable losses.
 //!
-//! - **SSIM** as 3DGS computes it: an 11-tap Gaussian window (σ = 1.5) applied separably with
-//!   zero padding, `C1 = 0.01²`, `C2 = 0.03²`, the map averaged over all pixels and channels.
-//!   (scikit-image gives the same number on images zero-padded by 5 pixels with
-//!   `gaussian_weights=True, use_sample_covariance=False, data_range=1`.)
+//! - **SSIM** as the paper's evaluation computes it (Animatable Gaussians' `eval/score.py`:
+//!   scikit-image's `structural_similarity(..., channel_axis=-1, data_range=1)` with its
+//!   defaults): a 7×7 uniform window, sample covariances (`49/48` normalisation),
+//!   `C1 = 0.01²`, `C2 = 0.03²`, the map averaged over the pixels at least 3 from the border,
+//!   then over channels ([`ssim_skimage`]).
+//! - **SSIM** as 3DGS computes it (the training-side convention): an 11-tap Gaussian window
+//!   (σ = 1.5) applied separably with zero padding, same constants, the map averaged over all
+//!   pixels and channels ([`ssim`], [`ssim_images`]). scikit-image gives the same number on
+//!   images zero-padded by 5 pixels with `gaussian_weights=True, use_sample_covariance=False,
+//!   data_range=1`.
 //! - **PSNR** `= 20 · log10(1 / √MSE)` over all pixels and channels.
 //! - **D-SSIM** loss `1 − SSIM`; **L1**.
 //!
@@ -99,6 +105,64 @@ pub fn ssim_images(a: &Image, b: &Image) -> Result<f64, NetsError> {
     let device = Device::flex();
     let value = ssim(image_tensor(a, &device), image_tensor(b, &device));
     Ok(value.into_data().try_into_vec::<f32>().expect("f32")[0] as f64)
+}
+
+/// Side of scikit-image's default SSIM window.
+const SKIMAGE_WINDOW: usize = 7;
+
+/// SSIM of two host images exactly as scikit-image's `structural_similarity(a, b,
+/// channel_axis=-1, data_range=1)` computes it (in `f64`; see the module docs). Images need at
+/// least 7 pixels per side.
+pub fn ssim_skimage(a: &Image, b: &Image) -> Result<f64, NetsError> {
+    same_shape(a, b)?;
+    let (w, h, c) = (a.width, a.height, a.channels);
+    let k = SKIMAGE_WINDOW;
+    if w < k || h < k {
+        return Err(NetsError::Input(format!(
+            "SSIM needs images of at least {k}×{k} pixels, got {w}×{h}"
+        )));
+    }
+    let np = (k * k) as f64;
+    let cov_norm = np / (np - 1.0);
+    let (c1, c2) = (0.01f64 * 0.01, 0.03f64 * 0.03);
+    // Window sums from summed-area tables of x, y, x², y², xy.
+    let table = |f: &dyn Fn(f64, f64) -> f64, ch: usize| {
+        let mut t = vec![0.0f64; (w + 1) * (h + 1)];
+        for y in 0..h {
+            let mut row = 0.0;
+            for x in 0..w {
+                let p = (y * w + x) * c + ch;
+                row += f(a.data[p] as f64, b.data[p] as f64);
+                t[(y + 1) * (w + 1) + x + 1] = t[y * (w + 1) + x + 1] + row;
+            }
+        }
+        t
+    };
+    let window = |t: &[f64], x: usize, y: usize| {
+        let at = |xx: usize, yy: usize| t[yy * (w + 1) + xx];
+        (at(x + k, y + k) - at(x, y + k) - at(x + k, y) + at(x, y)) / np
+    };
+    let mut total = 0.0;
+    for ch in 0..c {
+        let sx = table(&|x, _| x, ch);
+        let sy = table(&|_, y| y, ch);
+        let sxx = table(&|x, _| x * x, ch);
+        let syy = table(&|_, y| y * y, ch);
+        let sxy = table(&|x, y| x * y, ch);
+        let mut sum = 0.0;
+        for y in 0..=h - k {
+            for x in 0..=w - k {
+                let (ux, uy) = (window(&sx, x, y), window(&sy, x, y));
+                let vx = cov_norm * (window(&sxx, x, y) - ux * ux);
+                let vy = cov_norm * (window(&syy, x, y) - uy * uy);
+                let vxy = cov_norm * (window(&sxy, x, y) - ux * uy);
+                sum += ((2.0 * ux * uy + c1) * (2.0 * vxy + c2))
+                    / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+            }
+        }
+        total += sum / ((w - k + 1) * (h - k + 1)) as f64;
+    }
+    Ok(total / c as f64)
 }
 
 /// A host image `[H, W, C]` as a `[1, C, H, W]` tensor.

@@ -70,18 +70,20 @@ impl StyleUNetConfig {
         }
     }
 
-    /// The paper's face network: 256 → 256, cm 1, style 256, n_mlp 2.
+    /// The paper's face network (its full model, Table 4): 256 → 256, cm 1, style 256, n_mlp 4.
     pub fn paper_face(out_channels: usize, view_conditioned: bool) -> Self {
         Self {
             input_size: 256,
             output_size: 256,
             channel_multiplier: 1,
             style_dim: 256,
+            n_mlp: 4,
             ..Self::paper_body(out_channels, view_conditioned)
         }
     }
 
-    /// The CPU body network of the demo: 64 → 128, at most 64 channels.
+    /// The CPU body network of the demo: 64 → 128, at most 32 channels (with the learnable
+    /// canonical attributes carrying the per-texel detail, wider networks measured no better).
     pub fn cpu_body(out_channels: usize, view_conditioned: bool) -> Self {
         Self {
             input_size: 64,
@@ -89,8 +91,8 @@ impl StyleUNetConfig {
             in_channels: 3,
             out_channels,
             channel_multiplier: 1,
-            channel_base: 2048,
-            max_channels: 64,
+            channel_base: 1024,
+            max_channels: 32,
             style_dim: 64,
             n_mlp: 2,
             middle_size: 8,
@@ -98,13 +100,14 @@ impl StyleUNetConfig {
         }
     }
 
-    /// The CPU face network of the demo: 32 → 32, at most 64 channels.
+    /// The CPU face network of the demo: 32 → 32, at most 64 channels, n_mlp 4.
     pub fn cpu_face(out_channels: usize, view_conditioned: bool) -> Self {
         Self {
             input_size: 32,
             output_size: 32,
-            channel_base: 1024,
+            max_channels: 64,
             middle_size: 4,
+            n_mlp: 4,
             ..Self::cpu_body(out_channels, view_conditioned)
         }
     }

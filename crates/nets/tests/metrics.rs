@@ -5,7 +5,7 @@ use std::path::Path;
 
 use burn::tensor::{Device, Tensor};
 use f3g_nets::lpips::{Lpips, LpipsNet, weights_dir, weights_file};
-use f3g_nets::metrics::{dssim_loss, image_tensor, psnr, ssim_images};
+use f3g_nets::metrics::{dssim_loss, image_tensor, psnr, ssim_images, ssim_skimage};
 
 fn data(name: &str) -> f3g_io::Image {
     f3g_io::read_rgb(
@@ -87,7 +87,7 @@ fn missing_vgg_weights_say_how_to_get_them() {
 }
 
 #[test]
-fn ssim_and_psnr_match_scikit_image() {
+fn ssim_both_conventions_and_psnr_match_scikit_image() {
     let golden: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(
             Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/metrics_golden.json"),
@@ -103,9 +103,16 @@ fn ssim_and_psnr_match_scikit_image() {
             data(p["b"].as_str().unwrap()),
         );
         let s = ssim_images(&a, &b).unwrap();
+        let k = ssim_skimage(&a, &b).unwrap();
         let q = psnr(&a, &b).unwrap();
-        let (es, eq) = (p["ssim"].as_f64().unwrap(), p["psnr"].as_f64().unwrap());
-        assert!((s - es).abs() < 2e-5, "{p}: SSIM {s} vs {es}");
+        let (es, ek, eq) = (
+            p["ssim_3dgs"].as_f64().unwrap(),
+            p["ssim"].as_f64().unwrap(),
+            p["psnr"].as_f64().unwrap(),
+        );
+        assert!((s - es).abs() < 2e-5, "{p}: 3DGS SSIM {s} vs {es}");
+        // Only the f32 storage of the 8-bit values separates the two.
+        assert!((k - ek).abs() < 1e-7, "{p}: scikit-image SSIM {k} vs {ek}");
         assert!((q - eq).abs() < 1e-4, "{p}: PSNR {q} vs {eq}");
     }
 }

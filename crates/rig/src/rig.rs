@@ -12,7 +12,7 @@ use crate::RigError;
 use crate::blend::BlendShapes;
 use crate::correctives::PoseCorrectives;
 use crate::params::ParameterTransform;
-use crate::skeleton::{JointPose, Similarity, Skeleton};
+use crate::skeleton::{JointPose, PARAMS_PER_JOINT, Similarity, Skeleton};
 use crate::skin::{SkinWeights, skin_points};
 
 /// How a model's pose parameter vector maps to joint poses.
@@ -337,6 +337,52 @@ impl Rig {
             .zip(&to.skinning)
             .map(|(f, t)| *t * f.inverse())
             .collect()
+    }
+
+    /// Indices of the pose parameters that articulate the fingers: those that drive only
+    /// joints below a wrist (a joint named `*wrist*`, or `*hand` where no wrist exists — SMPL-X
+    /// `left_wrist`, MakeHuman `wrist.L`, MHR `l_wrist`, Mixamo `LeftHand`).
+    pub fn finger_params(&self) -> Vec<usize> {
+        let joints = self.skeleton.joints();
+        let lower: Vec<String> = joints.iter().map(|j| j.name.to_lowercase()).collect();
+        let mut wrists: Vec<usize> = (0..joints.len())
+            .filter(|&j| lower[j].contains("wrist"))
+            .collect();
+        if wrists.is_empty() {
+            wrists = (0..joints.len())
+                .filter(|&j| lower[j].ends_with("hand"))
+                .collect();
+        }
+        let in_hand: Vec<bool> = (0..joints.len())
+            .map(|j| {
+                wrists
+                    .iter()
+                    .any(|&w| w != j && self.skeleton.is_ancestor_or_self(w, j))
+            })
+            .collect();
+        match &self.parameterization {
+            Parameterization::AxisAngle => (0..joints.len())
+                .filter(|&j| in_hand[j])
+                .flat_map(|j| 3 * j..3 * j + 3)
+                .collect(),
+            Parameterization::Momentum(t) => {
+                let mut drives_hand = vec![false; t.len()];
+                let mut drives_other = vec![false; t.len()];
+                for &(row, col, w) in &t.entries {
+                    if w != 0.0 {
+                        let joint = row as usize / PARAMS_PER_JOINT;
+                        if in_hand[joint] {
+                            drives_hand[col as usize] = true;
+                        } else {
+                            drives_other[col as usize] = true;
+                        }
+                    }
+                }
+                (0..t.len())
+                    .filter(|&c| drives_hand[c] && !drives_other[c])
+                    .collect()
+            }
+        }
     }
 
     /// Vertex normals of a posed mesh (area-weighted).
