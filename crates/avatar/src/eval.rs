@@ -17,7 +17,7 @@
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::AvatarError;
 use crate::report::{comparison_row, stack_rows};
@@ -51,7 +51,7 @@ pub struct EvalOptions {
 }
 
 /// Scores of one image (LPIPS `None` when the weights are unavailable).
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Scores {
     pub psnr: f64,
     /// scikit-image's SSIM (7×7 uniform window), as the paper's evaluation.
@@ -61,7 +61,7 @@ pub struct Scores {
     pub lpips: Option<f64>,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ImageScores {
     pub frame: usize,
     pub camera: String,
@@ -71,7 +71,7 @@ pub struct ImageScores {
 }
 
 /// The evaluation report (`metrics.json`).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct EvalReport {
     pub run: PathBuf,
     pub step: u64,

@@ -1,11 +1,17 @@
-//! The avatar model: the body StyleUNet, the three face StyleUNets, the canonical face model,
+//! The avatar model: the body StyleUNets, the three face StyleUNets, the canonical face model,
 //! fusion, linear blend skinning of the Gaussians and rendering.
 //!
-//! Body branch (one view-conditioned StyleUNet, the paper's "BodyUNet"): posed front/back maps
-//! `[1, 6, R/2, R/2]` → `14` channels per side at `R`, read at the body Gaussians' texels:
-//! offset `0.05 · o[0..3]` on the canonical position, colour `0.5 + o[3..6]`, opacity logit
-//! `logit(0.1) + o[6]`, log-scale `ln s₀ + o[7..10]`, rotation `(1, 0, 0, 0) + o[10..14]`
-//! (normalised when rendered) — Animatable Gaussians' heads.
+//! Body branch ([`BodyNets`], laid out by [`crate::config::BodyLayout`]): posed front/back maps
+//! `[1, 6, R/2, R/2]` → 14 channels per side, resampled to `R` and read at the body Gaussians'
+//! texels: offset `0.05 · o[0..3]` on the canonical position, colour `0.5 + o[3..6]`, opacity
+//! logit `logit(initial_opacity) + o[6]`, log-scale `ln s₀ + o[7..10]`, rotation `q₀ + o[10..14]`
+//! (normalised when rendered; `q₀` turns the Gaussian's thin axis to the surface normal) —
+//! Animatable Gaussians' heads. Only the colour network sees the view direction (`split` and
+//! `three` layouts), so the camera changes colours and never geometry; `single` (one
+//! view-conditioned network for all 14 channels) is kept for comparison. With
+//! `learn_canonical`, a learnable per-Gaussian table (step sizes scaled per attribute as 3DGS's
+//! learning rates) is added to the networks' outputs: the per-texel detail that small CPU
+//! networks cannot carry.
 //!
 //! Face branch (paper §3.4): the posed head maps `P` (`[1, 6, F, F]`) go through the position
 //! network, `P̂ = P + 0.05 · 𝒫(P)`; the colour network (view-conditioned) and the auxiliary

@@ -312,6 +312,77 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
     assert!(md.contains("body PSNR") && md.contains("head LPIPS"));
 }
 
+/// Mean body and head PSNR of `run` on the novel views of its capture, and the best flat
+/// baseline's body PSNR on the same ground truths: per image, the better of an all-white image
+/// (the background alone) and the image's mean colour everywhere.
+fn novel_view_psnr(run: &Path) -> (f64, f64, f64) {
+    let options = EvalOptions {
+        split: SplitKind::NovelView,
+        cameras: None,
+        frames: None,
+        every: 1,
+        scale: 0.5,
+        face_size: 32,
+        lpips_size: 32,
+        lpips_net: LpipsNet::Alex,
+        out: None,
+    };
+    let report = evaluate(run, None, None, &options, &mut |_, _| {}).unwrap();
+    let images = run.join("eval/novel-view/images");
+    let mut flat = 0.0;
+    for i in &report.images {
+        let gt =
+            f3g_io::read_rgb(&images.join(format!("{}_{:08}_gt.png", i.camera, i.frame))).unwrap();
+        let pixels = (gt.width * gt.height) as f32;
+        let mut mean = [0.0f32; 3];
+        for p in gt.data.chunks_exact(3) {
+            (0..3).for_each(|c| mean[c] += p[c] / pixels);
+        }
+        let filled = |colour: [f32; 3]| {
+            let mut img = gt.clone();
+            img.data
+                .chunks_exact_mut(3)
+                .for_each(|p| p.copy_from_slice(&colour));
+            f3g_nets::metrics::psnr(&img, &gt).unwrap()
+        };
+        flat += filled(mean).max(filled([1.0; 3]));
+    }
+    let head = report.mean_head.expect("heads in view").psnr;
+    (
+        report.mean_body.psnr,
+        head,
+        flat / report.images.len() as f64,
+    )
+}
+
+#[test]
+fn training_beats_the_untrained_avatar_and_a_flat_colour_baseline_on_held_out_views() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("cap");
+    capture(&cap);
+    let stop = AtomicBool::new(false);
+    let train = |name: &str, steps: [u64; 5]| {
+        let run = dir.path().join(name);
+        let mut config = tiny(steps);
+        config.face_branch = false;
+        config.face_losses = false;
+        Trainer::create(&run, &cap, None, config, None, None)
+            .unwrap()
+            .train(&stop, &mut |_| {})
+            .unwrap();
+        novel_view_psnr(&run)
+    };
+    let (untrained_body, untrained_head, flat) = train("untrained", [1, 0, 0, 0, 0]);
+    let (body, head, _) = train("trained", [20, 140, 0, 0, 0]);
+    eprintln!(
+        "novel views: trained body {body:.2} / head {head:.2} dB, untrained {untrained_body:.2} / \
+         {untrained_head:.2} dB, best flat image {flat:.2} dB"
+    );
+    assert!(body > untrained_body + 4.0, "{body} vs {untrained_body}");
+    assert!(head > untrained_head + 4.0, "{head} vs {untrained_head}");
+    assert!(body > flat + 4.0, "{body} vs the flat baseline {flat}");
+}
+
 /// Replaces every float parameter by NaN, as a diverged optimiser would leave them.
 struct Poison;
 impl burn::module::ModuleMapper for Poison {

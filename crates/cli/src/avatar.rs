@@ -31,7 +31,8 @@ pub struct TrainArgs {
     /// Configuration file (JSON; any subset of the keys, over the preset it names).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Preset when no config file is given: cpu (the demo's) or paper (AvatarReX scale).
+    /// Preset when no config file is given: cpu (the demo's), cpu-long (`f3g demo --quality`)
+    /// or paper (AvatarReX scale).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
     /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable).

@@ -27,9 +27,10 @@ pub enum BenchCommand {
     Lbs(LbsBenchArgs),
     /// Forward and forward+backward time of the StyleUNets, LPIPS and the discriminator.
     Nets(crate::nets::NetsBenchArgs),
-    /// Train the cpu preset with and without the face branch on the synthetic capture and
-    /// compare body and head metrics on held-out cameras.
-    Quality(crate::demo::QualityArgs),
+    /// Ablations of the face branch (full, face-crop losses only, no face branch, no
+    /// adversarial loss), each with several seeds, on the synthetic capture: mean ± std of body
+    /// and head metrics on novel views and novel poses.
+    Quality(crate::quality::QualityArgs),
 }
 
 /// Options of `f3g bench lbs`.

@@ -1,5 +1,4 @@
-//! `f3g demo` (synthetic capture → training → evaluation → animation → report.html) and
-//! `f3g bench quality` (the face branch's effect, measured).
+//! `f3g demo`: synthetic capture → training → evaluation → animation → report.html.
 
 use std::path::{Path, PathBuf};
 
@@ -7,7 +6,6 @@ use anyhow::{Context, Result};
 use clap::Args;
 use f3g_avatar::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
-use serde::Serialize;
 
 use crate::avatar::{AnimateArgs, EvalArgs, TrainArgs, animate, eval, train};
 use crate::data::{SynthArgs, synth};
@@ -32,15 +30,20 @@ pub struct CaptureAndTraining {
 /// Options of `f3g demo`.
 #[derive(Args, Debug)]
 pub struct DemoArgs {
-    /// Output folder (capture, run, evaluation, animation, report.html).
-    #[arg(long, default_value = "runs/demo")]
-    pub out: PathBuf,
+    /// Output folder (capture, run, evaluation, animation, report.html); default
+    /// `runs/demo`, or `runs/demo-quality` with `--quality`.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Train the `cpu-long` preset (about 45 minutes on two cores) instead of `cpu` (about 8):
+    /// the same avatar, closer to the ground truth.
+    #[arg(long)]
+    pub quality: bool,
     #[command(flatten)]
     pub capture: CaptureAndTraining,
 }
 
 /// Makes the capture unless the folder already holds one.
-fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
+pub(crate) fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
     if dir.join("calibration_full.json").exists() {
         println!("reusing the capture in {}", dir.display());
         return Ok(());
@@ -57,13 +60,19 @@ fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
 }
 
 /// Trains a run, or resumes it when the folder holds an unfinished one.
-fn train_or_resume(run: &Path, data: &Path, seed: u64, set: &[String]) -> Result<()> {
+pub(crate) fn train_or_resume(
+    run: &Path,
+    data: &Path,
+    preset: &str,
+    seed: u64,
+    set: &[String],
+) -> Result<()> {
     let mut args = TrainArgs {
         data: Some(data.to_path_buf()),
         out: Some(run.to_path_buf()),
         resume: None,
         config: None,
-        preset: "cpu".into(),
+        preset: preset.into(),
         set: set.to_vec(),
         model: None,
         cameras: None,
@@ -93,7 +102,7 @@ fn train_or_resume(run: &Path, data: &Path, seed: u64, set: &[String]) -> Result
     Ok(())
 }
 
-fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs {
+pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs {
     EvalArgs {
         run: run.to_path_buf(),
         split,
@@ -112,18 +121,24 @@ fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs {
 
 pub fn demo(a: &DemoArgs) -> Result<()> {
     let start = std::time::Instant::now();
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let capture = a.out.join("capture");
-    let run = a.out.join("run");
+    let (preset, default_out) = if a.quality {
+        ("cpu-long", "runs/demo-quality")
+    } else {
+        ("cpu", "runs/demo")
+    };
+    let out = a.out.clone().unwrap_or_else(|| default_out.into());
+    std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
+    let capture = out.join("capture");
+    let run = out.join("run");
     println!("1/4 synthetic capture");
     ensure_capture(&capture, &a.capture)?;
-    println!("2/4 training (cpu preset)");
-    train_or_resume(&run, &capture, a.capture.seed, &a.capture.set)?;
+    println!("2/4 training ({preset} preset)");
+    train_or_resume(&run, &capture, preset, a.capture.seed, &a.capture.set)?;
     println!("3/4 evaluation");
     let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4))?;
     let novel_pose = eval(&eval_args(&run, SplitKind::NovelPose, 1))?;
     println!("4/4 animation");
-    let animation = a.out.join("animation");
+    let animation = out.join("animation");
     animate(&AnimateArgs {
         run: run.clone(),
         motion: capture.join("body_params.npz"),
@@ -136,11 +151,12 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         fps: 8.0,
         no_pca: false,
     })?;
-    let report = a.out.join("report.html");
+    let report = out.join("report.html");
     f3g_io::write_atomic(
         &report,
         html(
-            &a.out,
+            &out,
+            preset,
             &novel_view,
             &novel_pose,
             start.elapsed().as_secs_f64(),
@@ -174,7 +190,13 @@ fn cell(s: Option<&Scores>) -> String {
     }
 }
 
-fn html(out: &Path, nv: &EvalReport, np: &EvalReport, seconds: f64) -> Result<String> {
+fn html(
+    out: &Path,
+    preset: &str,
+    nv: &EvalReport,
+    np: &EvalReport,
+    seconds: f64,
+) -> Result<String> {
     let run = out.join("run");
     let config = std::fs::read_to_string(run.join("config.json"))?;
     let img = |p: PathBuf, caption: &str| {
@@ -200,7 +222,7 @@ table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:4px 10px;t
 td:first-child{{text-align:left}}img{{max-width:100%}}figure{{margin:1em 0}}
 pre{{background:#f4f4f4;padding:1em;overflow:auto;max-height:300px}}</style></head><body>
 <h1>F3G-Avatar demo</h1>
-<p>A synthetic 16-camera capture of the built-in human, an avatar trained with the <code>cpu</code>
+<p>A synthetic 16-camera capture of the built-in human, an avatar trained with the <code>{preset}</code>
 preset (body branch + face branch, region-aware losses, adversarial face loss), evaluated on
 held-out cameras (novel view) and held-out frames (novel pose), and animated. Everything ran on
 the CPU in {minutes:.1} minutes.</p>
@@ -246,69 +268,4 @@ the CPU in {minutes:.1} minutes.</p>
         ),
         config = config.replace('<', "&lt;"),
     ))
-}
-
-/// Options of `f3g bench quality`.
-#[derive(Args, Debug)]
-pub struct QualityArgs {
-    /// Output folder (capture and the two runs).
-    #[arg(long, default_value = "runs/quality")]
-    pub out: PathBuf,
-    #[command(flatten)]
-    pub capture: CaptureAndTraining,
-    /// Evaluate every N-th frame of the novel-view split.
-    #[arg(long, default_value_t = 2)]
-    pub every: usize,
-}
-
-#[derive(Serialize)]
-struct Quality {
-    face_branch: EvalReport,
-    no_face_branch: EvalReport,
-}
-
-pub fn quality(a: &QualityArgs) -> Result<()> {
-    let capture = a.out.join("capture");
-    ensure_capture(&capture, &a.capture)?;
-    let mut reports = Vec::new();
-    for (name, extra) in [("face", None), ("no-face", Some("face_branch=false"))] {
-        let run = a.out.join(name);
-        let mut set = a.capture.set.clone();
-        set.extend(extra.map(String::from));
-        println!("training `{name}`");
-        train_or_resume(&run, &capture, a.capture.seed, &set)?;
-        reports.push(eval(&eval_args(&run, SplitKind::NovelView, a.every))?);
-    }
-    let no_face = reports.pop().expect("two runs");
-    let face = reports.pop().expect("two runs");
-    let line = |name: &str, r: &EvalReport| {
-        let h = r.mean_head.clone().unwrap_or_default();
-        let l = |v: Option<f64>| v.map_or("n/a".into(), |v| format!("{v:.4}"));
-        format!(
-            "| {name} | {:.3} | {:.4} | {} | {:.3} | {:.4} | {} |",
-            r.mean_body.psnr,
-            r.mean_body.ssim,
-            l(r.mean_body.lpips),
-            h.psnr,
-            h.ssim,
-            l(h.lpips)
-        )
-    };
-    let table = format!(
-        "| variant | body PSNR | body SSIM | body LPIPS | head PSNR | head SSIM | head LPIPS |\n|---|---|---|---|---|---|---|\n{}\n{}\n",
-        line("face branch", &face),
-        line("no face branch", &no_face)
-    );
-    println!("\n{table}");
-    f3g_io::write_atomic(&a.out.join("quality.md"), table.as_bytes())?;
-    f3g_io::write_atomic(
-        &a.out.join("quality.json"),
-        serde_json::to_string_pretty(&Quality {
-            face_branch: face,
-            no_face_branch: no_face,
-        })?
-        .as_bytes(),
-    )?;
-    println!("wrote {}", a.out.join("quality.json").display());
-    Ok(())
 }

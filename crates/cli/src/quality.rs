@@ -1,0 +1,292 @@
+//! `f3g bench quality`: what each part of the face branch contributes, measured.
+//!
+//! Variants (one change each from the full method, same steps): the full method; the face-crop
+//! losses on the body Gaussians without the face networks; no face branch at all (body losses
+//! only); no adversarial loss. Each is trained with several seeds on one synthetic capture and
+//! evaluated on novel views and novel poses; the report gives mean ± sample standard deviation
+//! over seeds and, for each part, the difference of means against the seed-to-seed spread.
+//!
+//! Finished runs and their evaluations are reused, so several invocations with disjoint
+//! `--seeds` can share the two cores' work and a last one writes the report.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use clap::{Args, ValueEnum};
+use f3g_avatar::eval::{EvalReport, Scores};
+use f3g_data::split::SplitKind;
+use serde::Serialize;
+
+use crate::avatar::eval;
+use crate::demo::{CaptureAndTraining, ensure_capture, eval_args, train_or_resume};
+
+/// One ablation of the full method.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Variant {
+    /// The full method: face networks, face-crop L1 + LPIPS + adversarial losses.
+    Full,
+    /// The face-crop losses (L1 + LPIPS + adversarial) train the body Gaussians; no face
+    /// networks.
+    FaceLossesOnly,
+    /// No face branch: body Gaussians and body losses only.
+    NoFaceBranch,
+    /// The full method without the adversarial loss.
+    NoAdversarial,
+}
+
+impl Variant {
+    fn name(self) -> &'static str {
+        match self {
+            Self::Full => "full",
+            Self::FaceLossesOnly => "face-losses-only",
+            Self::NoFaceBranch => "no-face-branch",
+            Self::NoAdversarial => "no-adversarial",
+        }
+    }
+
+    fn overrides(self) -> &'static [&'static str] {
+        match self {
+            Self::Full => &[],
+            Self::FaceLossesOnly => &["face_branch=false"],
+            Self::NoFaceBranch => &["face_branch=false", "face_losses=false"],
+            Self::NoAdversarial => &["adversarial=false"],
+        }
+    }
+}
+
+/// Options of `f3g bench quality`.
+#[derive(Args, Debug)]
+pub struct QualityArgs {
+    /// Output folder (the capture, a run per variant and seed, quality.md and quality.json).
+    #[arg(long, default_value = "runs/quality")]
+    pub out: PathBuf,
+    /// Capture options; `--seed` is the capture's seed, `--set` applies to every run.
+    #[command(flatten)]
+    pub capture: CaptureAndTraining,
+    /// Training seeds of every variant.
+    #[arg(long, value_delimiter = ',', default_value = "0,1,2")]
+    pub seeds: Vec<u64>,
+    /// Variants to train.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "full,face-losses-only,no-face-branch,no-adversarial"
+    )]
+    pub variants: Vec<Variant>,
+    /// Evaluate every N-th frame of the novel-view split (novel poses: every frame).
+    #[arg(long, default_value_t = 2)]
+    pub every: usize,
+}
+
+/// Mean and sample standard deviation over seeds.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+struct Stat {
+    mean: f64,
+    std: f64,
+}
+
+fn stat(values: &[f64]) -> Stat {
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = if values.len() > 1 {
+        values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)
+    } else {
+        0.0
+    };
+    Stat {
+        mean,
+        std: var.sqrt(),
+    }
+}
+
+/// Metrics of one region over seeds.
+#[derive(Clone, Debug, Default, Serialize)]
+struct RegionStats {
+    psnr: Stat,
+    ssim: Stat,
+    lpips: Option<Stat>,
+}
+
+fn region(scores: &[Scores]) -> RegionStats {
+    let pick = |f: fn(&Scores) -> f64| stat(&scores.iter().map(f).collect::<Vec<_>>());
+    let lpips: Option<Vec<f64>> = scores.iter().map(|s| s.lpips).collect();
+    RegionStats {
+        psnr: pick(|s| s.psnr),
+        ssim: pick(|s| s.ssim),
+        lpips: lpips.map(|v| stat(&v)),
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+struct SplitStats {
+    body: RegionStats,
+    head: RegionStats,
+}
+
+fn split_stats(reports: &[EvalReport]) -> SplitStats {
+    let body: Vec<Scores> = reports.iter().map(|r| r.mean_body.clone()).collect();
+    let head: Vec<Scores> = reports
+        .iter()
+        .map(|r| r.mean_head.clone().unwrap_or_default())
+        .collect();
+    SplitStats {
+        body: region(&body),
+        head: region(&head),
+    }
+}
+
+#[derive(Serialize)]
+struct VariantResult {
+    variant: Variant,
+    seeds: Vec<u64>,
+    novel_view: SplitStats,
+    novel_pose: SplitStats,
+    /// Per-seed reports (paths to the runs and every image's numbers).
+    runs: Vec<(EvalReport, EvalReport)>,
+}
+
+/// The evaluation of `split` in `run`, reused when it scored the run's final step.
+fn evaluation(run: &Path, split: SplitKind, every: usize) -> Result<EvalReport> {
+    let metrics = run
+        .join("eval")
+        .join(split.to_string())
+        .join("metrics.json");
+    let total = f3g_avatar::run::Run::new(run).config()?.steps.total();
+    if let Ok(text) = std::fs::read_to_string(&metrics)
+        && let Ok(report) = serde_json::from_str::<EvalReport>(&text)
+        && report.step == total
+    {
+        println!("reusing {}", metrics.display());
+        return Ok(report);
+    }
+    eval(&eval_args(run, split, every))
+}
+
+pub fn quality(a: &QualityArgs) -> Result<()> {
+    anyhow::ensure!(!a.seeds.is_empty(), "--seeds: give at least one seed");
+    let capture = a.out.join("capture");
+    ensure_capture(&capture, &a.capture)?;
+    let mut results = Vec::new();
+    for &variant in &a.variants {
+        let mut runs = Vec::new();
+        for &seed in &a.seeds {
+            let run = a.out.join(variant.name()).join(format!("seed-{seed}"));
+            let mut set = a.capture.set.clone();
+            set.extend(variant.overrides().iter().map(|s| s.to_string()));
+            println!("training `{}` with seed {seed}", variant.name());
+            train_or_resume(&run, &capture, "cpu", seed, &set)?;
+            runs.push((
+                evaluation(&run, SplitKind::NovelView, a.every)?,
+                evaluation(&run, SplitKind::NovelPose, 1)?,
+            ));
+        }
+        let (nv, np): (Vec<_>, Vec<_>) = runs.iter().cloned().unzip();
+        results.push(VariantResult {
+            variant,
+            seeds: a.seeds.clone(),
+            novel_view: split_stats(&nv),
+            novel_pose: split_stats(&np),
+            runs,
+        });
+    }
+    let md = markdown(&results, a.seeds.len());
+    println!("\n{md}");
+    f3g_io::write_atomic(&a.out.join("quality.md"), md.as_bytes())?;
+    f3g_io::write_atomic(
+        &a.out.join("quality.json"),
+        serde_json::to_string_pretty(&results)?.as_bytes(),
+    )?;
+    println!("wrote {}", a.out.join("quality.json").display());
+    Ok(())
+}
+
+fn pm(s: &Stat, digits: usize) -> String {
+    format!("{:.digits$} ± {:.digits$}", s.mean, s.std)
+}
+
+fn markdown(results: &[VariantResult], seeds: usize) -> String {
+    let mut md = format!(
+        "Mean ± sample standard deviation over {seeds} seed(s); PSNR in dB, SSIM as \
+         scikit-image, LPIPS on the body's square crop and on the head crop.\n"
+    );
+    for (title, pick) in [
+        (
+            "Novel views",
+            (|r: &VariantResult| &r.novel_view) as fn(&_) -> &_,
+        ),
+        ("Novel poses", |r: &VariantResult| &r.novel_pose),
+    ] {
+        md += &format!(
+            "\n### {title}\n\n| variant | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | \
+             head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n"
+        );
+        for r in results {
+            let s = pick(r);
+            let l = |x: &Option<Stat>| x.as_ref().map_or("n/a".into(), |v| pm(v, 4));
+            md += &format!(
+                "| {} | {} | {} | {} | {} | {} | {} |\n",
+                r.variant.name(),
+                pm(&s.body.psnr, 2),
+                pm(&s.body.ssim, 4),
+                l(&s.body.lpips),
+                pm(&s.head.psnr, 2),
+                pm(&s.head.ssim, 4),
+                l(&s.head.lpips),
+            );
+        }
+    }
+    let find = |v: Variant| results.iter().find(|r| r.variant == v);
+    let parts = [
+        ("face networks", Variant::Full, Variant::FaceLossesOnly),
+        (
+            "face-crop losses",
+            Variant::FaceLossesOnly,
+            Variant::NoFaceBranch,
+        ),
+        ("adversarial loss", Variant::Full, Variant::NoAdversarial),
+    ];
+    let mut lines = String::new();
+    for (part, with, without) in parts {
+        let (Some(a), Some(b)) = (find(with), find(without)) else {
+            continue;
+        };
+        for (split, sa, sb) in [
+            ("novel views", &a.novel_view, &b.novel_view),
+            ("novel poses", &a.novel_pose, &b.novel_pose),
+        ] {
+            let d = sa.head.psnr.mean - sb.head.psnr.mean;
+            let spread = (sa.head.psnr.std.powi(2) + sb.head.psnr.std.powi(2)).sqrt();
+            let body = sa.body.psnr.mean - sb.body.psnr.mean;
+            let verdict = if seeds < 2 {
+                "one seed: no spread to compare with"
+            } else if d.abs() > spread {
+                "more than the seed-to-seed spread"
+            } else {
+                "within the seed-to-seed spread"
+            };
+            lines += &format!(
+                "| {part} ({} vs {}) | {split} | {d:+.2} | {spread:.2} | {verdict} | {body:+.2} |\n",
+                with.name(),
+                without.name()
+            );
+        }
+    }
+    if !lines.is_empty() {
+        md += "\n### What each part contributes\n\n| part | split | Δ head PSNR | spread (√(s₁² + s₂²)) | verdict | Δ body PSNR |\n|---|---|---|---|---|---|\n";
+        md += &lines;
+    }
+    md
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_standard_deviation() {
+        let s = stat(&[1.0, 2.0, 3.0]);
+        assert_eq!((s.mean, s.std), (2.0, 1.0));
+        assert_eq!(stat(&[5.0]).std, 0.0);
+    }
+}
