@@ -29,20 +29,29 @@ impl IoError {
 }
 
 /// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
+///
+/// The file gets the mode a plain write would give it (`0o666` less the umask): the temporary
+/// file's private `0o600` would otherwise survive the rename, and reports, images and `.ply`
+/// files could not be shared or served on a multi-user machine. Checkpoints are written the
+/// same way; the run folder's own permissions decide who reads a run.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    let mut tmp = tempfile::Builder::new()
-        .prefix(".f3g-tmp-")
-        .tempfile_in(dir)
-        .map_err(|e| {
-            IoError::new(
-                path,
-                format!("cannot create a temporary file in {}: {e}", dir.display()),
-            )
-        })?;
+    let mut builder = tempfile::Builder::new();
+    builder.prefix(".f3g-tmp-");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        builder.permissions(std::fs::Permissions::from_mode(0o666));
+    }
+    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
+        IoError::new(
+            path,
+            format!("cannot create a temporary file in {}: {e}", dir.display()),
+        )
+    })?;
     tmp.write_all(bytes).map_err(|e| IoError::new(path, e))?;
     tmp.as_file()
         .sync_all()
@@ -479,6 +488,24 @@ pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Res
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[cfg(unix)]
+    #[test]
+    fn atomic_writes_get_the_mode_of_a_plain_write() {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = tempfile::tempdir().unwrap();
+        let mode = |p: &Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+        let plain = dir.path().join("plain.txt");
+        std::fs::write(&plain, b"x").unwrap();
+        let atomic = dir.path().join("atomic.txt");
+        write_atomic(&atomic, b"x").unwrap();
+        assert_eq!(mode(&atomic), mode(&plain));
+        // Rewriting keeps it so (the rename replaces the file, not its mode bits).
+        write_atomic(&atomic, b"y").unwrap();
+        assert_eq!(mode(&atomic), mode(&plain));
+        // Under the usual umask 022 a plain write gives 0644, so a file that kept the
+        // temporary file's 0600 fails the first comparison.
+    }
 
     #[test]
     fn png_round_trip_and_size() {
