@@ -89,12 +89,14 @@ fn bad_inputs_fail_with_a_message() {
     let dir = tempfile::tempdir().unwrap();
     write_inputs(dir.path());
     std::fs::write(dir.path().join("bad_cam.json"), r#"{"K": [[1,0,0],[0,1,0],[0,0,1]], "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,0], "width": 0, "height": 10}"#).unwrap();
+    // The size that used to abort the process with a failed 120 GB allocation.
+    std::fs::write(dir.path().join("huge_cam.json"), r#"{"K": [[500,0,320],[0,500,240],[0,0,1]], "R": [[1,0,0],[0,1,0],[0,0,1]], "t": [0,0,3], "width": 100000, "height": 100000}"#).unwrap();
     std::fs::write(
         dir.path().join("truncated.ply"),
         &std::fs::read(dir.path().join("scene.ply")).unwrap()[..500],
     )
     .unwrap();
-    let cases: [(&[&str], &str); 5] = [
+    let cases: [(&[&str], &str); 6] = [
         (
             &["--ply", "missing.ply", "--camera", "cam.json"],
             "missing.ply",
@@ -104,6 +106,10 @@ fn bad_inputs_fail_with_a_message() {
             "truncated",
         ),
         (&["--ply", "scene.ply", "--camera", "bad_cam.json"], "empty"),
+        (
+            &["--ply", "scene.ply", "--camera", "huge_cam.json"],
+            "image size (width 100000, height 100000) is too large",
+        ),
         (&["--ply", "scene.ply", "--camera", "scene.ply"], "cam"),
         (
             &[

@@ -15,6 +15,14 @@ pub const DEFAULT_NEAR: f64 = 0.01;
 /// Default far plane (metres).
 pub const DEFAULT_FAR: f64 = 1e4;
 
+/// Largest image side a camera may ask for (a 16K frame; captures are at most a few thousand
+/// pixels): checked before anything is allocated, so a camera file with an absurd size is an
+/// error instead of an allocation failure.
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// Largest image a camera may ask for, in pixels (64 Mpx: the image, alpha, depth and the
+/// rasteriser's per-pixel state then stay within a few GiB).
+pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+
 /// A calibrated pinhole camera. This is also the `cam.json` format:
 /// `{"K": [[..],[..],[..]], "R": [[..],[..],[..]], "t": [..], "width": W, "height": H}`
 /// with optional `"near"` and `"far"`.
@@ -163,6 +171,13 @@ impl Camera {
                 self.width, self.height
             ));
         }
+        let (w, h) = (self.width as u64, self.height as u64);
+        if w > MAX_IMAGE_SIDE as u64 || h > MAX_IMAGE_SIDE as u64 || w * h > MAX_IMAGE_PIXELS {
+            return bad(format!(
+                "image size (width {w}, height {h}) is too large: at most {MAX_IMAGE_SIDE} \
+                 pixels per side and {MAX_IMAGE_PIXELS} pixels in all"
+            ));
+        }
         if !(self.fx() > 0.0 && self.fy() > 0.0) {
             return bad(format!(
                 "focal lengths must be positive, got fx={} fy={}",
@@ -277,6 +292,19 @@ mod tests {
         let mut cam = front_camera();
         cam.width = 0;
         assert!(cam.validate().unwrap_err().to_string().contains("empty"));
+        let mut cam = front_camera();
+        (cam.width, cam.height) = (100_000, 100_000);
+        let e = cam.validate().unwrap_err().to_string();
+        assert!(e.contains("width 100000") && e.contains("too large"), "{e}");
+        (cam.width, cam.height) = (MAX_IMAGE_SIDE, MAX_IMAGE_SIDE);
+        assert!(
+            cam.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("too large")
+        );
+        (cam.width, cam.height) = (MAX_IMAGE_SIDE, 4096);
+        cam.validate().unwrap();
         let mut cam = front_camera();
         cam.k[0][1] = 1.0;
         assert!(cam.validate().unwrap_err().to_string().contains("skew"));
