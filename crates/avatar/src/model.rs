@@ -100,8 +100,13 @@ fn canonical_delta(p: &Param<Tensor<2>>, scale: f32) -> Tensor<2> {
     v * cols
 }
 
+/// Namespaces of the parameter ids of the avatar's networks and of the discriminator (they meet
+/// in the adversarial loss's gradients, so they must not share ids).
+pub const AVATAR_PARAM_IDS: u64 = 1;
+pub const DISCRIMINATOR_PARAM_IDS: u64 = 2;
+
 impl AvatarNets {
-    /// Networks of `config`, weights drawn from its seed.
+    /// Networks of `config`, weights drawn from its seed, parameter ids deterministic.
     pub fn new(config: &TrainConfig, setup: &Setup, device: &Device) -> Result<Self, AvatarError> {
         let zeros = |n: usize| {
             config
@@ -129,7 +134,7 @@ impl AvatarNets {
         let net = body.next().expect("at least one body network")?;
         let colour = body.next().transpose()?;
         let other = body.next().transpose()?;
-        Ok(Self {
+        let nets = Self {
             body: BodyNets {
                 net,
                 colour,
@@ -137,7 +142,11 @@ impl AvatarNets {
                 canonical: zeros(setup.body_count()),
             },
             face,
-        })
+        };
+        Ok(f3g_nets::checkpoint::with_deterministic_ids(
+            nets,
+            AVATAR_PARAM_IDS,
+        ))
     }
 }
 

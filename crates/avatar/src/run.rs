@@ -218,6 +218,8 @@ fn save_optim(optim: &ModuleOptimizer, path: &Path) -> Result<(), AvatarError> {
         .to_record()
         .into_bytes()
         .map_err(|e| AvatarError::file(path, e))?;
+    let bytes =
+        f3g_nets::checkpoint::canonical_burnpack(bytes).map_err(|e| AvatarError::file(path, e))?;
     Ok(f3g_io::write_atomic(path, &bytes)?)
 }
 

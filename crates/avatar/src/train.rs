@@ -240,9 +240,12 @@ impl Trainer {
         let mut optim_face = config.face_branch.then(|| adam(config.adam_epsilon));
         let with_disc = config.face_losses && config.adversarial;
         let mut disc = if with_disc {
-            let d = config
-                .discriminator
-                .init(config.seed.wrapping_add(20), &device)?;
+            let d = f3g_nets::checkpoint::with_deterministic_ids(
+                config
+                    .discriminator
+                    .init(config.seed.wrapping_add(20), &device)?,
+                crate::model::DISCRIMINATOR_PARAM_IDS,
+            );
             // A new run may start from pretrained discriminator weights; a resumed one has its
             // own in the checkpoint.
             Some(match (&config.discriminator_weights, &checkpoint) {

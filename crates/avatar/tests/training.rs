@@ -383,6 +383,51 @@ fn training_beats_the_untrained_avatar_and_a_flat_colour_baseline_on_held_out_vi
     assert!(body > flat + 4.0, "{body} vs the flat baseline {flat}");
 }
 
+#[test]
+fn identical_runs_write_identical_checkpoint_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("cap");
+    capture(&cap);
+    let checkpoint = |name: &str| {
+        let run = dir.path().join(name);
+        Trainer::create(&run, &cap, None, tiny([2, 2, 1, 2, 1]), None, None)
+            .unwrap()
+            .train(&AtomicBool::new(false), &mut |_| {})
+            .unwrap();
+        let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
+        run.join("checkpoints").join(latest.trim())
+    };
+    let (a, b) = (checkpoint("a"), checkpoint("b"));
+    let mut names: Vec<String> = std::fs::read_dir(&a)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    // Networks, optimiser states (body, face, discriminator), discriminator, face model.
+    assert_eq!(
+        names.iter().filter(|n| n.ends_with(".bpk")).count(),
+        5,
+        "{names:?}"
+    );
+    for name in &names {
+        let (x, y) = (
+            std::fs::read(a.join(name)).unwrap(),
+            std::fs::read(b.join(name)).unwrap(),
+        );
+        if name == "state.json" {
+            // The one documented difference: the wall-clock seconds the run took.
+            let strip = |bytes: &[u8]| {
+                let mut v: serde_json::Value = serde_json::from_slice(bytes).unwrap();
+                v.as_object_mut().unwrap().remove("seconds");
+                v
+            };
+            assert_eq!(strip(&x), strip(&y));
+        } else {
+            assert!(x == y, "{name} differs between two identical runs");
+        }
+    }
+}
+
 /// Replaces every float parameter by NaN, as a diverged optimiser would leave them.
 struct Poison;
 impl burn::module::ModuleMapper for Poison {
