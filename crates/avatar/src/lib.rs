@@ -8,7 +8,8 @@
 //! - [`run`]: the run folder (config, checkpoints, PCA, logs).
 //! - [`report`]: comparison grids, loss curves.
 //! - [`trained`]: a trained avatar for inference; [`eval`]: body and head metrics on held-out
-//!   views or poses; [`animate`]: pose sequences to frames, GIF and `.ply`.
+//!   views or poses; [`animate`]: pose sequences to frames, GIF and `.ply`; [`export`]: a
+//!   posed avatar as a 3DGS `.ply` with SH fitted to its view-dependent colour.
 //!
 //! Data flow per step: body parameters → posed maps (`setup`) → networks (`model`) →
 //! canonical Gaussians (body ++ face) → LBS → splatting → losses against the capture.
@@ -17,6 +18,7 @@ pub mod animate;
 pub mod config;
 mod error;
 pub mod eval;
+pub mod export;
 pub mod model;
 pub mod report;
 pub mod run;

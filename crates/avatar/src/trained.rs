@@ -93,7 +93,7 @@ impl TrainedAvatar {
             }
     }
 
-    fn canonical_for(
+    pub(crate) fn canonical_for(
         &self,
         params: &RigParams,
         camera: &Camera,
@@ -128,7 +128,9 @@ impl TrainedAvatar {
         Ok(tensor_to_image(out.color))
     }
 
-    /// The posed Gaussians of a frame (colour as seen from `camera`), for `.ply` export.
+    /// The posed Gaussians of a frame with their colour as seen from `camera` (SH degree 0,
+    /// zero-padded to the degree-3 layout that every 3DGS tool reads), for the per-frame `.ply`
+    /// files of an animation; [`crate::export::export_cloud`] keeps the view dependence.
     pub fn posed_cloud(
         &self,
         params: &RigParams,
@@ -153,6 +155,7 @@ impl TrainedAvatar {
                 .map(|x| (x - 0.5) / f3g_splat::sh::SH_C0 as f32)
                 .collect(),
             sh_degree: 0,
-        })
+        }
+        .padded_to_degree(3))
     }
 }

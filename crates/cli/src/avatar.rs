@@ -9,6 +9,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use f3g_avatar::animate::{AnimateOptions, CameraPath};
 use f3g_avatar::eval::EvalOptions;
+use f3g_avatar::export::{ExportOptions, Up, export_cloud};
 use f3g_avatar::trained::TrainedAvatar;
 use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
@@ -405,12 +406,23 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
     Ok(report)
 }
 
+/// Which way is up in an exported `.ply`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum UpArg {
+    /// +Y up: f3g's world, three.js, glTF, GaussianSplats3D.
+    #[value(name = "y")]
+    Y,
+    /// −Y up: COLMAP-style 3DGS scenes, SuperSplat (the avatar turned 180° about X).
+    #[value(name = "-y")]
+    NegY,
+}
+
 /// Options of `f3g export-ply`.
 #[derive(Args, Debug, Clone)]
 pub struct ExportPlyArgs {
     /// Run folder.
     pub run: PathBuf,
-    /// Output .ply (standard 3DGS layout).
+    /// Output .ply (standard 3DGS layout, always with the degree-3 SH properties).
     #[arg(long)]
     pub out: PathBuf,
     /// Frame of the capture (or of --motion) to pose the avatar in.
@@ -419,6 +431,17 @@ pub struct ExportPlyArgs {
     /// Pose sequence to take the frame from instead of the capture.
     #[arg(long)]
     pub motion: Option<PathBuf>,
+    /// SH degree fitted to the colour network over many view directions, so the file keeps
+    /// the avatar's view-dependent colour (0: the mean colour over all directions).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(0..=3))]
+    pub sh_degree: u8,
+    /// View directions of the SH fit (as many again measure its error).
+    #[arg(long, default_value_t = 48)]
+    pub directions: usize,
+    /// Which way is up in the file: `y` (f3g's world: +Y up, as three.js and glTF) or `-y`
+    /// (COLMAP-style 3DGS scenes, which SuperSplat assumes: the avatar turned 180° about X).
+    #[arg(long, value_enum, default_value = "y", allow_hyphen_values = true)]
+    pub up: UpArg,
 }
 
 pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
@@ -448,10 +471,26 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
             (p, !avatar.info.train_frames.contains(&a.frame))
         }
     };
-    // View-dependent colour is baked as seen from the front.
-    let camera = f3g_avatar::animate::orbit_camera(glam::Vec3::ZERO, 0, 1, 0.0, 0.0, 512, 512);
-    let cloud = avatar.posed_cloud(&params, &camera, use_pca)?;
+    let options = ExportOptions {
+        degree: a.sh_degree as usize,
+        directions: a.directions,
+        up: match a.up {
+            UpArg::Y => Up::Y,
+            UpArg::NegY => Up::NegY,
+        },
+    };
+    let (cloud, fit) = export_cloud(&avatar, &params, use_pca, &options)?;
     f3g_splat::ply::write_ply(&a.out, &cloud)?;
-    println!("wrote {} Gaussians to {}", cloud.len(), a.out.display());
+    println!(
+        "wrote {} Gaussians to {} (SH degree {} fitted on {} view directions; colour error on \
+         {} others: RMS {:.4}, max {:.4})",
+        cloud.len(),
+        a.out.display(),
+        fit.degree,
+        fit.fit_directions,
+        fit.check_directions,
+        fit.rms,
+        fit.max
+    );
     Ok(())
 }

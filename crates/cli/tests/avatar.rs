@@ -128,6 +128,39 @@ fn train_resume_evaluate_animate_and_export() {
     ));
     let one = f3g_splat::ply::read_ply(&d.join("one.ply")).unwrap();
     assert_eq!(one.len(), cloud.len());
+    // Every file has the degree-3 layout the reference 3DGS loader and SIBR expect.
+    assert_eq!((one.sh_degree, cloud.sh_degree), (3, 3));
+    let out = f3g(
+        d,
+        &[
+            "export-ply",
+            "run",
+            "--out",
+            "down.ply",
+            "--frame",
+            "4",
+            "--sh-degree",
+            "1",
+            "--up",
+            "-y",
+        ],
+    );
+    ok(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("SH degree 1 fitted"));
+    let down = f3g_splat::ply::read_ply(&d.join("down.ply")).unwrap();
+    let mean_y = |c: &f3g_splat::GaussianCloud| {
+        c.means.chunks_exact(3).map(|m| m[1] as f64).sum::<f64>() / c.len() as f64
+    };
+    let (y_down, y_up) = (mean_y(&down), mean_y(&one));
+    assert!(
+        (y_down + y_up).abs() < 1e-3 && y_up.abs() > 0.1,
+        "{y_down} {y_up}"
+    );
+    let bad = f3g(
+        d,
+        &["export-ply", "run", "--out", "x.ply", "--sh-degree", "4"],
+    );
+    assert!(!bad.status.success() && !d.join("x.ply").exists());
     assert!(one.means.iter().all(|v| v.is_finite()));
 
     // Clear errors.

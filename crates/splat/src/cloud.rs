@@ -38,6 +38,24 @@ impl GaussianCloud {
         sh::num_coeffs(self.sh_degree)
     }
 
+    /// The same Gaussians with SH degree `degree` (≥ the current one), the new coefficients
+    /// zero: the same colours, in the layout of tools that read only degree-3 files.
+    pub fn padded_to_degree(self, degree: usize) -> Self {
+        let (k, k2) = (self.sh_coeffs(), sh::num_coeffs(degree.max(self.sh_degree)));
+        if k2 == k {
+            return self;
+        }
+        let mut sh = vec![0.0; self.len() * k2 * 3];
+        for (dst, src) in sh.chunks_exact_mut(k2 * 3).zip(self.sh.chunks_exact(k * 3)) {
+            dst[..k * 3].copy_from_slice(src);
+        }
+        Self {
+            sh,
+            sh_degree: degree.max(self.sh_degree),
+            ..self
+        }
+    }
+
     /// Borrowed view for the CPU renderer.
     pub fn slices(&self) -> GaussianSlices<'_, f32> {
         GaussianSlices {
