@@ -13,6 +13,11 @@ use serde_json::Value;
 use crate::AvatarError;
 use f3g_nets::{DiscriminatorConfig, LpipsNet, StyleUNetConfig};
 
+/// Largest position-map side (2·R² texels, one Gaussian each; the paper uses 1024).
+pub const MAX_MAP_RESOLUTION: usize = 2048;
+/// Largest side of a rendered face crop or LPIPS crop (the paper's: 512).
+pub const MAX_CROP: usize = 2048;
+
 /// Which canonical template the avatar is built on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -357,6 +362,18 @@ impl TrainConfig {
         if r < 16 || !r.is_power_of_two() {
             return bad("map_resolution", format!("{r} is not a power of two ≥ 16"));
         }
+        // Sizes are checked before anything is allocated (the paper's largest is 1024).
+        for (key, value, limit) in [
+            ("map_resolution", r, MAX_MAP_RESOLUTION),
+            ("face_crop_size", self.face_crop_size, MAX_CROP),
+            ("lpips_size", self.lpips_size, MAX_CROP),
+            ("pca_components", self.pca_components, 512),
+            ("face_init_frames", self.face_init_frames, 100_000),
+        ] {
+            if value > limit {
+                return bad(key, format!("{value} is larger than the limit {limit}"));
+            }
+        }
         self.body_net
             .validate()
             .map_err(|e| AvatarError::config("body_net", e))?;
@@ -557,6 +574,44 @@ mod tests {
         std::fs::write(&path, r#"{"map_resolution": 100}"#).unwrap();
         let e = TrainConfig::from_file(&path).unwrap_err().to_string();
         assert!(e.contains("map_resolution"), "{e}");
+    }
+
+    #[test]
+    fn absurd_sizes_are_errors_naming_the_key() {
+        for key in [
+            "map_resolution",
+            "face_crop_size",
+            "lpips_size",
+            "pca_components",
+            "face_init_frames",
+            "body_net.input_size",
+            "body_net.output_size",
+            "body_net.max_channels",
+            "body_net.style_dim",
+            "body_net.channel_base",
+            "face_net.max_channels",
+            "discriminator.resolution",
+            "discriminator.max_channels",
+        ] {
+            let e = TrainConfig::cpu()
+                .with_overrides(&[format!("{key}=1073741824")])
+                .unwrap_err()
+                .to_string();
+            let field = key.rsplit('.').next().unwrap();
+            assert!(e.contains(field), "{key}: {e}");
+        }
+        // Within every per-field limit, a feature map that cannot fit is still refused.
+        let e = TrainConfig::cpu()
+            .with_overrides(&[
+                "body_net.input_size=2048".into(),
+                "body_net.output_size=2048".into(),
+                "body_net.max_channels=4096".into(),
+                "body_net.channel_base=16777216".into(),
+                "map_resolution=2048".into(),
+            ])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("GiB"), "{e}");
     }
 
     #[test]

@@ -78,6 +78,14 @@ impl DiscriminatorConfig {
                 return Err(NetsError::config(field, "must be at least 1"));
             }
         }
+        use crate::styleunet::{MAX_CHANNELS, MAX_SIDE, check_sizes};
+        check_sizes(&[
+            ("resolution", self.resolution, MAX_SIDE),
+            ("channel_multiplier", self.channel_multiplier, 64),
+            ("channel_base", self.channel_base, 1 << 24),
+            ("max_channels", self.max_channels, MAX_CHANNELS),
+            ("stddev_group", self.stddev_group, 64),
+        ])?;
         Ok(())
     }
 

@@ -52,6 +52,29 @@ pub struct StyleUNetConfig {
     pub view_conditioned: bool,
 }
 
+/// Largest input or output side of a network (the paper's largest is 1024).
+pub const MAX_SIDE: usize = 4096;
+/// Largest number of channels per layer or of style dimensions (the paper's: 512).
+pub const MAX_CHANNELS: usize = 4096;
+/// Largest number of input or output channels of a network.
+pub const MAX_IO_CHANNELS: usize = 64;
+/// Largest single feature map, bytes.
+pub const MAX_ACTIVATION_BYTES: u64 = 4 << 30;
+
+/// Checks `(field, value, limit)` triples: a value above its limit is an error naming the field
+/// (sizes from config files are checked before anything is allocated).
+pub(crate) fn check_sizes(fields: &[(&'static str, usize, usize)]) -> Result<(), NetsError> {
+    for &(field, value, limit) in fields {
+        if value > limit {
+            return Err(NetsError::config(
+                field,
+                format!("{value} is larger than the limit {limit}"),
+            ));
+        }
+    }
+    Ok(())
+}
+
 impl StyleUNetConfig {
     /// The paper's body network: 512 → 1024, cm 2, style 512, n_mlp 2.
     pub fn paper_body(out_channels: usize, view_conditioned: bool) -> Self {
@@ -165,6 +188,31 @@ impl StyleUNetConfig {
         }
         if self.n_mlp > 16 {
             return Err(NetsError::config("n_mlp", "more than 16 layers"));
+        }
+        check_sizes(&[
+            ("input_size", self.input_size, MAX_SIDE),
+            ("in_channels", self.in_channels, MAX_IO_CHANNELS),
+            ("out_channels", self.out_channels, MAX_IO_CHANNELS),
+            ("channel_multiplier", self.channel_multiplier, 64),
+            ("channel_base", self.channel_base, 1 << 24),
+            ("max_channels", self.max_channels, MAX_CHANNELS),
+            ("style_dim", self.style_dim, MAX_CHANNELS),
+        ])?;
+        // The largest feature map (at the output) must fit: the bound is generous for a
+        // 24 GiB machine and far above the paper's 128 MiB.
+        let r = self.output_size;
+        let bytes = (r * r * self.channels(r)) as u64 * 4;
+        if bytes > MAX_ACTIVATION_BYTES {
+            return Err(NetsError::config(
+                "output_size",
+                format!(
+                    "a {r}² feature map of {} channels needs {:.1} GiB, more than the {} GiB \
+                     a network may use",
+                    self.channels(r),
+                    bytes as f64 / (1u64 << 30) as f64,
+                    MAX_ACTIVATION_BYTES >> 30
+                ),
+            ));
         }
         Ok(())
     }
