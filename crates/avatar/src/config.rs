@@ -323,7 +323,8 @@ impl TrainConfig {
             .and_then(Value::as_str)
             .unwrap_or("cpu")
             .to_string();
-        let mut base = serde_json::to_value(Self::preset(&preset)?).expect("serialisable");
+        let preset = Self::preset(&preset).map_err(|e| AvatarError::file(path, e))?;
+        let mut base = serde_json::to_value(preset).expect("serialisable");
         merge(&mut base, &value);
         let config: Self = serde_json::from_value(base)
             .map_err(|e| AvatarError::file(path, format!("bad configuration: {e}")))?;

@@ -22,7 +22,7 @@ pub mod ply;
 mod real;
 pub mod sh;
 
-pub use camera::{Camera, DEFAULT_FAR, DEFAULT_NEAR};
+pub use camera::{Camera, DEFAULT_FAR, DEFAULT_NEAR, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE};
 pub use cloud::GaussianCloud;
 pub use cpu::RenderOptions;
 pub use error::SplatError;
