@@ -397,7 +397,10 @@ fn identical_runs_write_identical_checkpoint_bytes() {
         let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
         run.join("checkpoints").join(latest.trim())
     };
-    let (a, b) = (checkpoint("a"), checkpoint("b"));
+    let a = checkpoint("a");
+    // Cross a 2-second step of zip timestamps, so bytes that depend on the time show.
+    std::thread::sleep(std::time::Duration::from_millis(2100));
+    let b = checkpoint("b");
     let mut names: Vec<String> = std::fs::read_dir(&a)
         .unwrap()
         .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())

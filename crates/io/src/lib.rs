@@ -468,8 +468,11 @@ pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Res
     let mut buf = Cursor::new(Vec::new());
     {
         let mut zip = npyz::zip::ZipWriter::new(&mut buf);
+        // A fixed timestamp (the zip epoch, 1980-01-01) instead of the current time, so the
+        // same arrays always give the same bytes (checkpoints can be verified by hash).
         let options = npyz::zip::write::FileOptions::default()
-            .compression_method(npyz::zip::CompressionMethod::Stored);
+            .compression_method(npyz::zip::CompressionMethod::Stored)
+            .last_modified_time(npyz::zip::DateTime::default());
         for (name, shape, values) in arrays {
             zip.start_file(format!("{name}.npy"), options)
                 .map_err(|e| IoError::new(path, e))?;
@@ -488,6 +491,19 @@ pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Res
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn npz_bytes_do_not_depend_on_the_time_of_writing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (a, b) = (dir.path().join("a.npz"), dir.path().join("b.npz"));
+        let values = [1.0f32, 2.0, 3.0];
+        let arrays = [("x", &[3][..], NpyValues::F32(&values))];
+        write_npz(&a, &arrays).unwrap();
+        // The zip format stores times in 2-second steps: cross at least one step.
+        std::thread::sleep(std::time::Duration::from_millis(2100));
+        write_npz(&b, &arrays).unwrap();
+        assert_eq!(std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    }
 
     #[cfg(unix)]
     #[test]
