@@ -255,25 +255,34 @@ fn markdown(results: &[VariantResult], seeds: usize) -> String {
             ("novel views", &a.novel_view, &b.novel_view),
             ("novel poses", &a.novel_pose, &b.novel_pose),
         ] {
-            let d = sa.head.psnr.mean - sb.head.psnr.mean;
-            let spread = (sa.head.psnr.std.powi(2) + sb.head.psnr.std.powi(2)).sqrt();
-            let body = sa.body.psnr.mean - sb.body.psnr.mean;
-            let verdict = if seeds < 2 {
-                "one seed: no spread to compare with"
-            } else if d.abs() > spread {
-                "more than the seed-to-seed spread"
-            } else {
-                "within the seed-to-seed spread"
+            let verdict = |a: &Stat, b: &Stat, digits: usize| {
+                let d = a.mean - b.mean;
+                let spread = (a.std.powi(2) + b.std.powi(2)).sqrt();
+                let word = if seeds < 2 {
+                    "one seed"
+                } else if d.abs() > spread {
+                    "beyond spread"
+                } else {
+                    "within spread"
+                };
+                format!("{d:+.digits$} (± {spread:.digits$}, {word})")
+            };
+            let lpips = match (&sa.head.lpips, &sb.head.lpips) {
+                (Some(a), Some(b)) => verdict(a, b, 4),
+                _ => "n/a".into(),
             };
             lines += &format!(
-                "| {part} ({} vs {}) | {split} | {d:+.2} | {spread:.2} | {verdict} | {body:+.2} |\n",
+                "| {part} ({} vs {}) | {split} | {} | {lpips} | {:+.2} |\n",
                 with.name(),
-                without.name()
+                without.name(),
+                verdict(&sa.head.psnr, &sb.head.psnr, 2),
+                sa.body.psnr.mean - sb.body.psnr.mean,
             );
         }
     }
     if !lines.is_empty() {
-        md += "\n### What each part contributes\n\n| part | split | Δ head PSNR | spread (√(s₁² + s₂²)) | verdict | Δ body PSNR |\n|---|---|---|---|---|---|\n";
+        md += "\n### What each part contributes\n\nDifference of means (with − without), ± the seed-to-seed spread √(s₁² + s₂²); \
+               \"beyond spread\" when the difference is larger.\n\n| part | split | Δ head PSNR (dB) | Δ head LPIPS | Δ body PSNR (dB) |\n|---|---|---|---|---|\n";
         md += &lines;
     }
     md
