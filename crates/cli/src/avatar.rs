@@ -231,11 +231,11 @@ pub struct EvalArgs {
     /// smaller is faster on a CPU and not comparable with the paper).
     #[arg(long)]
     pub scale: Option<f32>,
-    /// Side of the head crops (default: the training face crop size).
-    #[arg(long)]
+    /// Side of the head crops, 32–2048 (default: the training face crop size).
+    #[arg(long, value_parser = crate::bounds::size::<32, 2048>)]
     pub face_size: Option<usize>,
-    /// Side the body's LPIPS square is resized to (512: the paper's protocol).
-    #[arg(long, default_value_t = 512)]
+    /// Side the body's LPIPS square is resized to, 32–2048 (512: the paper's protocol).
+    #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<32, 2048>)]
     pub lpips_size: usize,
     /// LPIPS backbone (default: the training one).
     #[arg(long)]

@@ -36,8 +36,8 @@ pub enum BenchCommand {
 /// Options of `f3g bench lbs`.
 #[derive(Args, Debug)]
 pub struct LbsBenchArgs {
-    /// Number of Gaussians to skin.
-    #[arg(long, default_value_t = 400_000)]
+    /// Number of Gaussians to skin (at most 100 million).
+    #[arg(long, default_value_t = 400_000, value_parser = crate::bounds::size::<1, 100_000_000>)]
     pub points: usize,
     /// Timed repetitions (the median is reported).
     #[arg(long, default_value_t = 7)]
@@ -89,11 +89,13 @@ pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
 /// Options of `f3g bench splat`.
 #[derive(Args, Debug)]
 pub struct SplatBenchArgs {
-    /// Gaussian counts, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "10000,100000,300000")]
+    /// Gaussian counts, comma-separated (each at most 50 million).
+    #[arg(long, value_delimiter = ',', default_value = "10000,100000,300000",
+          value_parser = crate::bounds::size::<1, 50_000_000>)]
     pub gaussians: Vec<usize>,
-    /// Square image sizes in pixels, comma-separated.
-    #[arg(long, value_delimiter = ',', default_value = "512,1024")]
+    /// Square image sizes in pixels, comma-separated (16–8192).
+    #[arg(long, value_delimiter = ',', default_value = "512,1024",
+          value_parser = crate::bounds::side::<16, 8192>)]
     pub resolutions: Vec<u32>,
     /// Timed repetitions per case (the median is reported).
     #[arg(long, default_value_t = 7)]

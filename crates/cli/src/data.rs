@@ -15,14 +15,14 @@ pub struct SynthArgs {
     /// Output folder.
     #[arg(long)]
     pub out: PathBuf,
-    /// Number of cameras in the ring.
-    #[arg(long)]
+    /// Number of cameras in the ring (1–256).
+    #[arg(long, value_parser = crate::bounds::size::<1, 256>)]
     pub cameras: Option<usize>,
-    /// Number of frames.
-    #[arg(long)]
+    /// Number of frames (1–100000).
+    #[arg(long, value_parser = crate::bounds::size::<1, 100_000>)]
     pub frames: Option<usize>,
-    /// Image height in pixels (width is 3/4 of it).
-    #[arg(long)]
+    /// Image height in pixels, 16–8192 (width is 3/4 of it).
+    #[arg(long, value_parser = crate::bounds::size::<16, 8192>)]
     pub resolution: Option<usize>,
     /// Camera elevation, degrees.
     #[arg(long)]
@@ -105,8 +105,8 @@ pub struct ShowArgs {
     /// Body model for smpl_params.npz (smplx:MODEL.npz).
     #[arg(long)]
     pub model: Option<ModelSpec>,
-    /// Width of each camera's thumbnail.
-    #[arg(long, default_value_t = 256)]
+    /// Width of each camera's thumbnail (8–2048).
+    #[arg(long, default_value_t = 256, value_parser = crate::bounds::size::<8, 2048>)]
     pub thumb: usize,
 }
 

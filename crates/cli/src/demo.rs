@@ -16,11 +16,11 @@ pub struct CaptureAndTraining {
     /// Seed of the capture's motion and of training.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Frames of the synthetic capture (the last 20 % are novel poses).
-    #[arg(long, default_value_t = 20)]
+    /// Frames of the synthetic capture, 5–10000 (the last 20 % are novel poses).
+    #[arg(long, default_value_t = 20, value_parser = crate::bounds::size::<5, 10_000>)]
     pub frames: usize,
-    /// Image height of the synthetic capture.
-    #[arg(long, default_value_t = 512)]
+    /// Image height of the synthetic capture (64–4096).
+    #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<64, 4096>)]
     pub resolution: usize,
     /// Override a training configuration key (repeatable), e.g. `--set steps.joint=50`.
     #[arg(long = "set", value_name = "KEY=VALUE")]

@@ -2,6 +2,7 @@
 
 mod avatar;
 mod bench;
+mod bounds;
 mod data;
 mod demo;
 mod memory;

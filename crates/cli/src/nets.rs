@@ -226,8 +226,8 @@ pub struct NetsBenchArgs {
     /// Timed repetitions (the median is reported).
     #[arg(long, default_value_t = 5)]
     pub repeats: usize,
-    /// Side of the images LPIPS and the discriminator are timed on.
-    #[arg(long, default_value_t = 128)]
+    /// Side of the images LPIPS and the discriminator are timed on (32–2048).
+    #[arg(long, default_value_t = 128, value_parser = crate::bounds::size::<32, 2048>)]
     pub image: usize,
     /// Also time the paper-sized presets (slow on a CPU).
     #[arg(long)]

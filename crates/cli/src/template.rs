@@ -48,8 +48,8 @@ pub struct ReconstructArgs {
     /// Also write the carved hull in the frame's pose (OBJ).
     #[arg(long)]
     pub hull: Option<PathBuf>,
-    /// Voxels along the longest side.
-    #[arg(long, default_value_t = 128)]
+    /// Voxels along the longest side (16–512).
+    #[arg(long, default_value_t = 128, value_parser = crate::bounds::size::<16, 512>)]
     pub resolution: usize,
     /// Hull points farther than this from the body are garment, metres.
     #[arg(long, default_value_t = 0.015)]
@@ -242,8 +242,8 @@ pub struct PosmapsArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
-    /// Pixels per side of each (front, back) map.
-    #[arg(long, default_value_t = 256)]
+    /// Pixels per side of each (front, back) map (16–4096).
+    #[arg(long, default_value_t = 256, value_parser = crate::bounds::size::<16, 4096>)]
     pub resolution: usize,
     /// Parameters of a frame to draw the posed maps of (JSON, smpl_params.npz or f3g .npz).
     #[arg(long)]

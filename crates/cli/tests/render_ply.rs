@@ -158,3 +158,49 @@ fn every_command_has_help() {
         );
     }
 }
+
+#[test]
+fn absurd_sizes_are_refused_when_the_command_line_is_parsed() {
+    let dir = tempfile::tempdir().unwrap();
+    let cases: [&[&str]; 9] = [
+        &["synth", "--out", "cap", "--resolution", "100000"],
+        &["synth", "--out", "cap", "--cameras", "100000"],
+        &["demo", "--resolution", "100000"],
+        &[
+            "posmaps",
+            "--template",
+            "t.npz",
+            "--out",
+            "m",
+            "--resolution",
+            "1000000",
+        ],
+        &[
+            "template",
+            "reconstruct",
+            "--data",
+            "cap",
+            "--frame",
+            "0",
+            "--out",
+            "g.obj",
+            "--resolution",
+            "100000",
+        ],
+        &["bench", "lbs", "--points", "1000000000000"],
+        &["bench", "splat", "--resolutions", "512,100000"],
+        &["eval", "run", "--face-size", "100000"],
+        &["data", "show", "cap", "--out", "s.png", "--thumb", "100000"],
+    ];
+    for args in cases {
+        let out = f3g().args(args).current_dir(dir.path()).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{args:?} should fail");
+        assert!(
+            stderr.contains("is not in") && stderr.contains("invalid value"),
+            "{args:?}: {stderr}"
+        );
+    }
+    // Nothing was created.
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 0);
+}
