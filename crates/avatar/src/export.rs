@@ -19,7 +19,6 @@ use std::f64::consts::PI;
 use faer::Mat;
 use faer::prelude::SolveLstsq;
 use glam::{DQuat, DVec3};
-use serde::Serialize;
 
 use crate::AvatarError;
 use crate::model::pose;
@@ -29,7 +28,7 @@ use f3g_splat::sh::{basis, num_coeffs};
 use f3g_splat::{Camera, GaussianCloud};
 
 /// Which world axis is up in the exported file.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Up {
     /// f3g's own convention (and three.js, glTF): +Y up.
     Y,
@@ -47,7 +46,7 @@ impl Up {
 }
 
 /// What the export did and how well the SH reproduce the colour network.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug)]
 pub struct ShFit {
     /// Fitted SH degree (0..=3; the file holds degree 3 either way).
     pub degree: usize,
@@ -67,16 +66,6 @@ pub struct ExportOptions {
     /// View directions of the fit (as many again check it).
     pub directions: usize,
     pub up: Up,
-}
-
-impl Default for ExportOptions {
-    fn default() -> Self {
-        Self {
-            degree: 3,
-            directions: 48,
-            up: Up::Y,
-        }
-    }
 }
 
 /// Unit directions `i = 0..n` of a Fibonacci sphere; `offset` in [0, 1) shifts the spiral so
@@ -178,12 +167,12 @@ pub fn export_cloud(
             count += 1;
         }
     }
-    // The file: degree 3, `[N, 16, 3]`, zero above the fitted degree.
-    let mut sh = vec![0.0f32; n * 16 * 3];
+    // `[N, k, 3]` coefficients, padded to degree 3 below.
+    let mut sh = vec![0.0f32; n * k * 3];
     for g in 0..n {
         for l in 0..k {
             for ch in 0..3 {
-                sh[(g * 16 + l) * 3 + ch] = coeffs[(l, 3 * g + ch)] as f32;
+                sh[(g * k + l) * 3 + ch] = coeffs[(l, 3 * g + ch)] as f32;
             }
         }
     }
@@ -204,8 +193,9 @@ pub fn export_cloud(
         quats: out_quats,
         opacity_logits: host(c.opacity_logits),
         sh,
-        sh_degree: 3,
-    };
+        sh_degree: options.degree,
+    }
+    .padded_to_degree(3);
     let fit = ShFit {
         degree: options.degree,
         fit_directions: m,

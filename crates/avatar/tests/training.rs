@@ -67,6 +67,23 @@ fn tiny(steps: [u64; 5]) -> TrainConfig {
     config
 }
 
+/// `tiny(steps)` without the face branch (body Gaussians and body losses only).
+fn tiny_body(steps: [u64; 5]) -> TrainConfig {
+    TrainConfig {
+        face_branch: false,
+        face_losses: false,
+        ..tiny(steps)
+    }
+}
+
+/// Trains a new run of `config` on `cap` to its last step.
+fn train_to_end(run: &Path, cap: &Path, config: TrainConfig) {
+    Trainer::create(run, cap, None, config, None, None)
+        .unwrap()
+        .train(&AtomicBool::new(false), &mut |_| {})
+        .unwrap();
+}
+
 /// Every float parameter's values, in visiting order.
 struct Values(Vec<Vec<f32>>);
 impl ModuleVisitor for Values {
@@ -257,10 +274,7 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
     let cap = dir.path().join("cap");
     capture(&cap);
     let run = dir.path().join("run");
-    Trainer::create(&run, &cap, None, tiny([2, 3, 1, 2, 1]), None, None)
-        .unwrap()
-        .train(&AtomicBool::new(false), &mut |_| {})
-        .unwrap();
+    train_to_end(&run, &cap, tiny([2, 3, 1, 2, 1]));
     let options = EvalOptions {
         split: SplitKind::NovelView,
         cameras: None,
@@ -360,16 +374,9 @@ fn training_beats_the_untrained_avatar_and_a_flat_colour_baseline_on_held_out_vi
     let dir = tempfile::tempdir().unwrap();
     let cap = dir.path().join("cap");
     capture(&cap);
-    let stop = AtomicBool::new(false);
     let train = |name: &str, steps: [u64; 5]| {
         let run = dir.path().join(name);
-        let mut config = tiny(steps);
-        config.face_branch = false;
-        config.face_losses = false;
-        Trainer::create(&run, &cap, None, config, None, None)
-            .unwrap()
-            .train(&stop, &mut |_| {})
-            .unwrap();
+        train_to_end(&run, &cap, tiny_body(steps));
         novel_view_psnr(&run)
     };
     let (untrained_body, untrained_head, flat) = train("untrained", [1, 0, 0, 0, 0]);
@@ -390,10 +397,7 @@ fn identical_runs_write_identical_checkpoint_bytes() {
     capture(&cap);
     let checkpoint = |name: &str| {
         let run = dir.path().join(name);
-        Trainer::create(&run, &cap, None, tiny([2, 2, 1, 2, 1]), None, None)
-            .unwrap()
-            .train(&AtomicBool::new(false), &mut |_| {})
-            .unwrap();
+        train_to_end(&run, &cap, tiny([2, 2, 1, 2, 1]));
         let latest = std::fs::read_to_string(run.join("checkpoints/latest")).unwrap();
         run.join("checkpoints").join(latest.trim())
     };
@@ -484,10 +488,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     let cap = dir.path().join("cap");
     capture(&cap);
     let run = dir.path().join("run");
-    Trainer::create(&run, &cap, None, tiny([1, 1, 0, 0, 0]), None, None)
-        .unwrap()
-        .train(&AtomicBool::new(false), &mut |_| {})
-        .unwrap();
+    train_to_end(&run, &cap, tiny([1, 1, 0, 0, 0]));
     // A second run into the same folder is refused.
     let e = Trainer::create(&run, &cap, None, tiny([1, 1, 0, 0, 0]), None, None)
         .err()
@@ -545,13 +546,7 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
     let cap = dir.path().join("cap");
     capture(&cap);
     let run = dir.path().join("run");
-    let mut config = tiny([5, 30, 0, 0, 0]);
-    config.face_branch = false;
-    config.face_losses = false;
-    Trainer::create(&run, &cap, None, config, None, None)
-        .unwrap()
-        .train(&AtomicBool::new(false), &mut |_| {})
-        .unwrap();
+    train_to_end(&run, &cap, tiny_body([5, 30, 0, 0, 0]));
     let avatar = TrainedAvatar::load(&run).unwrap();
     let ds = f3g_data::Dataset::open(&cap, None).unwrap();
     let params = &ds.params[1];

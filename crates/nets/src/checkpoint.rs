@@ -14,7 +14,6 @@ pub fn save<M: Module>(module: M, path: &Path) -> Result<(), NetsError> {
         .into_record()
         .into_bytes()
         .map_err(|e| NetsError::weights(path, e))?;
-    let bytes = canonical_burnpack(bytes).map_err(|e| NetsError::weights(path, e))?;
     f3g_io::write_atomic(path, &bytes).map_err(|e| NetsError::weights(path, e.reason))
 }
 
@@ -47,7 +46,8 @@ pub fn with_deterministic_ids<M: Module>(module: M, namespace: u64) -> M {
 
 /// A burnpack buffer rewritten with its tensors in name order. Burn writes an optimiser's state
 /// in the iteration order of a `HashMap`, which differs between processes; reading orders the
-/// tensors by name, so writing them back gives the same bytes for the same contents.
+/// tensors by name, so writing them back gives the same bytes for the same contents. (Module
+/// files need no such pass: [`save`] writes them in the module's own visiting order.)
 pub fn canonical_burnpack(bytes: Bytes) -> Result<Bytes, String> {
     use burn::store::burn_pack::{Reader, Writer};
     let reader = Reader::from_bytes(bytes).map_err(|e| e.to_string())?;
