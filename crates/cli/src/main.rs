@@ -5,6 +5,7 @@ mod bench;
 mod bounds;
 mod data;
 mod demo;
+mod device;
 mod memory;
 mod nets;
 mod quality;

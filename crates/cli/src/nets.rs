@@ -15,6 +15,8 @@ use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 use serde::Serialize;
 
+use crate::device::DeviceSpec;
+
 /// The converter, run with the machine's Python (standard library only).
 const CONVERTER: &str = include_str!("../../../tools/convert_lpips.py");
 
@@ -235,6 +237,9 @@ pub struct NetsBenchArgs {
     /// Write the results as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Device the networks run on: cpu, wgpu[:N] or cuda[:N].
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 #[derive(Serialize)]
@@ -243,6 +248,16 @@ struct NetTiming {
     parameters: usize,
     forward_ms: f64,
     forward_backward_ms: f64,
+}
+
+/// Keeps a timing and prints it at once: on a GPU the first repetition of a large network
+/// (kernel compilation, autotuning) can take minutes, and a silent wait looks like a hang.
+fn record(rows: &mut Vec<NetTiming>, row: NetTiming) {
+    eprintln!(
+        "  {}: {:.1} / {:.1} ms",
+        row.name, row.forward_ms, row.forward_backward_ms
+    );
+    rows.push(row);
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -256,16 +271,21 @@ fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(v, shape), device)
 }
 
-/// Times a scalar loss built by `f` on the plain CPU device (forward) and on the autodiff device
-/// (forward + backward). `f` receives the device and builds its inputs; networks are built once
-/// per device beforehand by `build`.
+/// Times a scalar loss built by `f` on `device` (forward) and on its autodiff twin (forward +
+/// backward). `f` receives the device and builds its inputs; networks are built once per device
+/// beforehand by `build`. The first repetition (kernel compilation, autotuning) is not counted,
+/// and each timing ends when the device has finished (`sync`), not when the work is queued.
+/// `show_repetitions` prints every repetition (on a GPU the first one compiles and autotunes
+/// the kernels, which can take minutes).
 fn time_loss<N>(
     repeats: usize,
+    device: &Device,
+    show_repetitions: bool,
     build: impl Fn(&Device) -> N,
     f: impl Fn(&N, &Device) -> Tensor<1>,
-) -> (f64, f64) {
-    let plain = Device::flex();
-    let train = Device::flex().autodiff();
+) -> Result<(f64, f64)> {
+    let plain = device.clone();
+    let train = device.clone().autodiff();
     let (net_plain, net_train) = (build(&plain), build(&train));
     let mut fwd = Vec::new();
     let mut both = Vec::new();
@@ -275,17 +295,28 @@ fn time_loss<N>(
         let t_fwd = start.elapsed().as_secs_f64() * 1e3;
         let start = Instant::now();
         std::hint::black_box(f(&net_train, &train).backward());
+        train
+            .sync()
+            .map_err(|e| anyhow::anyhow!("running on {device:?}: {e:?}"))?;
         let t_both = start.elapsed().as_secs_f64() * 1e3;
+        if show_repetitions {
+            eprintln!("    repetition {rep}: {t_fwd:.1} / {t_both:.1} ms");
+        }
         if rep > 0 {
             fwd.push(t_fwd);
             both.push(t_both);
         }
     }
-    (median(fwd), median(both))
+    Ok((median(fwd), median(both)))
 }
 
 pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
+    let device = a.device.open()?;
+    eprintln!(
+        "timing on {} (the first repetition of each network is not counted)",
+        a.device
+    );
     let mut nets = vec![
         (
             "body cpu (colour, view)",
@@ -311,6 +342,8 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         let s = config.input_size;
         let (fwd, both) = time_loss(
             a.repeats,
+            &device,
+            a.device != DeviceSpec::Cpu,
             |device| config.init(0, device).expect("valid preset"),
             |net, device| {
                 let view = config
@@ -321,22 +354,27 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
                     .expect("shapes");
                 y.front.mean() + y.back.mean()
             },
+        )?;
+        record(
+            &mut rows,
+            NetTiming {
+                name: format!("StyleUNet {name} {s}→{}", config.output_size),
+                parameters,
+                forward_ms: fwd,
+                forward_backward_ms: both,
+            },
         );
-        rows.push(NetTiming {
-            name: format!("StyleUNet {name} {s}→{}", config.output_size),
-            parameters,
-            forward_ms: fwd,
-            forward_backward_ms: both,
-        });
     }
     let size = a.image;
     for net in [LpipsNet::Alex, LpipsNet::Vgg] {
-        if let Err(e) = Lpips::load(net, &Device::flex()) {
+        if let Err(e) = Lpips::load(net, &device) {
             println!("LPIPS {net}: not timed ({e})");
             continue;
         }
         let (fwd, both) = time_loss(
             a.repeats,
+            &device,
+            a.device != DeviceSpec::Cpu,
             |device| Lpips::load(net, device).expect("loaded above"),
             |lpips, device| {
                 let mut x = ramp([1, 3, size, size], device);
@@ -348,31 +386,39 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
                     .expect("shapes")
                     .sum()
             },
+        )?;
+        record(
+            &mut rows,
+            NetTiming {
+                name: format!("LPIPS {net} {size}²"),
+                parameters: 0,
+                forward_ms: fwd,
+                forward_backward_ms: both,
+            },
         );
-        rows.push(NetTiming {
-            name: format!("LPIPS {net} {size}²"),
-            parameters: 0,
-            forward_ms: fwd,
-            forward_backward_ms: both,
-        });
     }
     let disc = DiscriminatorConfig::cpu(size.next_power_of_two().max(8));
     let r = disc.resolution;
     let (fwd, both) = time_loss(
         a.repeats,
+        &device,
+        a.device != DeviceSpec::Cpu,
         |device| disc.init(0, device).expect("valid"),
         |d, device| {
             d.forward(ramp([1, 3, r, r], device))
                 .expect("shapes")
                 .mean()
         },
+    )?;
+    record(
+        &mut rows,
+        NetTiming {
+            name: format!("discriminator cpu {r}²"),
+            parameters: disc.init(0, &Device::flex())?.num_params(),
+            forward_ms: fwd,
+            forward_backward_ms: both,
+        },
     );
-    rows.push(NetTiming {
-        name: format!("discriminator cpu {r}²"),
-        parameters: disc.init(0, &Device::flex())?.num_params(),
-        forward_ms: fwd,
-        forward_backward_ms: both,
-    });
     println!("| network | parameters | forward ms | forward+backward ms |\n|---|---|---|---|");
     for r in &rows {
         println!(
@@ -380,7 +426,10 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             r.name, r.parameters, r.forward_ms, r.forward_backward_ms
         );
     }
-    println!("({} threads)", rayon::current_num_threads());
+    match a.device {
+        DeviceSpec::Cpu => println!("(cpu, {} threads)", rayon::current_num_threads()),
+        other => println!("({other})"),
+    }
     if let Some(path) = &a.json {
         write_json(path, &rows)?;
     }

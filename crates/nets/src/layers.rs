@@ -77,18 +77,46 @@ pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
 }
 
-/// Bilinear resize (`align_corners = false`).
+/// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`].
 pub fn resize(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
+    let [_, _, h, w] = x.dims();
+    if [height, width] == [2 * h, 2 * w] {
+        return upsample2(x);
+    }
     let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
     options.align_corners = false;
     options.output_size = Some([height, width]);
     interpolate(x, options)
 }
 
-/// Bilinear up-sampling by 2.
+/// Bilinear up-sampling by 2 (`align_corners = false`), written with slices, sums and a
+/// reshape rather than `interpolate`, because Burn 0.22's CubeCL backends (CUDA, wgpu) have no
+/// backward for bilinear interpolation. Per axis: `out[2i] = ¾ x[i] + ¼ x[i−1]`,
+/// `out[2i+1] = ¾ x[i] + ¼ x[i+1]`, with the edge sample repeated at the borders — exactly
+/// bilinear interpolation at the source coordinates `i ∓ ¼`.
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    let [_, _, h, w] = x.dims();
-    resize(x, 2 * h, 2 * w)
+    let x = upsample2_axis(x, 3);
+    upsample2_axis(x, 2)
+}
+
+fn upsample2_axis(x: Tensor<4>, axis: usize) -> Tensor<4> {
+    let dims = x.dims();
+    let n = dims[axis];
+    let slice = |from: usize, to: usize| x.clone().narrow(axis, from, to - from);
+    let (previous, next) = if n == 1 {
+        (x.clone(), x.clone())
+    } else {
+        (
+            Tensor::cat(vec![slice(0, 1), slice(0, n - 1)], axis),
+            Tensor::cat(vec![slice(1, n), slice(n - 1, n)], axis),
+        )
+    };
+    let centre = x.clone() * 0.75;
+    let even = centre.clone() + previous * 0.25;
+    let odd = centre + next * 0.25;
+    let mut out = dims;
+    out[axis] = 2 * n;
+    Tensor::stack::<5>(vec![even, odd], axis + 1).reshape(out)
 }
 
 /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
@@ -475,6 +503,41 @@ mod tests {
 
         fn init_values(n: usize) -> Vec<f32> {
             (0..n).map(|i| ((i * 37) % 11) as f32 - 5.0).collect()
+        }
+    }
+
+    #[test]
+    fn upsample2_equals_bilinear_interpolation_forward_and_backward() {
+        let device = Device::flex().autodiff();
+        for [h, w] in [[1, 1], [1, 5], [4, 3], [7, 8]] {
+            let n = 2 * 3 * h * w;
+            let v: Vec<f32> = (0..n)
+                .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
+                .collect();
+            let x = Tensor::<4>::from_data(TensorData::new(v, [2, 3, h, w]), &device);
+            let weights: Vec<f32> = (0..4 * n).map(|i| ((i * 31) % 13) as f32 - 6.0).collect();
+            let weights =
+                Tensor::<4>::from_data(TensorData::new(weights, [2, 3, 2 * h, 2 * w]), &device);
+            let run = |up: &dyn Fn(Tensor<4>) -> Tensor<4>| {
+                let x = x.clone().require_grad();
+                let y = up(x.clone());
+                let grads = (y.clone() * weights.clone()).sum().backward();
+                (values(y), values(x.grad(&grads).unwrap()))
+            };
+            let (ours, ours_grad) = run(&upsample2);
+            let (theirs, theirs_grad) = run(&|x| {
+                let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
+                options.align_corners = false;
+                options.output_size = Some([2 * h, 2 * w]);
+                interpolate(x, options)
+            });
+            for (a, b) in ours
+                .iter()
+                .zip(&theirs)
+                .chain(ours_grad.iter().zip(&theirs_grad))
+            {
+                assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+            }
         }
     }
 

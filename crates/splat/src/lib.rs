@@ -3,8 +3,10 @@
 //! project (cull, EWA covariance, SH colour) → bin into 16×16 tiles (stable depth order) →
 //! composite front to back → backward from the final transmittance, back to front.
 //!
-//! - [`cpu`]: the readable, multi-threaded reference (generic over `f32`/`f64`); its module
-//!   docs state the exact semantics (footprint, cut-offs, outputs).
+//! - [`reference`]: the readable renderer (gsplat 1.5.3's semantics, every Gaussian at every
+//!   pixel) that every fast path is tested against.
+//! - [`cpu`]: the fast multi-threaded CPU renderer (generic over `f32`/`f64`); its module docs
+//!   state the exact semantics (footprint, cut-offs, outputs).
 //! - [`op`]: the same renderer as a Burn operation with a hand-written backward
 //!   ([`render`] is the entry point for tensors that need gradients).
 //! - [`ply`]: the standard 3DGS `.ply` layout, read and write.
@@ -20,6 +22,7 @@ mod error;
 pub mod op;
 pub mod ply;
 mod real;
+pub mod reference;
 pub mod sh;
 
 pub use camera::{Camera, DEFAULT_FAR, DEFAULT_NEAR, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE};

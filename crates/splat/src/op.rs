@@ -55,7 +55,7 @@ pub struct GaussianTensors<B: Backend> {
 pub struct RasterState<B: Backend> {
     /// `[N, SCREEN_FLOATS]` projected Gaussians.
     pub screen: FloatTensor<B>,
-    /// `[N]` footprint radius in pixels, 0 when culled.
+    /// `[N, 2]` footprint half-sizes in pixels (x, y), 0 when culled.
     pub radii: IntTensor<B>,
     /// `[tiles + 1]` offsets into `tile_ids`.
     pub tile_offsets: IntTensor<B>,
@@ -147,14 +147,14 @@ fn screen_from_floats(
 ) -> Projected<f32> {
     values
         .chunks_exact(SCREEN_FLOATS)
-        .zip(radii)
-        .map(|(v, &r)| ScreenGaussian {
+        .zip(radii.chunks_exact(2))
+        .map(|(v, r)| ScreenGaussian {
             mean: [v[0], v[1]],
             conic: [v[2], v[3], v[4]],
             color: [v[5], v[6], v[7]],
             opacity: v[8],
             depth: v[9],
-            radius: r.max(0) as u32,
+            radii: [r[0].max(0) as u32, r[1].max(0) as u32],
             pixels: [0; 4],
         })
         .map(|g| g.with_footprint(width, height))
@@ -194,7 +194,7 @@ impl SplatBackend for Flex {
                 ),
                 state: RasterState {
                     screen: flex_tensor(Vec::<f32>::new(), &[0, SCREEN_FLOATS], dtype),
-                    radii: flex_int(Vec::<i32>::new(), &[0]),
+                    radii: flex_int(Vec::<i32>::new(), &[0, 2]),
                     tile_offsets: flex_int(Vec::<u32>::new(), &[0]),
                     tile_ids: flex_int(Vec::<u32>::new(), &[0]),
                     final_transmittance: flex_tensor(vec![1f32; w * h], &[h, w], dtype),
@@ -289,7 +289,7 @@ fn pack_forward(fwd: ForwardOutput<f32>, w: usize, h: usize, dtype: DType) -> Sp
     let radii: Vec<i32> = fwd
         .projected
         .iter()
-        .map(|g| g.radius.min(i32::MAX as u32) as i32)
+        .flat_map(|g| g.radii.map(|r| r.min(i32::MAX as u32) as i32))
         .collect();
     let n_isect = fwd.bins.ids.len();
     let n_offsets = fwd.bins.offsets.len();
@@ -301,7 +301,7 @@ fn pack_forward(fwd: ForwardOutput<f32>, w: usize, h: usize, dtype: DType) -> Sp
                 &[n, SCREEN_FLOATS],
                 DType::F32,
             ),
-            radii: flex_int(radii, &[n]),
+            radii: flex_int(radii, &[n, 2]),
             tile_offsets: flex_int(fwd.bins.offsets, &[n_offsets]),
             tile_ids: flex_int(fwd.bins.ids, &[n_isect]),
             final_transmittance: flex_tensor(fwd.final_transmittance, &[h, w], DType::F32),
@@ -513,8 +513,8 @@ pub struct Rendered {
     pub alpha: Tensor<2>,
     /// `[H, W]` alpha-weighted camera-space depth `Σ zᵢ αᵢ Tᵢ`.
     pub depth: Tensor<2>,
-    /// `[N]` footprint radius in pixels, 0 for culled Gaussians.
-    pub radii: Tensor<1, Int>,
+    /// `[N, 2]` footprint half-sizes in pixels (x, y), 0 for culled Gaussians.
+    pub radii: Tensor<2, Int>,
 }
 
 /// Renders `gaussians` from `camera` over `background` (`[3]`), differentiably.
@@ -552,6 +552,6 @@ pub fn render(
         color: image.clone().slice([0..h, 0..w, 0..3]),
         alpha: image.clone().slice([0..h, 0..w, 3..4]).reshape([h, w]),
         depth: image.slice([0..h, 0..w, 4..5]).reshape([h, w]),
-        radii: Tensor::<1, Int>::from_dispatch(out.state.radii),
+        radii: Tensor::<2, Int>::from_dispatch(out.state.radii),
     })
 }

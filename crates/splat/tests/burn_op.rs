@@ -58,7 +58,7 @@ fn forward_and_gradients_equal_the_cpu_reference() {
         reference
             .projected
             .iter()
-            .map(|p| p.radius as i64)
+            .flat_map(|p| p.radii.map(i64::from))
             .collect::<Vec<_>>()
     );
 

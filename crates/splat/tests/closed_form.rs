@@ -73,9 +73,15 @@ fn one_isotropic_gaussian_gives_the_analytic_image() {
     let cyy = s2 * (j[1][1] * j[1][1] + j[1][2] * j[1][2]) + 0.3;
     let det = cxx * cyy - cxy * cxy;
     let (mu, mv) = (f * x / z + 32.0, f * y / z + 24.0);
-    let lambda = 0.5 * (cxx + cyy) + (0.25 * (cxx - cyy).powi(2) + cxy * cxy).sqrt();
-    let radius = (3.0 * lambda.sqrt()).ceil();
-    assert_eq!(out.projected[0].radius as f64, radius);
+    // gsplat's opacity-aware extent: the box where o·exp(−½m²) ≥ 1/255.
+    let k = (2.0 * (255.0 * o).ln()).sqrt();
+    assert_eq!(
+        out.projected[0].radii,
+        [
+            (k * cxx.sqrt()).ceil() as u32,
+            (k * cyy.sqrt()).ceil() as u32
+        ]
+    );
 
     let mut covered = 0;
     for row in 0..48 {
@@ -83,7 +89,8 @@ fn one_isotropic_gaussian_gives_the_analytic_image() {
             let (dx, dy) = (col as f64 + 0.5 - mu, row as f64 + 0.5 - mv);
             let power = -0.5 * (cyy * dx * dx - 2.0 * cxy * dx * dy + cxx * dy * dy) / det;
             let mut a = (o * power.exp()).min(0.99);
-            if a < 1.0 / 255.0 || dx.abs() > radius || dy.abs() > radius {
+            // Every pixel where the Gaussian reaches 1/255 counts, however far out.
+            if a < 1.0 / 255.0 {
                 a = 0.0;
             } else {
                 covered += 1;
@@ -126,7 +133,7 @@ fn gaussians_behind_the_camera_or_before_near_contribute_nothing() {
     for z in [-2.0, -0.001, 0.005] {
         let g = One::new([0.0, 0.0, z], 0.5, 0.9, [1.0, 1.0, 1.0]);
         let out = cpu::render(&g.slices(), &cam, bg, &RenderOptions::default()).unwrap();
-        assert_eq!(out.projected[0].radius, 0, "z = {z}");
+        assert_eq!(out.projected[0].radii, [0, 0], "z = {z}");
         assert!(out.color.chunks(3).all(|px| px == bg), "z = {z}");
         assert_eq!(out.bins.num_intersections(), 0);
     }

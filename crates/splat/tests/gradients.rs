@@ -2,23 +2,23 @@
 //!
 //! The loss is a random weighted sum of colour, alpha and depth, so every output gradient path
 //! is exercised. The render has jumps (the 1/255 alpha cut-off, the alpha clamp, early
-//! termination, the integer footprint radius): a coordinate is compared only when the
-//! brute-force renderer reports the same discrete decisions at both ±h, i.e. when the loss is
+//! termination): a coordinate is compared only when the
+//! reference renderer reports the same discrete decisions at both ±h, i.e. when the loss is
 //! smooth there. Skips are counted and must stay rare. Scenes overlap heavily and some have
 //! opacities up to 0.999, so occlusion, clamping and early termination are all covered.
 
 mod common;
 
-use common::{Scene, brute_force, loss_weights, random_scene};
-use f3g_splat::RenderOptions;
+use common::{Scene, loss_weights, random_scene};
 use f3g_splat::cpu::{self, PixelGrads};
+use f3g_splat::{RenderOptions, reference};
 
 fn loss(
     s: &Scene,
     w: &(Vec<f64>, Vec<f64>, Vec<f64>),
     options: &RenderOptions,
-) -> (f64, common::Signature) {
-    let r = brute_force(&s.slices(), &s.camera, s.background, options);
+) -> (f64, reference::Signature) {
+    let r = reference::render(&s.slices(), &s.camera, s.background, options);
     let l = r.color.iter().zip(&w.0).map(|(a, b)| a * b).sum::<f64>()
         + r.alpha.iter().zip(&w.1).map(|(a, b)| a * b).sum::<f64>()
         + r.depth.iter().zip(&w.2).map(|(a, b)| a * b).sum::<f64>();

@@ -1,12 +1,13 @@
-//! The tiled renderer equals the brute-force reference, and the projection equals an
-//! independent formulation (perspective Jacobian by finite differences, covariance by rotating
-//! the scaled axes with quaternion sandwich products, radius by the closed-form eigenvalue).
+//! The fast CPU renderer equals the readable reference (`f3g_splat::reference`, gsplat 1.5.3's
+//! semantics), and the projection equals an independent formulation (perspective Jacobian by
+//! finite differences, covariance by rotating the scaled axes with quaternion sandwich
+//! products, radii from the opacity-aware extent).
 
 mod common;
 
-use common::{Scene, brute_force, random_scene};
-use f3g_splat::RenderOptions;
+use common::{Scene, random_scene};
 use f3g_splat::cpu::{self, GaussianSlices};
+use f3g_splat::{RenderOptions, reference};
 
 fn max_abs_diff<T: Copy + Into<f64>>(a: &[T], b: &[T]) -> f64 {
     assert_eq!(a.len(), b.len());
@@ -17,14 +18,14 @@ fn max_abs_diff<T: Copy + Into<f64>>(a: &[T], b: &[T]) -> f64 {
 }
 
 #[test]
-fn tiled_equals_brute_force_f64() {
+fn cpu_equals_the_reference_f64() {
     for seed in 0..12 {
         let degree = (seed % 4) as usize;
         let max_opacity = if seed % 2 == 0 { 0.95 } else { 0.999 };
         let s = random_scene(seed, 60, degree, max_opacity, 83, 61);
         let options = RenderOptions::default();
         let fwd = cpu::render(&s.slices(), &s.camera, s.background, &options).unwrap();
-        let reference = brute_force(&s.slices(), &s.camera, s.background, &options);
+        let reference = reference::render(&s.slices(), &s.camera, s.background, &options);
         assert!(
             max_abs_diff(&fwd.color, &reference.color) < 1e-12,
             "seed {seed}: colour differs"
@@ -45,7 +46,7 @@ fn tiled_equals_brute_force_f64() {
 }
 
 #[test]
-fn tiled_equals_brute_force_f32_with_gsplat_clamp() {
+fn cpu_equals_the_reference_f32_with_gsplat_clamp() {
     let mut stopped_early = 0;
     for seed in 100..106 {
         let s = random_scene(seed, 150, 3, 0.999, 97, 70);
@@ -64,7 +65,7 @@ fn tiled_equals_brute_force_f32_with_gsplat_clamp() {
         };
         let bg = s.background.map(|v| v as f32);
         let fwd = cpu::render(&g, &s.camera, bg, &options).unwrap();
-        let reference = brute_force(&g, &s.camera, bg, &options);
+        let reference = reference::render(&g, &s.camera, bg, &options);
         assert!(
             max_abs_diff(&fwd.color, &reference.color) < 1e-6,
             "seed {seed}"
@@ -115,7 +116,7 @@ fn projection_matches_an_independent_formulation() {
         let to_pixels = |x: [f64; 3]| cam.project(x).unwrap().0;
         let mut checked = 0;
         for (i, p) in projected.iter().enumerate() {
-            if p.radius == 0 {
+            if !p.is_visible() {
                 continue;
             }
             let mean = [s.means[3 * i], s.means[3 * i + 1], s.means[3 * i + 2]];
@@ -163,13 +164,14 @@ fn projection_matches_an_independent_formulation() {
                     conic[c]
                 );
             }
-            let lambda_max = 0.5 * (cov[0] + cov[2])
-                + (0.25 * (cov[0] - cov[2]).powi(2) + cov[1] * cov[1])
-                    .max(0.01)
-                    .sqrt();
+            let o = 1.0 / (1.0 + (-s.opacity_logits[i]).exp());
+            let k = (2.0 * (255.0 * o).ln()).sqrt().min(3.33);
             assert_eq!(
-                p.radius,
-                (3.0 * lambda_max.sqrt()).ceil() as u32,
+                p.radii,
+                [
+                    (k * cov[0].sqrt()).ceil() as u32,
+                    (k * cov[2].sqrt()).ceil() as u32
+                ],
                 "seed {seed} gaussian {i}"
             );
             checked += 1;
@@ -197,4 +199,95 @@ fn far_off_screen_gaussians_use_the_clamped_jacobian() {
         (var_x - expected_var).abs() < 1e-9,
         "{var_x} vs {expected_var}"
     );
+}
+
+#[test]
+fn cpu_equals_the_reference_on_empty_near_plane_and_border_scenes() {
+    let options = RenderOptions::default();
+    let check = |s: &Scene, what: &str| {
+        let fwd = cpu::render(&s.slices(), &s.camera, s.background, &options).unwrap();
+        let reference = reference::render(&s.slices(), &s.camera, s.background, &options);
+        for (name, a, b) in [
+            ("colour", &fwd.color, &reference.color),
+            ("alpha", &fwd.alpha, &reference.alpha),
+            ("depth", &fwd.depth, &reference.depth),
+        ] {
+            let d = max_abs_diff(a, b);
+            assert!(d < 1e-12, "{what}: {name} differs by {d}");
+        }
+        let radii: Vec<[u32; 2]> = fwd.projected.iter().map(|p| p.radii).collect();
+        assert_eq!(radii, reference.signature.radii, "{what}: radii");
+        reference
+    };
+
+    let mut empty = random_scene(1, 0, 2, 0.9, 50, 37);
+    let r = check(&empty, "empty scene");
+    assert!(r.color.chunks(3).all(|px| px == empty.background));
+    empty.background = [0.0; 3];
+    check(&empty, "empty scene, black background");
+
+    // The camera sits at z = 3 looking at the origin; a near plane at 2.9 cuts through the
+    // cluster, so some Gaussians straddle it and some lie just in front of it.
+    let mut near = random_scene(2, 80, 1, 0.95, 61, 45);
+    near.camera.near = 2.9;
+    let r = check(&near, "near plane");
+    let culled = r.projected.iter().filter(|p| p.is_none()).count();
+    assert!(
+        culled > 10 && culled < 70,
+        "{culled} of 80 culled by the near plane"
+    );
+
+    // Spread the means far wider than the view: many Gaussians cross the image border, some
+    // are centred outside it and still reach in.
+    let mut border = random_scene(3, 120, 3, 0.999, 53, 41);
+    for m in border.means.chunks_exact_mut(3) {
+        m[0] *= 3.0;
+        m[1] *= 3.0;
+    }
+    let r = check(&border, "image border");
+    let (w, h) = (53.0, 41.0);
+    let outside_but_drawn = r
+        .projected
+        .iter()
+        .flatten()
+        .filter(|p| p.mean[0] < 0.0 || p.mean[0] > w || p.mean[1] < 0.0 || p.mean[1] > h)
+        .count();
+    assert!(
+        outside_but_drawn > 3,
+        "only {outside_but_drawn} off-centre Gaussians reach in"
+    );
+}
+
+/// The footprint box loses nothing: outside it every pixel centre has α < 1/255 — the
+/// property that makes the image independent of boxes and tiles (gsplat's opacity-aware
+/// extent; the old 3σ square of the largest eigenvalue dropped pixels with α up to ~1 %).
+#[test]
+fn no_pixel_outside_the_box_reaches_one_in_255() {
+    let mut checked = 0;
+    for seed in 300..340 {
+        let s = random_scene(seed, 30, 0, 1.0 - 1e-9, 96, 80);
+        for p in cpu::project(&s.slices(), &s.camera)
+            .iter()
+            .filter(|p| p.is_visible())
+        {
+            let [rx, ry] = p.radii.map(f64::from);
+            for row in 0..80 {
+                for col in 0..96 {
+                    let (dx, dy) = (col as f64 + 0.5 - p.mean[0], row as f64 + 0.5 - p.mean[1]);
+                    if dx.abs() <= rx && dy.abs() <= ry {
+                        continue;
+                    }
+                    let sigma =
+                        0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) + p.conic[1] * dx * dy;
+                    let alpha = p.opacity * (-sigma).exp();
+                    assert!(
+                        alpha < 1.0 / 255.0,
+                        "seed {seed}: α = {alpha} at ({dx}, {dy})"
+                    );
+                    checked += 1;
+                }
+            }
+        }
+    }
+    assert!(checked > 100_000, "{checked}");
 }

@@ -5,15 +5,17 @@
 //! gradients, [`rasterize_backward`] (per tile, back to front from the final transmittance) →
 //! [`project_backward`] (per Gaussian).
 //!
-//! Semantics (identical in every path, including the brute-force reference in the tests):
-//! - a Gaussian touches the pixels whose centres lie in its square screen footprint
-//!   `|u − μ_u| ≤ r`, `|v − μ_v| ≤ r`, with `r = ⌈3 √λ_max(Σ₂ᴅ)⌉` (the 3-σ extent), so the image
-//!   does not depend on the tile size;
+//! Semantics (gsplat 1.5.3's, identical in every path including [`crate::reference`]):
+//! - a Gaussian is evaluated at every pixel centre (`i + 0.5`) inside its box
+//!   `|u − μ_u| ≤ r_x`, `|v − μ_v| ≤ r_y` with the opacity-aware radii of [`project`]; the box
+//!   holds every pixel where its `α ≥ 1/255`, so the image equals "every pixel, every visible
+//!   Gaussian" and does not depend on the tile size;
 //! - `α = min(α_max, o · exp(−½ dᵀ Σ₂ᴅ⁻¹ d))`; contributions with `α < 1/255` (or a positive
 //!   exponent) are skipped;
-//! - a pixel stops before the Gaussian that would bring its transmittance below `1e-4`;
+//! - a pixel stops before the Gaussian that would bring its transmittance to `1e-4` or below
+//!   (`T (1 − α) ≤ 1e-4`; that Gaussian is not composited);
 //! - outputs: colour `Σ cᵢ αᵢ Tᵢ + T_final · background`, alpha `1 − T_final`, depth
-//!   `Σ zᵢ αᵢ Tᵢ` (camera-space z, not normalised by alpha).
+//!   `Σ zᵢ αᵢ Tᵢ` (camera-space z, not normalised by alpha: gsplat's `D` mode).
 //!
 //! All arrays are flat and row-major: means `[N,3]`, log-scales `[N,3]`, quaternions `[N,4]`
 //! (w, x, y, z), opacity logits `[N]`, SH `[N,K,3]`; images `[H,W,3]` and `[H,W]`.
@@ -21,7 +23,10 @@
 mod project;
 mod raster;
 
-pub use project::{Projected, ScreenGaussian, ScreenGrads, project, project_backward};
+pub use project::{
+    EXTENT_MAX_SIGMAS, Projected, ScreenGaussian, ScreenGrads, opacity_extent, project,
+    project_backward,
+};
 pub use raster::{
     ForwardOutput, RasterGrads, TileBins, bin_tiles, pixel_box, rasterize, rasterize_backward,
 };
@@ -32,7 +37,7 @@ use crate::{Camera, SplatError, real::Real, sh};
 pub const TILE_SIZE: usize = 16;
 /// Contributions below this alpha are skipped.
 pub const ALPHA_MIN: f64 = 1.0 / 255.0;
-/// A pixel stops compositing before its transmittance would fall below this.
+/// A pixel stops compositing before its transmittance would fall to this or below.
 pub const TRANSMITTANCE_MIN: f64 = 1e-4;
 /// Isotropic screen-space variance (pixels²) added to every projected covariance.
 pub const LOW_PASS: f64 = 0.3;

@@ -7,11 +7,15 @@
 //!   point whose x/z and y/z are clamped to 1.3× the field of view (as 3DGS and gsplat do, so
 //!   that far off-screen Gaussians do not blow up);
 //! - mean `μ = (fx x_c/z + cx, fy y_c/z + cy)`, depth `z`, conic `Σ₂ᴅ⁻¹`;
-//! - radius `⌈3 √λ_max⌉` with `λ_max = b + √max(0.01, b² − det)`, `b = ½ tr Σ₂ᴅ`;
-//! - colour from SH along `normalize(x − camera centre)`, opacity `sigmoid(a)`.
+//! - colour from SH along `normalize(x − camera centre)`, opacity `o = sigmoid(a)`;
+//! - per-axis radii `⌈k √Σ₂ᴅ[0][0]⌉`, `⌈k √Σ₂ᴅ[1][1]⌉` with the opacity-aware extent
+//!   `k = min(3.33, √(2 ln(255 o)))` (gsplat 1.5): the ellipse where `α = o e^{−½dᵀΣ⁻¹d}`
+//!   reaches `1/255` has exactly these half-widths, so the box holds every pixel with
+//!   `α ≥ 1/255` and the image does not depend on the box or the tile size.
 //!
-//! A Gaussian is culled (radius 0) when its depth is outside `[near, far]`, its 2D covariance
-//! is degenerate (`det ≤ 0`), its quaternion is zero, or its footprint misses every pixel.
+//! A Gaussian is culled (radii 0) when its depth is outside `[near, far]`, its 2D covariance
+//! is degenerate (`det ≤ 0`), its quaternion is zero, its opacity is below `1/255`, or its box
+//! holds no pixel centre.
 
 use multiversion::multiversion;
 use rayon::prelude::*;
@@ -33,8 +37,8 @@ pub struct ScreenGaussian<T> {
     pub opacity: T,
     /// Camera-space z (metres).
     pub depth: T,
-    /// Footprint half-size in pixels; 0 means culled.
-    pub radius: u32,
+    /// Footprint half-sizes in pixels along x and y; `[0, 0]` means culled.
+    pub radii: [u32; 2],
     /// Pixels `[x0, x1) × [y0, y1)` of the footprint inside the image (see [`pixel_box`]).
     pub pixels: [u32; 4],
 }
@@ -42,12 +46,13 @@ pub struct ScreenGaussian<T> {
 impl<T: Real> ScreenGaussian<T> {
     /// Whether the Gaussian survived culling.
     pub fn is_visible(&self) -> bool {
-        self.radius > 0
+        self.radii != [0, 0]
     }
 
     /// Fills in `pixels` from the mean and radius; culls (radius 0) when no pixel is covered.
     pub fn with_footprint(mut self, width: usize, height: usize) -> Self {
-        match (self.radius > 0)
+        match self
+            .is_visible()
             .then(|| pixel_box(&self, width, height))
             .flatten()
         {
@@ -58,7 +63,7 @@ impl<T: Real> ScreenGaussian<T> {
     }
 }
 
-/// The projected Gaussians, one per input (culled ones have radius 0).
+/// The projected Gaussians, one per input (culled ones have radii 0).
 pub type Projected<T> = Vec<ScreenGaussian<T>>;
 
 /// Gradient of the loss with respect to one Gaussian's screen quantities.
@@ -291,7 +296,7 @@ fn sigmoid<T: Real>(x: T) -> T {
     T::one() / (T::one() + (-x).exp())
 }
 
-/// Projects every Gaussian (in parallel); culled ones get radius 0.
+/// Projects every Gaussian (in parallel); culled ones get radii 0.
 pub fn project<T: Real>(g: &GaussianSlices<T>, camera: &Camera) -> Projected<T> {
     let cam = Cam::new(camera);
     let k = g.sh_coeffs();
@@ -324,12 +329,14 @@ fn project_one<T: Real>(
     if det <= T::zero() || det.is_nan() || opacity < T::c(ALPHA_MIN) {
         return ScreenGaussian::default();
     }
-    let half_trace = T::c(0.5) * (a + c);
-    let lambda_max = half_trace + (half_trace * half_trace - det).max(T::c(0.01)).sqrt();
-    let radius = (T::c(3.0) * lambda_max.sqrt())
-        .ceil()
-        .to_f64()
-        .unwrap_or(0.0);
+    let extent = opacity_extent(opacity);
+    let radius = |variance: T| {
+        (extent * variance.sqrt())
+            .ceil()
+            .to_f64()
+            .unwrap_or(0.0)
+            .min(u32::MAX as f64) as u32
+    };
     let z = f.p[2];
     let mean = [cam.fx * f.p[0] / z + cam.cx, cam.fy * f.p[1] / z + cam.cy];
     let (dir, _) = view_dir(get3(g.means, i), cam.center);
@@ -340,10 +347,21 @@ fn project_one<T: Real>(
         color: raw.map(|v| v.max(T::zero())),
         opacity,
         depth: z,
-        radius: radius.min(u32::MAX as f64) as u32,
+        radii: [radius(a), radius(c)],
         pixels: [0; 4],
     }
     .with_footprint(width, height)
+}
+
+/// Most standard deviations a footprint reaches (gsplat's cap; it binds only for `o > 1`).
+pub const EXTENT_MAX_SIGMAS: f64 = 3.33;
+
+/// Half-width in standard deviations of the region where `o · exp(−½ m²) ≥ 1/255`.
+pub fn opacity_extent<T: Real>(opacity: T) -> T {
+    (T::c(2.0) * (opacity / T::c(ALPHA_MIN)).ln())
+        .max(T::zero())
+        .sqrt()
+        .min(T::c(EXTENT_MAX_SIGMAS))
 }
 
 /// Chains screen-space gradients back to the Gaussian parameters (in parallel).

@@ -15,24 +15,24 @@ use super::project::{Projected, ScreenGaussian, ScreenGrads};
 use super::{ALPHA_MIN, PixelGrads, RenderOptions, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::{Camera, real::Real};
 
-/// Pixels `[x0, x1) × [y0, y1)` whose centres lie in the Gaussian's square footprint,
-/// clipped to the image; `None` if there are none.
+/// Pixels `[x0, x1) × [y0, y1)` whose centres lie in the Gaussian's footprint box
+/// `|u − μ_u| ≤ r_x`, `|v − μ_v| ≤ r_y`, clipped to the image; `None` if there are none.
 #[inline]
 pub fn pixel_box<T: Real>(
     g: &ScreenGaussian<T>,
     width: usize,
     height: usize,
 ) -> Option<[usize; 4]> {
-    let r = g.radius as f64;
-    let axis = |m: T, size: usize| {
+    let axis = |m: T, r: u32, size: usize| {
+        let r = r as f64;
         let m = m.to_f64()?;
         // centre i + 0.5 ∈ [m − r, m + r]
         let lo = (m - r - 0.5).ceil().max(0.0);
         let hi = (m + r - 0.5).floor().min(size as f64 - 1.0);
         (lo <= hi).then_some((lo as usize, hi as usize + 1))
     };
-    let (x0, x1) = axis(g.mean[0], width)?;
-    let (y0, y1) = axis(g.mean[1], height)?;
+    let (x0, x1) = axis(g.mean[0], g.radii[0], width)?;
+    let (y0, y1) = axis(g.mean[1], g.radii[1], height)?;
     Some([x0, x1, y0, y1])
 }
 
@@ -250,7 +250,7 @@ fn composite_tile<T: Real>(
                 row_evals += open as u32;
                 let live = open & (power <= T::zero()) & (alpha >= alpha_min);
                 let next_t = t[lane] * (T::one() - alpha);
-                let stop = live & (next_t < t_min);
+                let stop = live & (next_t <= t_min);
                 let contrib = live & !stop;
                 let w = if contrib { alpha * t[lane] } else { T::zero() };
                 r[lane] = w.mul_add(g.color[0], r[lane]);

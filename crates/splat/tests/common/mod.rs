@@ -1,14 +1,9 @@
-//! Shared test scenes and an independent brute-force renderer.
-//!
-//! The brute-force renderer composites every visible Gaussian at every pixel in (depth, index)
-//! order with the documented cut-offs (and the renderer's `exp`, [`Real::raster_exp`]) and nothing else: no tiles, no footprint boxes clipped to
-//! tiles, no per-tile early exit. It also records the discrete decisions (which Gaussians
-//! contribute to which pixel, which alphas are clamped, where each pixel stops), so that
-//! finite-difference tests can tell a smooth neighbourhood from a jump.
+//! Shared test scenes and loss weights (the renderer they are checked against is
+//! `f3g_splat::reference`).
 #![allow(dead_code)]
 
-use f3g_splat::cpu::{self, ALPHA_MIN, GaussianSlices, RenderOptions, TRANSMITTANCE_MIN};
-use f3g_splat::{Camera, Real, sh};
+use f3g_splat::cpu::GaussianSlices;
+use f3g_splat::{Camera, sh};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -127,101 +122,6 @@ pub fn random_scene(
         }
     }
     s
-}
-
-/// One pixel's decisions: (gaussian, alpha clamped) per contribution, then the Gaussian at
-/// which it stopped early, if any.
-pub type PixelDecisions = (Vec<(u32, bool)>, Option<u32>);
-
-/// Every discrete decision of a render, for detecting jumps.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub struct Signature {
-    pub radii: Vec<u32>,
-    pub pixels: Vec<PixelDecisions>,
-}
-
-pub struct BruteForce<T> {
-    pub color: Vec<T>,
-    pub alpha: Vec<T>,
-    pub depth: Vec<T>,
-    pub signature: Signature,
-}
-
-/// Composites every visible Gaussian at every pixel, in (depth, index) order.
-pub fn brute_force<T: Real>(
-    g: &GaussianSlices<T>,
-    camera: &Camera,
-    background: [T; 3],
-    options: &RenderOptions,
-) -> BruteForce<T> {
-    let projected = cpu::project(g, camera);
-    let mut order: Vec<usize> = (0..projected.len())
-        .filter(|&i| projected[i].radius > 0)
-        .collect();
-    order.sort_by(|&a, &b| {
-        projected[a]
-            .depth
-            .partial_cmp(&projected[b].depth)
-            .unwrap()
-            .then(a.cmp(&b))
-    });
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    let mut out = BruteForce {
-        color: vec![T::zero(); w * h * 3],
-        alpha: vec![T::zero(); w * h],
-        depth: vec![T::zero(); w * h],
-        signature: Signature {
-            radii: projected.iter().map(|p| p.radius).collect(),
-            pixels: Vec::new(),
-        },
-    };
-    for py in 0..h {
-        for px in 0..w {
-            let (cx, cy) = (T::c(px as f64 + 0.5), T::c(py as f64 + 0.5));
-            let mut t = T::one();
-            let mut rgb = [T::zero(); 3];
-            let mut z = T::zero();
-            let mut contributions = Vec::new();
-            let mut stop = None;
-            for &i in &order {
-                let p = &projected[i];
-                let r = T::c(p.radius as f64);
-                let (dx, dy) = (cx - p.mean[0], cy - p.mean[1]);
-                if dx.abs() > r || dy.abs() > r {
-                    continue;
-                }
-                let power = -T::c(0.5) * (p.conic[0] * dx * dx + p.conic[2] * dy * dy)
-                    - p.conic[1] * dx * dy;
-                if power > T::zero() {
-                    continue;
-                }
-                let raw = p.opacity * power.raster_exp();
-                let a = raw.min(T::c(options.alpha_max));
-                if a < T::c(ALPHA_MIN) {
-                    continue;
-                }
-                let next_t = t * (T::one() - a);
-                if next_t < T::c(TRANSMITTANCE_MIN) {
-                    stop = Some(i as u32);
-                    break;
-                }
-                for (acc, c) in rgb.iter_mut().zip(p.color) {
-                    *acc = *acc + a * t * c;
-                }
-                z = z + a * t * p.depth;
-                t = next_t;
-                contributions.push((i as u32, raw >= T::c(options.alpha_max)));
-            }
-            let o = py * w + px;
-            for c in 0..3 {
-                out.color[3 * o + c] = rgb[c] + t * background[c];
-            }
-            out.alpha[o] = T::one() - t;
-            out.depth[o] = z;
-            out.signature.pixels.push((contributions, stop));
-        }
-    }
-    out
 }
 
 /// Random per-pixel loss weights for colour, alpha and depth.

@@ -1,0 +1,256 @@
+//! `--device cpu|wgpu[:N]|cuda[:N]`: which machine a command computes on.
+//!
+//! The spelling is parsed by clap (so a typo is a usage error), and a device is created only
+//! when a command asks for it: creating a CUDA device loads `libcuda` and creating a wgpu device
+//! probes the graphics drivers, neither of which a CPU run should pay for or depend on. Asking
+//! for a device that does not exist — or for a backend this binary was built without — is an
+//! error that lists what does exist.
+//!
+//! - `cpu`: Burn's Flex backend (always built).
+//! - `wgpu`: the adapter wgpu prefers; `wgpu:N`: the N-th adapter in the order listed by the
+//!   error message (Vulkan/Metal/DX12 through WGSL; needs the `gpu` feature).
+//! - `cuda` = `cuda:0`, `cuda:N`: an NVIDIA GPU through NVRTC (needs the `cuda` feature).
+
+use std::fmt;
+use std::str::FromStr;
+
+use anyhow::Result;
+#[cfg(not(all(feature = "gpu", feature = "cuda")))]
+use anyhow::bail;
+use burn::tensor::Device;
+
+/// A device as named on the command line.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum DeviceSpec {
+    #[default]
+    Cpu,
+    /// `None`: the adapter wgpu prefers.
+    Wgpu(Option<usize>),
+    Cuda(usize),
+}
+
+impl FromStr for DeviceSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        let (kind, index) = match s.split_once(':') {
+            Some((kind, index)) => {
+                let index = index.parse::<usize>().map_err(|_| {
+                    format!("`{index}` in `{s}` is not a device index (expected 0, 1, …)")
+                })?;
+                (kind, Some(index))
+            }
+            None => (s, None),
+        };
+        match (kind, index) {
+            ("cpu", None) => Ok(Self::Cpu),
+            ("cpu", Some(_)) => Err(format!("`{s}`: the CPU device takes no index")),
+            ("wgpu", index) => Ok(Self::Wgpu(index)),
+            ("cuda", index) => Ok(Self::Cuda(index.unwrap_or(0))),
+            _ => Err(format!(
+                "unknown device `{s}` (expected cpu, wgpu, wgpu:N, cuda or cuda:N)"
+            )),
+        }
+    }
+}
+
+impl fmt::Display for DeviceSpec {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Cpu => write!(f, "cpu"),
+            Self::Wgpu(None) => write!(f, "wgpu"),
+            Self::Wgpu(Some(i)) => write!(f, "wgpu:{i}"),
+            Self::Cuda(i) => write!(f, "cuda:{i}"),
+        }
+    }
+}
+
+impl DeviceSpec {
+    /// Creates the device (without autodiff).
+    pub fn open(self) -> Result<Device> {
+        match self {
+            Self::Cpu => Ok(Device::flex()),
+            Self::Wgpu(index) => open_wgpu(index),
+            Self::Cuda(index) => open_cuda(index),
+        }
+    }
+}
+
+#[cfg(feature = "gpu")]
+fn open_wgpu(index: Option<usize>) -> Result<Device> {
+    use anyhow::{Context, anyhow};
+    use burn::tensor::DeviceKind;
+    use wgpu::DeviceType;
+
+    let adapters = wgpu_adapters();
+    let kind = match index {
+        None => DeviceKind::DefaultDevice,
+        Some(i) => {
+            let listing = || {
+                adapters
+                    .iter()
+                    .enumerate()
+                    .map(|(i, a)| {
+                        format!(
+                            "  wgpu:{i}  {} ({:?}, {:?})",
+                            a.name, a.device_type, a.backend
+                        )
+                    })
+                    .collect::<Vec<_>>()
+                    .join("\n")
+            };
+            let info = adapters.get(i).ok_or_else(|| {
+                anyhow!(
+                    "there is no wgpu:{i}; the wgpu adapters of this machine are:\n{}",
+                    if adapters.is_empty() {
+                        "  (none)".into()
+                    } else {
+                        listing()
+                    }
+                )
+            })?;
+            // cubecl names an adapter by its type and its position among adapters of that type.
+            let nth = adapters[..i]
+                .iter()
+                .filter(|a| a.device_type == info.device_type)
+                .count();
+            match info.device_type {
+                DeviceType::DiscreteGpu => DeviceKind::DiscreteGpu(nth),
+                DeviceType::IntegratedGpu => DeviceKind::IntegratedGpu(nth),
+                DeviceType::VirtualGpu => DeviceKind::VirtualGpu(nth),
+                DeviceType::Cpu => DeviceKind::Cpu,
+                DeviceType::Other => {
+                    return Err(anyhow!(
+                        "wgpu:{i} ({}) is of an unknown type that cubecl cannot select",
+                        info.name
+                    ));
+                }
+            }
+        }
+    };
+    Device::wgpu_options()
+        .device_kind(kind)
+        .init()
+        .map_err(|e| anyhow!("{e}"))
+        .with_context(|| {
+            format!(
+                "creating the wgpu device (adapters found: {})",
+                if adapters.is_empty() {
+                    "none".to_string()
+                } else {
+                    adapters
+                        .iter()
+                        .map(|a| a.name.clone())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                }
+            )
+        })
+}
+
+/// The adapters of every graphics API wgpu was built with, in a fixed order.
+#[cfg(feature = "gpu")]
+fn wgpu_adapters() -> Vec<wgpu::AdapterInfo> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+    let adapters =
+        futures_lite::future::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+    adapters.iter().map(|a| a.get_info()).collect()
+}
+
+#[cfg(not(feature = "gpu"))]
+fn open_wgpu(_index: Option<usize>) -> Result<Device> {
+    bail!(
+        "this f3g was built without wgpu support; rebuild with `cargo build --release -p f3g-cli \
+         --features gpu` (devices available here: cpu{})",
+        if cfg!(feature = "cuda") { ", cuda" } else { "" }
+    )
+}
+
+#[cfg(feature = "cuda")]
+fn open_cuda(index: usize) -> Result<Device> {
+    use anyhow::bail;
+    use cudarc::driver::CudaContext;
+
+    // SAFETY: only probes whether the driver library can be loaded.
+    if !unsafe { cudarc::driver::sys::is_culib_present() } {
+        bail!(
+            "cuda:{index} was asked for, but the NVIDIA driver library (libcuda.so.1) is not \
+             installed on this machine; use --device cpu{}",
+            if cfg!(feature = "gpu") {
+                " or --device wgpu"
+            } else {
+                ""
+            }
+        );
+    }
+    let count = CudaContext::device_count()
+        .map_err(|e| anyhow::anyhow!("asking the CUDA driver for its devices: {e}"))?;
+    let count = usize::try_from(count).unwrap_or(0);
+    if index >= count {
+        let listing = (0..count)
+            .map(|i| {
+                let name = CudaContext::new(i)
+                    .and_then(|c| c.name())
+                    .unwrap_or_else(|e| format!("unnamed ({e})"));
+                format!("  cuda:{i}  {name}")
+            })
+            .collect::<Vec<_>>()
+            .join("\n");
+        bail!(
+            "there is no cuda:{index}; the CUDA devices of this machine are:\n{}",
+            if count == 0 {
+                "  (none)".into()
+            } else {
+                listing
+            }
+        );
+    }
+    Ok(Device::cuda(index))
+}
+
+#[cfg(not(feature = "cuda"))]
+fn open_cuda(index: usize) -> Result<Device> {
+    bail!(
+        "cuda:{index} was asked for, but this f3g was built without CUDA support; rebuild with \
+         `CUDARC_CUDA_VERSION=13000 cargo build --release -p f3g-cli --features cuda` (devices \
+         available here: cpu{})",
+        if cfg!(feature = "gpu") { ", wgpu" } else { "" }
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn device_names_parse_and_print_back() {
+        for (text, spec) in [
+            ("cpu", DeviceSpec::Cpu),
+            ("wgpu", DeviceSpec::Wgpu(None)),
+            ("wgpu:1", DeviceSpec::Wgpu(Some(1))),
+            ("cuda:3", DeviceSpec::Cuda(3)),
+        ] {
+            assert_eq!(text.parse::<DeviceSpec>(), Ok(spec));
+            assert_eq!(spec.to_string(), text);
+        }
+        assert_eq!("cuda".parse::<DeviceSpec>(), Ok(DeviceSpec::Cuda(0)));
+        for bad in ["gpu", "cuda:x", "cpu:0", "cuda:-1", ""] {
+            let err = bad.parse::<DeviceSpec>().unwrap_err();
+            assert!(err.contains(bad) || bad.is_empty(), "{err}");
+        }
+    }
+
+    #[test]
+    fn the_cpu_device_always_opens() {
+        let device = DeviceSpec::Cpu.open().unwrap();
+        assert!(!device.is_autodiff());
+    }
+
+    #[cfg(not(feature = "cuda"))]
+    #[test]
+    fn asking_for_cuda_without_the_feature_says_how_to_build_it() {
+        let err = DeviceSpec::Cuda(0).open().unwrap_err().to_string();
+        assert!(err.contains("--features cuda"), "{err}");
+        assert!(err.contains("available here: cpu"), "{err}");
+    }
+}

@@ -1,0 +1,81 @@
+//! The networks on a wgpu device (Mesa lavapipe in CI) compute what they compute on the CPU:
+//! same seed, same weights, same outputs and gradients within float tolerance. Run with
+//! `cargo test --release -p f3g-nets --features gpu --test gpu`.
+#![cfg(feature = "gpu")]
+
+use burn::module::Module;
+use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
+use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
+
+fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n)
+        .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
+        .collect();
+    Tensor::from_data(TensorData::new(v, shape), device)
+}
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+}
+
+fn assert_close(a: &[f32], b: &[f32], tol: f32, what: &str) {
+    assert_eq!(a.len(), b.len(), "{what}");
+    let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-6);
+    let worst = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
+    assert!(
+        worst <= tol * scale,
+        "{what}: differs by {worst} (scale {scale})"
+    );
+    assert!(a.iter().all(|v| v.is_finite()), "{what}: non-finite values");
+}
+
+/// Loss and the input's gradient of the CPU demo's body network on `device`.
+fn body_net(device: &Device) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let device = device.clone().autodiff();
+    let config = StyleUNetConfig::cpu_body(3, true);
+    let net = config.init(3, &device).unwrap();
+    let s = config.input_size;
+    let x = ramp([1, 3, s, s], &device).require_grad();
+    let view = (
+        ramp([1, 1, s, s], &device),
+        ramp([1, 1, s, s], &device) * 0.5,
+    );
+    let y = net.forward(x.clone(), Some(view)).unwrap();
+    let front = values(y.front.clone());
+    let loss = (y.front.powi_scalar(2).mean() + y.back.mean()).reshape([1]);
+    let grads = loss.backward();
+    let gx = values(x.grad(&grads).unwrap());
+    (front, gx, values(loss))
+}
+
+#[test]
+fn the_body_network_matches_the_cpu_on_wgpu() {
+    let gpu = Device::wgpu(DeviceKind::DefaultDevice);
+    let (front_gpu, grad_gpu, loss_gpu) = body_net(&gpu);
+    let (front_cpu, grad_cpu, loss_cpu) = body_net(&Device::flex());
+    assert_close(&front_gpu, &front_cpu, 1e-4, "front output");
+    assert_close(&loss_gpu, &loss_cpu, 1e-4, "loss");
+    assert_close(&grad_gpu, &grad_cpu, 1e-3, "input gradient");
+}
+
+#[test]
+fn the_discriminator_matches_the_cpu_on_wgpu() {
+    let run = |device: &Device| {
+        let config = DiscriminatorConfig::cpu(64);
+        let d = config.init(5, device).unwrap();
+        values(d.forward(ramp([2, 3, 64, 64], device)).unwrap())
+    };
+    let gpu = Device::wgpu(DeviceKind::DefaultDevice);
+    assert_close(
+        &run(&gpu),
+        &run(&Device::flex()),
+        1e-4,
+        "discriminator logits",
+    );
+    assert!(Module::num_params(&DiscriminatorConfig::cpu(64).init(5, &gpu).unwrap()) > 0);
+}
