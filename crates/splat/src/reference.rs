@@ -21,6 +21,9 @@
 //! `α = min(α_max, o e^{−σ})`, skip when `α < 1/255`; stop (exclusive) when `T (1 − α) ≤ 1e-4`;
 //! `C += c α T`, `D += z α T`, `T ← T (1 − α)`; finally `C += T · background`, `A = 1 − T`.
 //!
+//! `crates/splat/GSPLAT.md` records gsplat's forward and backward formulas in full (with the
+//! source lines they come from), for the GPU kernels.
+//!
 //! The Gaussian's box (step 3) is not used when compositing: the reference shows that the box
 //! loses nothing, which is what lets the fast paths skip everything outside it.
 
