@@ -78,35 +78,18 @@ impl DeviceSpec {
 
 #[cfg(feature = "gpu")]
 fn open_wgpu(index: Option<usize>) -> Result<Device> {
-    use anyhow::{Context, anyhow};
+    use anyhow::anyhow;
     use burn::tensor::DeviceKind;
     use wgpu::DeviceType;
 
-    let adapters = wgpu_adapters();
     let kind = match index {
         None => DeviceKind::DefaultDevice,
         Some(i) => {
-            let listing = || {
-                adapters
-                    .iter()
-                    .enumerate()
-                    .map(|(i, a)| {
-                        format!(
-                            "  wgpu:{i}  {} ({:?}, {:?})",
-                            a.name, a.device_type, a.backend
-                        )
-                    })
-                    .collect::<Vec<_>>()
-                    .join("\n")
-            };
+            let adapters = wgpu_adapters();
             let info = adapters.get(i).ok_or_else(|| {
                 anyhow!(
                     "there is no wgpu:{i}; the wgpu adapters of this machine are:\n{}",
-                    if adapters.is_empty() {
-                        "  (none)".into()
-                    } else {
-                        listing()
-                    }
+                    adapter_listing(&adapters)
                 )
             })?;
             // cubecl names an adapter by its type and its position among adapters of that type.
@@ -128,33 +111,46 @@ fn open_wgpu(index: Option<usize>) -> Result<Device> {
             }
         }
     };
+    // The adapters are listed only when something went wrong: probing them costs start-up time.
     Device::wgpu_options()
         .device_kind(kind)
         .init()
-        .map_err(|e| anyhow!("{e}"))
-        .with_context(|| {
-            format!(
-                "creating the wgpu device (adapters found: {})",
-                if adapters.is_empty() {
-                    "none".to_string()
-                } else {
-                    adapters
-                        .iter()
-                        .map(|a| a.name.clone())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                }
+        .map_err(|e| {
+            anyhow!(
+                "creating the wgpu device: {e}; the wgpu adapters of this machine are:\n{}",
+                adapter_listing(&wgpu_adapters())
             )
         })
 }
 
-/// The adapters of every graphics API wgpu was built with, in a fixed order.
+/// The adapters of the primary graphics APIs (Vulkan, Metal, DX12), in wgpu's order. cubecl
+/// counts adapters within one API; leaving out the GL fallback keeps one adapter from being
+/// listed twice (once per API) and so keeps `wgpu:N` pointing where cubecl will look.
 #[cfg(feature = "gpu")]
 fn wgpu_adapters() -> Vec<wgpu::AdapterInfo> {
     let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
     let adapters =
-        futures_lite::future::block_on(instance.enumerate_adapters(wgpu::Backends::all()));
+        futures_lite::future::block_on(instance.enumerate_adapters(wgpu::Backends::PRIMARY));
     adapters.iter().map(|a| a.get_info()).collect()
+}
+
+/// One adapter per line, as `--device` names it.
+#[cfg(feature = "gpu")]
+fn adapter_listing(adapters: &[wgpu::AdapterInfo]) -> String {
+    if adapters.is_empty() {
+        return "  (none)".into();
+    }
+    adapters
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            format!(
+                "  wgpu:{i}  {} ({:?}, {:?})",
+                a.name, a.device_type, a.backend
+            )
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 #[cfg(not(feature = "gpu"))]

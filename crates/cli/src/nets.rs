@@ -313,6 +313,7 @@ fn time_loss<N>(
 pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
     let device = a.device.open()?;
+    let show_repetitions = a.device != DeviceSpec::Cpu;
     eprintln!(
         "timing on {} (the first repetition of each network is not counted)",
         a.device
@@ -343,7 +344,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         let (fwd, both) = time_loss(
             a.repeats,
             &device,
-            a.device != DeviceSpec::Cpu,
+            show_repetitions,
             |device| config.init(0, device).expect("valid preset"),
             |net, device| {
                 let view = config
@@ -374,7 +375,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         let (fwd, both) = time_loss(
             a.repeats,
             &device,
-            a.device != DeviceSpec::Cpu,
+            show_repetitions,
             |device| Lpips::load(net, device).expect("loaded above"),
             |lpips, device| {
                 let mut x = ramp([1, 3, size, size], device);
@@ -402,7 +403,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     let (fwd, both) = time_loss(
         a.repeats,
         &device,
-        a.device != DeviceSpec::Cpu,
+        show_repetitions,
         |device| disc.init(0, device).expect("valid"),
         |d, device| {
             d.forward(ramp([1, 3, r, r], device))

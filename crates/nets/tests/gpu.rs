@@ -3,17 +3,12 @@
 //! `cargo test --release -p f3g-nets --features gpu --test gpu`.
 #![cfg(feature = "gpu")]
 
-use burn::module::Module;
-use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
-use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
+mod common;
 
-fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
-    let n: usize = shape.iter().product();
-    let v: Vec<f32> = (0..n)
-        .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
-        .collect();
-    Tensor::from_data(TensorData::new(v, shape), device)
-}
+use burn::module::Module;
+use burn::tensor::{Device, DeviceKind, Tensor};
+use common::ramp;
+use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()

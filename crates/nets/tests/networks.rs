@@ -1,19 +1,14 @@
 //! StyleUNet and discriminator: shapes of every preset, learning on a fixed target, gradients
 //! reaching every parameter, R1 against the exact input gradient, checkpoints.
 
+mod common;
+
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, Tensor, TensorData};
+use common::ramp;
 use f3g_nets::discriminator::{discriminator_loss, generator_loss, r1_penalty};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig, checkpoint};
-
-fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
-    let n: usize = shape.iter().product();
-    let v: Vec<f32> = (0..n)
-        .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
-        .collect();
-    Tensor::from_data(TensorData::new(v, shape), device)
-}
 
 #[test]
 fn every_preset_has_the_documented_output_shapes() {
