@@ -17,6 +17,8 @@ use f3g_nets::{DiscriminatorConfig, LpipsNet, StyleUNetConfig};
 pub const MAX_MAP_RESOLUTION: usize = 2048;
 /// Largest side of a rendered face crop or LPIPS crop (the paper's: 512).
 pub const MAX_CROP: usize = 2048;
+/// Largest step count of one training stage.
+pub const MAX_STAGE_STEPS: u64 = 1_000_000_000;
 
 /// Which canonical template the avatar is built on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -375,6 +377,21 @@ impl TrainConfig {
                 return bad(key, format!("{value} is larger than the limit {limit}"));
             }
         }
+        // The paper trains 405k steps; a billion per stage keeps every step count summable.
+        for (stage, steps) in [
+            ("steps.pretrain", self.steps.pretrain),
+            ("steps.body", self.steps.body),
+            ("steps.face_pretrain", self.steps.face_pretrain),
+            ("steps.joint", self.steps.joint),
+            ("steps.face_finetune", self.steps.face_finetune),
+        ] {
+            if steps > MAX_STAGE_STEPS {
+                return bad(
+                    stage,
+                    format!("{steps} is larger than the limit {MAX_STAGE_STEPS}"),
+                );
+            }
+        }
         self.body_net
             .validate()
             .map_err(|e| AvatarError::config("body_net", e))?;
@@ -563,6 +580,9 @@ mod tests {
         std::fs::write(&path, r#"{"steps": {"joint": 7}, "lr": 0.002}"#).unwrap();
         let c = TrainConfig::from_file(&path).unwrap();
         assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 300));
+        std::fs::write(&path, r#"{"map_resolution": 1073741824}"#).unwrap();
+        let e = TrainConfig::from_file(&path).unwrap_err().to_string();
+        assert!(e.contains("c.json") && e.contains("map_resolution"), "{e}");
         std::fs::write(&path, r#"{"stepz": 3}"#).unwrap();
         let e = TrainConfig::from_file(&path).unwrap_err().to_string();
         assert!(e.contains("c.json") && e.contains("stepz"), "{e}");
@@ -593,6 +613,11 @@ mod tests {
             "face_net.max_channels",
             "discriminator.resolution",
             "discriminator.max_channels",
+            "body_net.n_mlp",
+            "body_net.middle_size",
+            "body_net.channel_multiplier",
+            "face_net.input_size",
+            "steps.joint",
         ] {
             let e = TrainConfig::cpu()
                 .with_overrides(&[format!("{key}=1073741824")])

@@ -125,6 +125,33 @@ impl Run {
         Ok(Some(dir))
     }
 
+    /// Removes the temporary files that writes interrupted by a kill left in the run folder
+    /// and its checkpoints (training's own folders; evaluation may be writing elsewhere in the
+    /// run at the same time). Returns how many.
+    pub fn remove_temporaries(&self) -> Result<usize, AvatarError> {
+        let mut dirs = vec![self.dir.clone(), self.checkpoints()];
+        if let Ok(entries) = std::fs::read_dir(self.checkpoints()) {
+            dirs.extend(entries.flatten().map(|e| e.path()).filter(|p| p.is_dir()));
+        }
+        let mut removed = 0;
+        for dir in dirs {
+            let Ok(entries) = std::fs::read_dir(&dir) else {
+                continue;
+            };
+            for path in entries.flatten().map(|e| e.path()) {
+                let temporary = path
+                    .file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with(f3g_io::TEMPORARY_PREFIX));
+                if temporary && path.is_file() {
+                    std::fs::remove_file(&path).map_err(|e| AvatarError::file(&path, e))?;
+                    removed += 1;
+                }
+            }
+        }
+        Ok(removed)
+    }
+
     /// Writes a checkpoint and makes it `latest`; removes all but the two newest.
     #[allow(clippy::too_many_arguments)]
     pub fn write_checkpoint<N: Module, D: Module>(
@@ -199,6 +226,15 @@ impl Run {
         {
             return Err(AvatarError::file(&path, "inconsistent array shapes"));
         }
+        if !mean
+            .iter()
+            .chain(&components)
+            .chain(&stddev)
+            .chain(&sigma)
+            .all(|v| v.is_finite())
+        {
+            return Err(AvatarError::file(&path, "holds NaN or infinite values"));
+        }
         Ok(PosePca {
             mean,
             components,
@@ -210,7 +246,15 @@ impl Run {
 
 /// Reads the training state of a checkpoint.
 pub fn read_state(checkpoint: &Path) -> Result<TrainState, AvatarError> {
-    read_json(&checkpoint.join("state.json"))
+    let path = checkpoint.join("state.json");
+    let state: TrainState = read_json(&path)?;
+    if !(state.seconds.is_finite() && state.seconds >= 0.0) {
+        return Err(AvatarError::file(
+            &path,
+            format!("`seconds` is {}, expected a duration ≥ 0", state.seconds),
+        ));
+    }
+    Ok(state)
 }
 
 fn save_optim(optim: &ModuleOptimizer, path: &Path) -> Result<(), AvatarError> {
@@ -223,10 +267,17 @@ fn save_optim(optim: &ModuleOptimizer, path: &Path) -> Result<(), AvatarError> {
     Ok(f3g_io::write_atomic(path, &bytes)?)
 }
 
-/// Loads an optimiser's state saved with a checkpoint.
-pub fn load_optim(optim: ModuleOptimizer, path: &Path) -> Result<ModuleOptimizer, AvatarError> {
-    let bytes = std::fs::read(path).map_err(|e| AvatarError::file(path, e))?;
-    let record = OptimizerRecord::from_bytes(Bytes::from_bytes_vec(bytes))
+/// Loads an optimiser's state saved with a checkpoint for the module it steps (checked
+/// against it first: Burn's loader trusts the file).
+pub fn load_optim<M: Module>(
+    optim: ModuleOptimizer,
+    path: &Path,
+    module: &M,
+) -> Result<ModuleOptimizer, AvatarError> {
+    let bytes = Bytes::from_bytes_vec(std::fs::read(path).map_err(|e| AvatarError::file(path, e))?);
+    f3g_nets::checkpoint::check_optimiser_state(&bytes, module)
+        .map_err(|e| AvatarError::file(path, format!("not this run's optimiser state: {e}")))?;
+    let record = OptimizerRecord::from_bytes(bytes)
         .map_err(|e| AvatarError::file(path, format!("not an optimiser state: {e}")))?;
     Ok(optim.load_record(record))
 }

@@ -187,6 +187,7 @@ impl Trainer {
         let run = Run::new(run_dir);
         let config = run.config()?;
         let info = run.info()?;
+        run.remove_temporaries()?;
         let dataset = Arc::new(Dataset::open(&info.data, model)?);
         if dataset.model != info.model {
             return Err(AvatarError::file(
@@ -258,11 +259,13 @@ impl Trainer {
         let mut optim_disc = with_disc.then(adam_disc);
         if let Some(c) = &checkpoint {
             nets = f3g_nets::checkpoint::load(nets, &c.join("nets.bpk"))?;
-            optim_body = load_optim(optim_body, &c.join("optim_body.bpk"))?;
-            if let Some(o) = optim_face.take() {
+            optim_body = load_optim(optim_body, &c.join("optim_body.bpk"), &nets.body)?;
+            if let Some(face) = nets.face.as_ref()
+                && let Some(o) = optim_face.take()
+            {
                 let path = c.join("optim_face.bpk");
                 optim_face = Some(if path.exists() {
-                    load_optim(o, &path)?
+                    load_optim(o, &path, face)?
                 } else {
                     o
                 });
@@ -270,9 +273,10 @@ impl Trainer {
             if let Some(d) = disc.take() {
                 let path = c.join("disc.bpk");
                 if path.exists() {
-                    disc = Some(f3g_nets::checkpoint::load(d, &path)?);
+                    let d = f3g_nets::checkpoint::load(d, &path)?;
                     let o = optim_disc.take().expect("with the discriminator");
-                    optim_disc = Some(load_optim(o, &c.join("optim_disc.bpk"))?);
+                    optim_disc = Some(load_optim(o, &c.join("optim_disc.bpk"), &d)?);
+                    disc = Some(d);
                 } else {
                     disc = Some(d);
                 }

@@ -1,10 +1,19 @@
-//! Fuzzing the training configuration: JSON files (any subset of the keys over a preset) and
-//! `--set KEY=VALUE` overrides. For thousands of mutations, reading returns a configuration
-//! that validates or an error naming the file or key — no panic, no single allocation above
-//! 256 MiB.
+//! Fuzzing what a run folder holds: the training configuration (JSON files, any subset of the
+//! keys over a preset, and `--set KEY=VALUE` overrides) and a checkpoint's own files — the
+//! training state (`state.json`), optimiser states (`optim_*.bpk`), the face Gaussians'
+//! canonical base (`face_base.npz`) and the pose PCA (`pca.npz`). For thousands of mutations,
+//! reading returns a value that validates (an optimiser that then steps) or an error naming
+//! the file or key — no panic, no single allocation above 256 MiB. (Module files are fuzzed in
+//! `f3g-nets`.)
 
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::Device;
 use f3g_avatar::TrainConfig;
-use f3g_testkit::{AllocationGuard, config, mutated_text};
+use f3g_avatar::run::{Run, load_face_base, load_optim, read_state};
+use f3g_nets::StyleUNetConfig;
+use f3g_testkit::{
+    AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, write_arrays,
+};
 use proptest::prelude::*;
 
 #[global_allocator]
@@ -56,5 +65,172 @@ proptest! {
         if let Ok(c) = TrainConfig::cpu().with_overrides(&sets) {
             prop_assert!(c.validate().is_ok());
         }
+    }
+}
+
+const STATE: &str = r#"{"step": 120, "seconds": 35.5, "disc_steps": 40}"#;
+
+/// A small network whose parameter ids are a function of `namespace` (an optimiser state
+/// refers to parameters by id).
+fn small_net(device: &Device, namespace: u64) -> f3g_nets::DualStyleUNet {
+    net_of_width(device, namespace, 4)
+}
+
+fn net_of_width(device: &Device, namespace: u64, channels: usize) -> f3g_nets::DualStyleUNet {
+    let net = StyleUNetConfig {
+        input_size: 16,
+        output_size: 16,
+        channel_base: 32,
+        max_channels: channels,
+        style_dim: 4,
+        middle_size: 4,
+        ..StyleUNetConfig::cpu_face(3, false)
+    }
+    .init(1, device)
+    .unwrap();
+    f3g_nets::checkpoint::with_deterministic_ids(net, namespace)
+}
+
+fn step(
+    optim: &mut ModuleOptimizer,
+    net: f3g_nets::DualStyleUNet,
+    device: &Device,
+) -> f3g_nets::DualStyleUNet {
+    let input = burn::tensor::Tensor::<4>::ones([1, 3, 16, 16], device);
+    let loss = net
+        .forward(input, None)
+        .unwrap()
+        .front
+        .powi_scalar(2)
+        .mean();
+    let mut grads = loss.backward();
+    let grads = GradientsParams::from_module(&mut grads, &net);
+    optim.step(1e-3, net, grads)
+}
+
+/// Adam's state after two steps of `small_net(_, 1)` (moments for every parameter).
+static OPTIM_SEED: std::sync::LazyLock<Vec<u8>> = std::sync::LazyLock::new(|| {
+    let device = Device::flex().autodiff();
+    let mut optim = AdamConfig::new().init();
+    let net = step(&mut optim, small_net(&device, 1), &device);
+    step(&mut optim, net, &device);
+    optim.to_record().into_bytes().unwrap().to_vec()
+});
+
+fn face_base() -> Vec<Array> {
+    let n = 6;
+    let ramp = |k: usize| -> Vec<f32> { (0..n * k).map(|i| i as f32 * 0.1 - 0.3).collect() };
+    vec![
+        Array::f32("positions", &[n, 3], &ramp(3)),
+        Array::f32("colours", &[n, 3], &ramp(3)),
+        Array::f32("opacity_logits", &[n], &ramp(1)),
+        Array::f32("log_scales", &[n, 3], &ramp(3)),
+        Array::f32("quats", &[n, 4], &ramp(4)),
+    ]
+}
+
+fn pca() -> Vec<Array> {
+    let (k, d) = (3, 5);
+    let ramp = |m: usize| -> Vec<f32> { (0..m).map(|i| (i as f32).cos()).collect() };
+    vec![
+        Array::f32("mean", &[d], &ramp(d)),
+        Array::f32("components", &[k, d], &ramp(k * d)),
+        Array::f32("stddev", &[k], &ramp(k)),
+        Array::f32("sigma", &[1], &[2.0]),
+    ]
+}
+
+#[test]
+fn the_valid_checkpoint_seeds_read() {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("state.json"), STATE).unwrap();
+    assert_eq!(read_state(dir.path()).unwrap().step, 120);
+    let device = Device::flex().autodiff();
+    let path = dir.path().join("optim.bpk");
+    std::fs::write(&path, &*OPTIM_SEED).unwrap();
+    let net = small_net(&device, 1);
+    let mut optim = load_optim(AdamConfig::new().init(), &path, &net).unwrap();
+    step(&mut optim, net, &device);
+    // The state of another network (different parameter ids) is refused.
+    let other = small_net(&device, 2);
+    let e = load_optim(AdamConfig::new().init(), &path, &other)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("optim.bpk") && e.contains("no parameter"), "{e}");
+    // A wider network with the same ids: Burn would load the state and panic at the next step.
+    let wider = net_of_width(&device, 1, 8);
+    let e = load_optim(AdamConfig::new().init(), &path, &wider)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("optim.bpk") && e.contains("its parameter is F32"),
+        "{e}"
+    );
+    let path = dir.path().join("face_base.npz");
+    write_arrays(&path, &face_base());
+    assert_eq!(load_face_base(&path, 6).unwrap().len(), 6);
+    write_arrays(&dir.path().join("pca.npz"), &pca());
+    assert_eq!(Run::new(dir.path()).pca().unwrap().sigma, 2.0);
+}
+
+proptest! {
+    #![proptest_config(config(2000))]
+
+    #[test]
+    fn mutated_train_states_read_or_error(text in mutated_text(STATE)) {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("state.json"), &text).unwrap();
+        match read_state(dir.path()) {
+            Ok(s) => prop_assert!(s.seconds.is_finite() && s.seconds >= 0.0),
+            Err(e) => prop_assert!(e.to_string().contains("state.json"), "{}", e),
+        }
+    }
+
+    #[test]
+    fn mutated_face_bases_read_or_error(arrays in mutated_arrays(face_base())) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("face_base.npz");
+        write_arrays(&path, &arrays);
+        match load_face_base(&path, 6) {
+            Ok(b) => prop_assert!(b.len() == 6 && b.positions.iter().all(|v| v.is_finite())),
+            Err(e) => prop_assert!(e.to_string().contains("face_base.npz"), "{}", e),
+        }
+    }
+
+    #[test]
+    fn mutated_pose_pcas_read_or_error(arrays in mutated_arrays(pca())) {
+        let dir = tempfile::tempdir().unwrap();
+        write_arrays(&dir.path().join("pca.npz"), &arrays);
+        match Run::new(dir.path()).pca() {
+            Ok(p) => {
+                prop_assert_eq!(p.components.len(), p.stddev.len() * p.mean.len());
+                prop_assert!(p.components.iter().chain(&p.mean).chain(&p.stddev).all(|v| v.is_finite()));
+            }
+            Err(e) => prop_assert!(e.to_string().contains("pca.npz"), "{}", e),
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(config(300))]
+
+    /// The same network (same parameter ids) loads every mutation that passes the checks, and
+    /// then steps.
+    #[test]
+    fn mutated_optimiser_states_load_and_step_or_error(bytes in mutated(OPTIM_SEED.clone())) {
+        let device = Device::flex().autodiff();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("optim.bpk");
+        std::fs::write(&path, &bytes).unwrap();
+        let net = small_net(&device, 1);
+        match load_optim(AdamConfig::new().init(), &path, &net) {
+            Ok(mut optim) => {
+                step(&mut optim, net, &device);
+            }
+            Err(e) => prop_assert!(e.to_string().contains("optim.bpk"), "{}", e),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
     }
 }

@@ -227,9 +227,9 @@ pub struct EvalArgs {
     /// Evaluate every N-th frame.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
-    /// Body images at this fraction of the capture's resolution (1: the paper's protocol;
-    /// smaller is faster on a CPU and not comparable with the paper).
-    #[arg(long)]
+    /// Body images at this fraction of the capture's resolution, 0.01–4 (1: the paper's
+    /// protocol; smaller is faster on a CPU and not comparable with the paper).
+    #[arg(long, value_parser = crate::bounds::eval_scale)]
     pub scale: Option<f32>,
     /// Side of the head crops, 32–2048 (default: the training face crop size).
     #[arg(long, value_parser = crate::bounds::size::<32, 2048>)]
@@ -323,9 +323,9 @@ pub struct AnimateArgs {
     /// Also write every frame's posed Gaussians as a 3DGS .ply.
     #[arg(long)]
     pub export_ply: bool,
-    /// Image size of the orbit camera, WIDTHxHEIGHT.
-    #[arg(long, default_value = "384x512")]
-    pub size: String,
+    /// Image size of the orbit camera, WIDTHxHEIGHT (16–8192 pixels a side).
+    #[arg(long, default_value = "384x512", value_parser = crate::bounds::image_size)]
+    pub size: (u32, u32),
     /// Orbit turns over the sequence.
     #[arg(long, default_value_t = 1.0)]
     pub turns: f32,
@@ -340,27 +340,10 @@ pub struct AnimateArgs {
     pub no_pca: bool,
 }
 
-fn parse_size(text: &str) -> Result<(u32, u32)> {
-    let (w, h) = text
-        .split_once('x')
-        .with_context(|| format!("--size `{text}`: expected WIDTHxHEIGHT"))?;
-    let (w, h): (u32, u32) = (
-        w.parse()
-            .with_context(|| format!("--size `{text}`: bad width"))?,
-        h.parse()
-            .with_context(|| format!("--size `{text}`: bad height"))?,
-    );
-    anyhow::ensure!(
-        w >= 16 && h >= 16 && w <= 8192 && h <= 8192,
-        "--size `{text}`: 16..8192 pixels per side"
-    );
-    Ok((w, h))
-}
-
 pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
     let avatar = TrainedAvatar::load(&a.run)?;
     let motion = f3g_avatar::animate::read_motion(&a.motion, &avatar)?;
-    let (width, height) = parse_size(&a.size)?;
+    let (width, height) = a.size;
     let camera = if a.camera == "orbit" {
         CameraPath::Orbit {
             turns: a.turns,
@@ -435,8 +418,8 @@ pub struct ExportPlyArgs {
     /// the avatar's view-dependent colour (0: the mean colour over all directions).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(0..=3))]
     pub sh_degree: u8,
-    /// View directions of the SH fit (as many again measure its error).
-    #[arg(long, default_value_t = 48)]
+    /// View directions of the SH fit, 1–1024 (as many again measure its error).
+    #[arg(long, default_value_t = 48, value_parser = crate::bounds::size::<1, 1024>)]
     pub directions: usize,
     /// Which way is up in the file: `y` (f3g's world: +Y up, as three.js and glTF) or `-y`
     /// (COLMAP-style 3DGS scenes, which SuperSplat assumes: the avatar turned 180° about X).

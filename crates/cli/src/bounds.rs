@@ -23,6 +23,27 @@ pub fn side<const MIN: u32, const MAX: u32>(text: &str) -> Result<u32, String> {
     in_range(text, MIN as usize, MAX as usize).map(|v| v as u32)
 }
 
+/// An image size `WIDTHxHEIGHT`, 16–8192 pixels a side.
+pub fn image_size(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text
+        .split_once('x')
+        .ok_or_else(|| format!("`{text}`: expected WIDTHxHEIGHT"))?;
+    Ok((side::<16, 8192>(w)?, side::<16, 8192>(h)?))
+}
+
+/// A scale factor of the capture's resolution for evaluation, `0.01..=4` (above 4 the body
+/// images would pass the renderer's image-size limit for ordinary captures).
+pub fn eval_scale(text: &str) -> Result<f32, String> {
+    let v: f32 = text
+        .trim()
+        .parse()
+        .map_err(|_| format!("`{text}` is not a number"))?;
+    if !(0.01..=4.0).contains(&v) {
+        return Err(format!("{v} is not in 0.01..=4"));
+    }
+    Ok(v)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -37,5 +58,12 @@ mod tests {
         assert!(size::<16, 8192>("-1").unwrap_err().contains("whole number"));
         assert_eq!(side::<16, 8192>("8192"), Ok(8192));
         assert!(side::<16, 8192>("8193").is_err());
+        assert_eq!(image_size("48x64"), Ok((48, 64)));
+        assert!(image_size("48x100000").unwrap_err().contains("16..=8192"));
+        assert!(image_size("48").unwrap_err().contains("WIDTHxHEIGHT"));
+        assert_eq!(eval_scale("0.5"), Ok(0.5));
+        for bad in ["0", "inf", "NaN", "1e9"] {
+            assert!(eval_scale(bad).unwrap_err().contains("0.01..=4"), "{bad}");
+        }
     }
 }

@@ -145,7 +145,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         camera: "orbit".into(),
         out: animation.clone(),
         export_ply: false,
-        size: "288x384".into(),
+        size: (288, 384),
         turns: 1.0,
         elevation: 5.0,
         fps: 8.0,

@@ -162,42 +162,87 @@ fn every_command_has_help() {
 #[test]
 fn absurd_sizes_are_refused_when_the_command_line_is_parsed() {
     let dir = tempfile::tempdir().unwrap();
-    let cases: [&[&str]; 9] = [
-        &["synth", "--out", "cap", "--resolution", "100000"],
-        &["synth", "--out", "cap", "--cameras", "100000"],
-        &["demo", "--resolution", "100000"],
-        &[
-            "posmaps",
-            "--template",
-            "t.npz",
-            "--out",
-            "m",
+    let cases: [(&[&str], &str); 17] = [
+        (
+            &["synth", "--out", "cap", "--resolution", "100000"],
             "--resolution",
-            "1000000",
-        ],
-        &[
-            "template",
-            "reconstruct",
-            "--data",
-            "cap",
-            "--frame",
-            "0",
-            "--out",
-            "g.obj",
+        ),
+        (
+            &["synth", "--out", "cap", "--cameras", "100000"],
+            "--cameras",
+        ),
+        (
+            &["synth", "--out", "cap", "--frames", "100000000"],
+            "--frames",
+        ),
+        (&["demo", "--resolution", "100000"], "--resolution"),
+        (&["demo", "--frames", "100000000"], "--frames"),
+        (
+            &[
+                "posmaps",
+                "--template",
+                "t.npz",
+                "--out",
+                "m",
+                "--resolution",
+                "1000000",
+            ],
             "--resolution",
-            "100000",
-        ],
-        &["bench", "lbs", "--points", "1000000000000"],
-        &["bench", "splat", "--resolutions", "512,100000"],
-        &["eval", "run", "--face-size", "100000"],
-        &["data", "show", "cap", "--out", "s.png", "--thumb", "100000"],
+        ),
+        (
+            &[
+                "template",
+                "reconstruct",
+                "--data",
+                "cap",
+                "--frame",
+                "0",
+                "--out",
+                "g.obj",
+                "--resolution",
+                "100000",
+            ],
+            "--resolution",
+        ),
+        (&["bench", "lbs", "--points", "1000000000000"], "--points"),
+        (
+            &["bench", "splat", "--resolutions", "512,100000"],
+            "--resolutions",
+        ),
+        (
+            &["bench", "splat", "--gaussians", "100000000000"],
+            "--gaussians",
+        ),
+        (&["bench", "nets", "--image", "100000"], "--image"),
+        (&["eval", "run", "--face-size", "100000"], "--face-size"),
+        (&["eval", "run", "--lpips-size", "100000"], "--lpips-size"),
+        (&["eval", "run", "--scale", "1e9"], "--scale"),
+        (
+            &[
+                "export-ply",
+                "run",
+                "--out",
+                "a.ply",
+                "--directions",
+                "100000000",
+            ],
+            "--directions",
+        ),
+        (
+            &["animate", "run", "--out", "a", "--size", "100000x100000"],
+            "--size",
+        ),
+        (
+            &["data", "show", "cap", "--out", "s.png", "--thumb", "100000"],
+            "--thumb",
+        ),
     ];
-    for args in cases {
+    for (args, flag) in cases {
         let out = f3g().args(args).current_dir(dir.path()).output().unwrap();
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert!(!out.status.success(), "{args:?} should fail");
         assert!(
-            stderr.contains("is not in") && stderr.contains("invalid value"),
+            stderr.contains("invalid value") && stderr.contains(flag),
             "{args:?}: {stderr}"
         );
     }

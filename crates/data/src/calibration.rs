@@ -99,12 +99,19 @@ pub fn read_calibration(path: &Path) -> Result<Vec<CaptureCamera>, DataError> {
                 "expected [width, height]",
             ));
         };
+        let (Ok(width), Ok(height)) = (u32::try_from(width), u32::try_from(height)) else {
+            return Err(DataError::field(
+                path,
+                &field("imgSize"),
+                format!("{width}×{height} is too large (at most 16384 pixels a side)"),
+            ));
+        };
         let camera = Camera {
             k,
             r,
             t,
-            width: width as u32,
-            height: height as u32,
+            width,
+            height,
             near: f3g_splat::DEFAULT_NEAR,
             far: f3g_splat::DEFAULT_FAR,
         };

@@ -160,6 +160,12 @@ pub fn parse_indices(text: &str, limit: usize, what: &str) -> Result<Vec<usize>,
         } else {
             b.parse().map_err(|_| bad("bad end".into()))?
         };
+        // Checked before the range is collected: `0..99999999999` must not allocate.
+        if b > limit {
+            return Err(bad(format!(
+                "ends at {b}, out of range (there are {limit})"
+            )));
+        }
         (a..b).collect()
     } else {
         text.split(',')
@@ -240,5 +246,8 @@ mod tests {
                 .contains("out of range")
         );
         assert!(parse_indices("a,b", 10, "cameras").is_err());
+        // Refused before the range is collected (this one would need 800 GB).
+        let e = parse_indices("0..99999999999", 10, "frames").unwrap_err();
+        assert!(e.to_string().contains("99999999999"), "{e}");
     }
 }

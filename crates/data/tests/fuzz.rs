@@ -34,6 +34,11 @@ fn malformed_calibration_corpus() {
             CALIBRATION.replace("[1536, 2048]}", "[100000, 100000]}"),
             "too large",
         ),
+        // 2³² + 1536: once truncated to 1536 and silently accepted.
+        (
+            CALIBRATION.replace("[1536, 2048]}", "[4294968832, 2048]}"),
+            "imgSize",
+        ),
         (
             CALIBRATION.replace("\"T\": [0, -0.9, 3.2]", "\"T\": [0, 3.2]"),
             "T",

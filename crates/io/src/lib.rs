@@ -28,6 +28,10 @@ impl IoError {
     }
 }
 
+/// How the temporary files of [`write_atomic`] begin: a process killed mid-write leaves one
+/// behind (never a file under its final name), which a later run may sweep away.
+pub const TEMPORARY_PREFIX: &str = ".f3g-tmp-";
+
 /// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
 ///
 /// The file gets the mode a plain write would give it (`0o666` less the umask): the temporary
@@ -40,7 +44,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
     let mut builder = tempfile::Builder::new();
-    builder.prefix(".f3g-tmp-");
+    builder.prefix(TEMPORARY_PREFIX);
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
@@ -241,7 +245,7 @@ pub fn npy_to_f32<R: std::io::Read>(
     if npy.order() != npyz::Order::C {
         return Err("Fortran-ordered arrays are not supported; save with C order".into());
     }
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    let shape = checked_shape(npy.shape())?;
     let DType::Plain(ts) = npy.dtype() else {
         return Err(format!(
             "dtype {:?} is not a plain numeric type",
@@ -292,6 +296,21 @@ pub fn npy_to_f32<R: std::io::Read>(
     Ok((shape, values))
 }
 
+/// The shape of an array whose element count fits in memory's address space: npyz multiplies
+/// the header's dimensions unchecked, so a product that overflows would wrap to a small count
+/// and the values would not match the shape the caller trusts.
+fn checked_shape(shape: &[u64]) -> Result<Vec<usize>, String> {
+    let count = shape
+        .iter()
+        .try_fold(1usize, |n, &d| n.checked_mul(usize::try_from(d).ok()?));
+    match count {
+        Some(n) if n <= isize::MAX as usize / 8 => Ok(shape.iter().map(|&d| d as usize).collect()),
+        _ => Err(format!(
+            "shape {shape:?} holds more values than memory can address"
+        )),
+    }
+}
+
 /// Converts any integer or boolean `.npy` stream to `i64` values and its shape (C order).
 pub fn npy_to_i64<R: std::io::Read>(
     npy: npyz::NpyFile<R>,
@@ -300,7 +319,7 @@ pub fn npy_to_i64<R: std::io::Read>(
     if npy.order() != npyz::Order::C {
         return Err("Fortran-ordered arrays are not supported; save with C order".into());
     }
-    let shape: Vec<usize> = npy.shape().iter().map(|&s| s as usize).collect();
+    let shape = checked_shape(npy.shape())?;
     let DType::Plain(ts) = npy.dtype() else {
         return Err(format!(
             "dtype {:?} is not a plain numeric type",

@@ -24,6 +24,20 @@ fn a_header_that_claims_a_huge_shape_is_an_error() {
     std::fs::write(&path, huge.as_bytes()).unwrap();
     let e = read_npy_f32(&path).unwrap_err().to_string();
     assert!(e.contains("a.npy"), "{e}");
+    // A well-formed header whose shape's product overflows 64 bits (it would wrap round to
+    // a small element count).
+    let dict = "{'descr': '<f4', 'fortran_order': False, 'shape': (6148914691236517206, 3, 4), }";
+    let mut header = format!("{dict:<118}\n");
+    while (10 + header.len()) % 64 != 0 {
+        header.insert(header.len() - 1, ' ');
+    }
+    let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+    bytes.extend((header.len() as u16).to_le_bytes());
+    bytes.extend(header.as_bytes());
+    bytes.extend([0u8; 96]);
+    std::fs::write(&path, &bytes).unwrap();
+    let e = read_npy_f32(&path).unwrap_err().to_string();
+    assert!(e.contains("a.npy") && e.contains("more values"), "{e}");
 }
 
 proptest! {

@@ -25,14 +25,40 @@ use crate::{BlendShapes, RigError, SkinWeights};
 /// Momentum's length unit (centimetres) in metres.
 pub const MOMENTUM_UNIT: f32 = 0.01;
 
+/// Parses glTF/GLB bytes. The `gltf` crate's validation indexes a primitive's POSITION
+/// accessor before checking that it exists (gltf-json 1.4.1, `primitive_validate_hook`), so a
+/// damaged file can panic inside it; that panic becomes an error naming the file (the panic
+/// message is still printed).
+fn parse(bytes: &[u8], path: &Path) -> Result<gltf::Gltf, RigError> {
+    std::panic::catch_unwind(|| gltf::Gltf::from_slice(bytes))
+        .map_err(|_| {
+            RigError::file(
+                path,
+                "not a valid glTF file: the glTF reader failed on it (an index out of range)",
+            )
+        })?
+        .map_err(|e| RigError::file(path, format!("not a valid glTF file: {e}")))
+}
+
+fn buffers(gltf: &gltf::Gltf, path: &Path) -> Result<Vec<gltf::buffer::Data>, RigError> {
+    let base = path.parent().unwrap_or(Path::new("."));
+    gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
+        .map_err(|e| RigError::file(path, format!("cannot load buffers: {e}")))
+}
+
+/// Reads a `.gltf`/`.glb` file and its buffers (images are not decoded).
+pub fn import(path: &Path) -> Result<(gltf::Document, Vec<gltf::buffer::Data>), RigError> {
+    let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
+    let gltf = parse(&bytes, path)?;
+    let buffers = buffers(&gltf, path)?;
+    Ok((gltf.document, buffers))
+}
+
 /// Loads a rigged character; `model` is an optional Momentum `.model` file for its parameters.
 pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
     let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
-    let gltf = gltf::Gltf::from_slice(&bytes)
-        .map_err(|e| RigError::file(path, format!("not a valid glTF file: {e}")))?;
-    let base = path.parent().unwrap_or(Path::new("."));
-    let buffers = gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
-        .map_err(|e| RigError::file(path, format!("cannot load buffers: {e}")))?;
+    let gltf = parse(&bytes, path)?;
+    let buffers = buffers(&gltf, path)?;
     let doc = &gltf.document;
     let node = doc
         .nodes()

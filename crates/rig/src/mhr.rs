@@ -135,6 +135,12 @@ pub fn load(dir: &Path, lod: u32) -> Result<Rig, RigError> {
         .find(|m| !m.skin_deformers.is_empty())
         .ok_or_else(|| RigError::file(&fbx_path, "no skinned mesh"))?;
     let vertices: Vec<Vec3> = mesh.vertices.iter().map(|v| vec3(*v, unit)).collect();
+    if let Some(i) = vertices.iter().position(|v| !v.is_finite()) {
+        return Err(RigError::file(
+            &fbx_path,
+            format!("vertex {i} is not finite in metres (f32)"),
+        ));
+    }
     let mut triangles = Vec::with_capacity(mesh.num_triangles);
     let mut scratch = vec![0u32; mesh.max_face_triangles * 3];
     for face in mesh.faces.iter() {

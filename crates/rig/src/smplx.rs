@@ -371,12 +371,13 @@ pub fn read_params(path: &Path) -> Result<SmplParams, RigError> {
     let (shape, betas) = npz.f32("betas").map_err(io)?;
     let betas = match shape.as_slice() {
         [n] => betas[..*n].to_vec(),
-        [_, n] => betas[..*n].to_vec(),
+        // Row 0 (fitters write one row per frame or a single row).
+        [rows, n] if *rows > 0 => betas[..*n].to_vec(),
         _ => {
             return Err(RigError::field(
                 path,
                 "betas",
-                format!("has shape {shape:?}, expected (B,) or (1, B)"),
+                format!("has shape {shape:?}, expected (B,) or (F, B) with F ≥ 1"),
             ));
         }
     };

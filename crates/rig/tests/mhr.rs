@@ -2,7 +2,8 @@
 //! formats (ASCII FBX in centimetres, `.model`, corrective `.npz` files), loaded, and posed; the
 //! result must equal an independent evaluation of the authored data (FK with FBX Euler XYZ,
 //! LBS, blend shapes, the corrective MLP). The official assets cannot be downloaded here; this
-//! checks every piece of the loader against what the formats specify.
+//! checks every piece of the loader against what the formats specify. The same folder seeds
+//! the loader's fuzz tests (mutated FBX, `.model` and corrective files).
 // The reference evaluation indexes matrices the way the formulas are written.
 #![allow(clippy::needless_range_loop)]
 
@@ -11,8 +12,15 @@ use std::path::Path;
 
 use f3g_io::NpyValues::{F32, I64};
 use f3g_rig::mhr;
+use f3g_testkit::{
+    AllocationGuard, config, mutated_arrays, mutated_text, read_arrays, write_arrays,
+};
+use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+#[global_allocator]
+static GUARD: AllocationGuard = AllocationGuard::new(256 << 20);
 
 type M4 = [[f64; 4]; 4];
 
@@ -514,4 +522,71 @@ fn missing_and_bad_files_are_named() {
         e.contains("lod1.fbx") && e.contains("cannot read FBX"),
         "{e}"
     );
+}
+
+/// The authored asset folder's files, read back to seed the fuzz tests.
+struct Seed {
+    fbx: String,
+    activation: Vec<f3g_testkit::Array>,
+    blendshapes: Vec<f3g_testkit::Array>,
+}
+
+static SEED: std::sync::LazyLock<Seed> = std::sync::LazyLock::new(|| {
+    let dir = tempfile::tempdir().unwrap();
+    write_assets(dir.path(), &author(5));
+    Seed {
+        fbx: std::fs::read_to_string(dir.path().join("lod1.fbx")).unwrap(),
+        activation: read_arrays(&dir.path().join("corrective_activation.npz")),
+        blendshapes: read_arrays(&dir.path().join("corrective_blendshapes_lod1.npz")),
+    }
+});
+
+/// Loads the folder after `edit` replaced one file: a rig that loads must be consistent and
+/// pose at rest; an error must name a file of the folder.
+fn load_edited(edit: impl FnOnce(&Path)) -> Result<(), TestCaseError> {
+    let dir = tempfile::tempdir().unwrap();
+    write_assets(dir.path(), &author(5));
+    edit(dir.path());
+    match mhr::load(dir.path(), 1) {
+        Ok(rig) => {
+            prop_assert!(rig.validate().is_ok());
+            let _ = rig.pose(&rig.zero_params());
+        }
+        Err(e) => {
+            let e = e.to_string();
+            prop_assert!(
+                ["lod1.fbx", ".model", "corrective_"]
+                    .iter()
+                    .any(|f| e.contains(f)),
+                "{}",
+                e
+            );
+        }
+    }
+    prop_assert!(GUARD.largest() <= 256 << 20);
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(config(300))]
+
+    #[test]
+    fn mutated_fbx_loads_or_errors(text in mutated_text(&SEED.fbx)) {
+        load_edited(|dir| std::fs::write(dir.join("lod1.fbx"), &text).unwrap())?;
+    }
+
+    #[test]
+    fn mutated_model_files_load_or_error(text in mutated_text(MODEL)) {
+        load_edited(|dir| std::fs::write(dir.join(mhr::MODEL_FILE), &text).unwrap())?;
+    }
+
+    #[test]
+    fn mutated_activations_load_or_error(arrays in mutated_arrays(SEED.activation.clone())) {
+        load_edited(|dir| write_arrays(&dir.join("corrective_activation.npz"), &arrays))?;
+    }
+
+    #[test]
+    fn mutated_corrective_shapes_load_or_error(arrays in mutated_arrays(SEED.blendshapes.clone())) {
+        load_edited(|dir| write_arrays(&dir.join("corrective_blendshapes_lod1.npz"), &arrays))?;
+    }
 }

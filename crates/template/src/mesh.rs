@@ -102,8 +102,7 @@ fn read_ply_mesh(path: &Path) -> Result<Mesh, TemplateError> {
 }
 
 fn read_gltf_mesh(path: &Path) -> Result<Mesh, TemplateError> {
-    let (doc, buffers, _) = gltf::import(path)
-        .map_err(|e| TemplateError::file(path, format!("cannot read glTF: {e}")))?;
+    let (doc, buffers) = f3g_rig::gltf::import(path)?;
     let mut mesh = Mesh::default();
     fn visit(
         node: gltf::Node,

@@ -308,7 +308,9 @@ impl Template {
             .map(|(j, w)| {
                 j.iter()
                     .zip(w)
-                    .map(|(&j, &w)| (j.max(0) as usize, w))
+                    // A negative joint becomes one past every joint: an error unless its
+                    // weight is zero (then it is padding).
+                    .map(|(&j, &w)| (usize::try_from(j).unwrap_or(usize::MAX), w))
                     .collect()
             })
             .collect();
@@ -316,6 +318,17 @@ impl Template {
             .map_err(|e| TemplateError::file(path, format!("`skin_weights`: {e}")))?;
         let (ls, labels) = npz.i64("vertex_label")?;
         shape_check("vertex_label", &ls, &[v])?;
+        if let Some(l) = labels
+            .iter()
+            .find(|&&l| l != i64::from(LABEL_BODY) && l != i64::from(LABEL_GARMENT))
+        {
+            return Err(TemplateError::file(
+                path,
+                format!(
+                    "`vertex_label` holds {l}; expected {LABEL_BODY} (body) or {LABEL_GARMENT} (garment)"
+                ),
+            ));
+        }
         // Templates written before blend-shape support have no `body_vertex`: nothing moves.
         let body_vertex = if npz.contains("body_vertex") {
             let (bs, b) = npz.i64("body_vertex")?;
@@ -337,6 +350,12 @@ impl Template {
         let mut block = |name: &str, len: usize| -> Result<Vec<f32>, TemplateError> {
             let (s, values) = npz.f32(name)?;
             shape_check(name, &s, &[len])?;
+            if values.iter().any(|x| !x.is_finite()) {
+                return Err(TemplateError::file(
+                    path,
+                    format!("`{name}` holds non-finite values"),
+                ));
+            }
             Ok(values)
         };
         let canonical = RigParams {
