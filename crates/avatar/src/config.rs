@@ -213,11 +213,12 @@ impl TrainConfig {
             adversarial: true,
             discriminator: DiscriminatorConfig::cpu(128),
             discriminator_weights: None,
+            // 730 steps: about 8.5 minutes on 2 cores, so that `f3g demo` stays within 10.
             steps: Stages {
                 pretrain: 100,
-                body: 300,
+                body: 250,
                 face_pretrain: 30,
-                joint: 400,
+                joint: 250,
                 face_finetune: 100,
             },
             face_init_frames: 8,
@@ -579,7 +580,7 @@ mod tests {
         let path = dir.path().join("c.json");
         std::fs::write(&path, r#"{"steps": {"joint": 7}, "lr": 0.002}"#).unwrap();
         let c = TrainConfig::from_file(&path).unwrap();
-        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 300));
+        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 250));
         std::fs::write(&path, r#"{"map_resolution": 1073741824}"#).unwrap();
         let e = TrainConfig::from_file(&path).unwrap_err().to_string();
         assert!(e.contains("c.json") && e.contains("map_resolution"), "{e}");
