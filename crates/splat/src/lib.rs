@@ -18,6 +18,8 @@
 mod camera;
 mod cloud;
 pub mod cpu;
+#[cfg(any(feature = "gpu", feature = "cuda"))]
+pub mod cube;
 mod error;
 pub mod op;
 pub mod ply;

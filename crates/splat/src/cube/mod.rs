@@ -1,0 +1,15 @@
+//! The splat op's GPU kernels (CubeCL; features `gpu` for wgpu and `cuda`): one `#[cube]`
+//! source for every runtime, checked against the CPU path in `tests/gpu.rs` on a wgpu device
+//! (Mesa lavapipe in CI).
+//!
+//! Built so far: [`project`] (projection, culling, SH colour, radii, tiles touched) and
+//! [`exclusive_scan`] (the tile counts become list offsets). Still to come before `impl
+//! SplatBackend for Cube` (issue "GPU splatting"): the tile keys and their sort, tile ranges,
+//! rasterisation forward and backward, and the projection backward — `crates/splat/GSPLAT.md` records the formulas. Conventions are the CPU path's
+//! (`crate::cpu`): tensors are f32 except counts and radii (i32, the Int dtype of Cube devices).
+
+pub mod project;
+pub mod scan;
+
+pub use project::{Projection, project};
+pub use scan::exclusive_scan;

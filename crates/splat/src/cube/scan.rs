@@ -1,0 +1,111 @@
+//! Exclusive prefix sum of i32 counts on the GPU (the per-Gaussian tile counts become each
+//! Gaussian's first slot in the tile-key list). Three passes that need neither plane
+//! operations (lavapipe has none) nor cross-cube memory ordering (WGSL gives none): each cube
+//! scans 256 values in shared memory and writes its total; the totals are scanned the same
+//! way (recursively); each value then gets its cube's offset.
+
+use burn::backend::Cube;
+use burn::backend::tensor::IntTensor;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::cubecl::{CubeCount, CubeDim};
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_dtype;
+
+/// Values per cube (and units per cube).
+const BLOCK: usize = 256;
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// Exclusive scan of each block of `block` values; the block's total goes to `totals`.
+    #[cube(launch)]
+    pub fn scan_blocks(
+        values: &Tensor<i32>,
+        out: &mut Tensor<i32>,
+        totals: &mut Tensor<i32>,
+        #[comptime] block: usize,
+    ) {
+        let t = UNIT_POS as usize;
+        let g = CUBE_POS * block + t;
+        let n = values.len();
+        let mut shared = Shared::<[i32]>::new_slice(block);
+        let mut x = 0i32;
+        if g < n {
+            x = values[g];
+        }
+        shared[t] = x;
+        sync_cube();
+        // Hillis–Steele: after the step with offset d, shared[t] sums the 2d values up to t.
+        let mut offset = 1usize;
+        while offset < block {
+            let mut left = 0i32;
+            if t >= offset {
+                left = shared[t - offset];
+            }
+            sync_cube();
+            shared[t] += left;
+            sync_cube();
+            offset *= 2;
+        }
+        if g < n {
+            out[g] = shared[t] - x;
+        }
+        if t == block - 1 {
+            totals[CUBE_POS] = shared[t];
+        }
+    }
+
+    /// Adds to every value the scanned total of the blocks before its own.
+    #[cube(launch)]
+    pub fn add_block_offsets(
+        out: &mut Tensor<i32>,
+        offsets: &Tensor<i32>,
+        #[comptime] block: usize,
+    ) {
+        let g = ABSOLUTE_POS;
+        if g < out.len() {
+            out[g] += offsets[g / block];
+        }
+    }
+}
+
+/// A 2-D grid of `cubes` cubes (wgpu allows at most 65 535 per dimension).
+pub(crate) fn grid(cubes: usize) -> CubeCount {
+    let cubes = cubes.max(1) as u32;
+    CubeCount::Static(cubes.min(65_535), cubes.div_ceil(65_535), 1)
+}
+
+/// Exclusive prefix sum of the 1-D i32 tensor `values`.
+pub fn exclusive_scan(values: IntTensor<Cube>) -> IntTensor<Cube> {
+    let values = into_contiguous(values);
+    let n = values.meta.shape()[0];
+    let (client, device) = (values.client.clone(), values.device.clone());
+    let out = empty_device_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
+    if n == 0 {
+        return out;
+    }
+    let blocks = n.div_ceil(BLOCK);
+    let totals = empty_device_dtype(client.clone(), device, Shape::new([blocks]), DType::I32);
+    kernels::scan_blocks::launch(
+        &client,
+        grid(blocks),
+        CubeDim::new_1d(BLOCK as u32),
+        values.into_tensor_arg(),
+        out.clone().into_tensor_arg(),
+        totals.clone().into_tensor_arg(),
+        BLOCK,
+    );
+    if blocks > 1 {
+        let offsets = exclusive_scan(totals);
+        kernels::add_block_offsets::launch(
+            &client,
+            grid(blocks),
+            CubeDim::new_1d(BLOCK as u32),
+            out.clone().into_tensor_arg(),
+            offsets.into_tensor_arg(),
+            BLOCK,
+        );
+    }
+    out
+}
