@@ -5,7 +5,7 @@
 //! plane, across the image border, off-screen, nearly transparent) gets the CPU's screen
 //! values to 1e-5 relative, the same radii and tile counts (a radius may differ by one where
 //! `k√Σ₂ᴅ` lies within 1e-4 of a whole number: f32 rounding in a different order), and the
-//! same culling.
+//! same culling; each Gaussian's run of the (unsorted) intersection list holds its tiles.
 #![cfg(feature = "gpu")]
 
 mod common;
@@ -93,7 +93,19 @@ fn projection_matches_the_cpu() {
             background: upload(&[0.0; 3], &[3], &device),
         };
         let got = cube::project(&inputs, &s.camera);
-        let (screen, radii, tiles) = (floats(got.screen), ints(got.radii), ints(got.tiles));
+        let (screen, radii, tiles) = (
+            floats(got.screen.clone()),
+            ints(got.radii.clone()),
+            ints(got.tiles.clone()),
+        );
+        let inter = cube::intersect(&got, s.camera.width);
+        let (tile_of, gaussian_of, offsets) = (
+            ints(inter.tile_of),
+            ints(inter.gaussian_of),
+            ints(inter.offsets),
+        );
+        assert_eq!(inter.count, tiles.iter().sum::<i32>() as usize);
+        let tiles_x = (s.camera.width as usize).div_ceil(TILE_SIZE);
         let mut visible = 0;
         for (i, e) in expected.iter().enumerate() {
             let r = [radii[2 * i] as u32, radii[2 * i + 1] as u32];
@@ -129,6 +141,16 @@ fn projection_matches_the_cpu() {
                 let t = TILE_SIZE;
                 let want_tiles = ((x1 - 1) / t - x0 / t + 1) * ((y1 - 1) / t - y0 / t + 1);
                 assert_eq!(tiles[i] as usize, want_tiles, "seed {seed}, Gaussian {i}");
+                // Its run of the intersection list: its tiles row by row, and its own id.
+                let want: Vec<i32> = (y0 / t..=(y1 - 1) / t)
+                    .flat_map(|ty| {
+                        (x0 / t..=(x1 - 1) / t).map(move |tx| (ty * tiles_x + tx) as i32)
+                    })
+                    .collect();
+                let start = offsets[i] as usize;
+                let run = start..start + want.len();
+                assert_eq!(tile_of[run.clone()], want[..], "seed {seed}, Gaussian {i}");
+                assert!(gaussian_of[run].iter().all(|&g| g == i as i32));
             }
         }
         assert!(
@@ -163,7 +185,9 @@ fn exclusive_scan_matches_a_running_sum() {
     for n in [1usize, 5, 256, 257, 1000, 70_000] {
         let values: Vec<i32> = (0..n).map(|i| ((i * 7919) % 13) as i32).collect();
         let t = Cube::int_from_data(TensorData::new(values.clone(), [n]), &device);
-        let got = ints(cube::exclusive_scan(t));
+        let (scanned, total) = cube::exclusive_scan(t);
+        let got = ints(scanned);
+        assert_eq!(ints(total), [values.iter().sum::<i32>()], "n = {n}");
         let mut sum = 0;
         let want: Vec<i32> = values
             .iter()
@@ -174,5 +198,56 @@ fn exclusive_scan_matches_a_running_sum() {
             })
             .collect();
         assert_eq!(got, want, "n = {n}");
+    }
+}
+
+#[test]
+fn radix_sort_is_stable_and_sorts_by_the_low_bits() {
+    let device = device();
+    for (n, bits) in [
+        (1usize, 4u32),
+        (37, 8),
+        (1024, 12),
+        (1025, 32),
+        (5000, 20),
+        (70_000, 32),
+    ] {
+        // Keys with many repeats (so stability matters) and bits above `bits` that the sort
+        // must ignore; values are the original positions. (Below 2³¹: the upload goes
+        // through Cube's i32.)
+        let keys: Vec<u32> = (0..n as u64)
+            .map(|i| ((i * 2_654_435_761) % 4_294_967_291) as u32 % 97 * 22_111_479)
+            .collect();
+        let mask = if bits == 32 {
+            u32::MAX
+        } else {
+            (1 << bits) - 1
+        };
+        let values: Vec<i32> = (0..n as i32).collect();
+        let k = Cube::int_from_data(TensorData::new(keys.clone(), [n]), &device);
+        let k = Cube::int_cast(k, burn::tensor::IntDType::U32);
+        let v = Cube::int_from_data(TensorData::new(values, [n]), &device);
+        let (sk, sv) = cube::sort_pairs(k, v, bits);
+        let got_values = ints(sv);
+        let got_keys: Vec<u32> = {
+            let data = burn::tensor::read_sync(Cube::int_into_data(sk)).unwrap();
+            data.convert::<u32>().try_into_vec::<u32>().unwrap()
+        };
+        let mut want: Vec<(u32, i32)> = keys
+            .iter()
+            .enumerate()
+            .map(|(i, &k)| (k, i as i32))
+            .collect();
+        want.sort_by_key(|&(k, _)| k & mask); // std's sort is stable
+        assert_eq!(
+            got_values,
+            want.iter().map(|p| p.1).collect::<Vec<_>>(),
+            "n = {n}, bits = {bits}"
+        );
+        assert_eq!(
+            got_keys,
+            want.iter().map(|p| p.0).collect::<Vec<_>>(),
+            "n = {n}, bits = {bits}"
+        );
     }
 }

@@ -1,12 +1,13 @@
 //! Projection on the GPU: one unit per Gaussian, the same formulas and culling as
 //! [`crate::cpu::project`] (EWA splatting, the 1.3× field-of-view clamp of the Jacobian, the 0.3
 //! low-pass, SH colour clamped at 0, gsplat's opacity-aware per-axis radii, culling of
-//! Gaussians whose box holds no pixel centre), plus the number of 16×16 tiles each footprint
-//! touches — what the tile binning that follows needs.
+//! Gaussians whose box holds no pixel centre), plus the 16×16 tiles each footprint touches —
+//! what the tile binning that follows needs.
 //!
 //! Outputs, one row per Gaussian (zeros when culled): `screen [N, 10]` in the layout of
 //! [`crate::op::SCREEN_FLOATS`] (mean x, y; conic a, b, c; colour r, g, b; opacity; depth),
-//! `radii [N, 2]` (i32) and `tiles [N]` (i32). The arithmetic is f32 in a different order
+//! `radii [N, 2]`, `tiles [N]` (how many tiles) and `rects [N, 4]` (which: the first and last
+//! tile column and row, inclusive), all i32. The arithmetic is f32 in a different order
 //! than the CPU's (`W M (W M)ᵀ` for `W Σ Wᵀ`), so values agree to rounding, not bit for bit.
 
 use burn::backend::Cube;
@@ -47,6 +48,7 @@ mod kernels {
         screen: &mut Tensor<f32>,
         radii: &mut Tensor<i32>,
         tiles: &mut Tensor<i32>,
+        rects: &mut Tensor<i32>,
         width: u32,
         height: u32,
         alpha_min: f32,
@@ -66,6 +68,9 @@ mod kernels {
         radii[2 * i] = 0i32;
         radii[2 * i + 1] = 0i32;
         tiles[i] = 0i32;
+        for k in 0..4usize {
+            rects[4 * i + k] = 0i32;
+        }
 
         let mx = means[3 * i];
         let my = means[3 * i + 1];
@@ -202,9 +207,15 @@ mod kernels {
         radii[2 * i] = i32::cast_from(rx);
         radii[2 * i + 1] = i32::cast_from(ry);
         let ts = f32::cast_from(tile_size);
-        let tiles_x = f32::floor(x1 / ts) - f32::floor(x0 / ts) + 1.0f32;
-        let tiles_y = f32::floor(y1 / ts) - f32::floor(y0 / ts) + 1.0f32;
-        tiles[i] = i32::cast_from(tiles_x * tiles_y);
+        let tx0 = f32::floor(x0 / ts);
+        let tx1 = f32::floor(x1 / ts);
+        let ty0 = f32::floor(y0 / ts);
+        let ty1 = f32::floor(y1 / ts);
+        tiles[i] = i32::cast_from((tx1 - tx0 + 1.0f32) * (ty1 - ty0 + 1.0f32));
+        rects[4 * i] = i32::cast_from(tx0);
+        rects[4 * i + 1] = i32::cast_from(ty0);
+        rects[4 * i + 2] = i32::cast_from(tx1);
+        rects[4 * i + 3] = i32::cast_from(ty1);
     }
 }
 
@@ -254,6 +265,7 @@ pub struct Projection {
     pub screen: FloatTensor<Cube>,
     pub radii: IntTensor<Cube>,
     pub tiles: IntTensor<Cube>,
+    pub rects: IntTensor<Cube>,
 }
 
 /// Projects `inputs` (f32 tensors on a Cube device) seen by `camera`. `sh` must be `[N, K, 3]`
@@ -282,6 +294,12 @@ pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
         DType::I32,
     );
     let tiles = empty_device_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
+    let rects = empty_device_dtype(
+        client.clone(),
+        device.clone(),
+        Shape::new([n, 4]),
+        DType::I32,
+    );
     if n > 0 {
         kernels::project::launch(
             &client,
@@ -296,6 +314,7 @@ pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
             screen.clone().into_tensor_arg(),
             radii.clone().into_tensor_arg(),
             tiles.clone().into_tensor_arg(),
+            rects.clone().into_tensor_arg(),
             camera.width,
             camera.height,
             ALPHA_MIN as f32,
@@ -309,5 +328,6 @@ pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
         screen,
         radii,
         tiles,
+        rects,
     }
 }

@@ -76,14 +76,15 @@ pub(crate) fn grid(cubes: usize) -> CubeCount {
     CubeCount::Static(cubes.min(65_535), cubes.div_ceil(65_535), 1)
 }
 
-/// Exclusive prefix sum of the 1-D i32 tensor `values`.
-pub fn exclusive_scan(values: IntTensor<Cube>) -> IntTensor<Cube> {
+/// Exclusive prefix sum of the 1-D i32 tensor `values`, and the sum of all of them (`[1]`; an
+/// empty input sums to an empty tensor).
+pub fn exclusive_scan(values: IntTensor<Cube>) -> (IntTensor<Cube>, IntTensor<Cube>) {
     let values = into_contiguous(values);
     let n = values.meta.shape()[0];
     let (client, device) = (values.client.clone(), values.device.clone());
     let out = empty_device_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
     if n == 0 {
-        return out;
+        return (out.clone(), out);
     }
     let blocks = n.div_ceil(BLOCK);
     let totals = empty_device_dtype(client.clone(), device, Shape::new([blocks]), DType::I32);
@@ -96,16 +97,17 @@ pub fn exclusive_scan(values: IntTensor<Cube>) -> IntTensor<Cube> {
         totals.clone().into_tensor_arg(),
         BLOCK,
     );
-    if blocks > 1 {
-        let offsets = exclusive_scan(totals);
-        kernels::add_block_offsets::launch(
-            &client,
-            grid(blocks),
-            CubeDim::new_1d(BLOCK as u32),
-            out.clone().into_tensor_arg(),
-            offsets.into_tensor_arg(),
-            BLOCK,
-        );
+    if blocks == 1 {
+        return (out, totals);
     }
-    out
+    let (offsets, total) = exclusive_scan(totals);
+    kernels::add_block_offsets::launch(
+        &client,
+        grid(blocks),
+        CubeDim::new_1d(BLOCK as u32),
+        out.clone().into_tensor_arg(),
+        offsets.into_tensor_arg(),
+        BLOCK,
+    );
+    (out, total)
 }
