@@ -31,8 +31,8 @@ pub fn image_size(text: &str) -> Result<(u32, u32), String> {
     Ok((side::<16, 8192>(w)?, side::<16, 8192>(h)?))
 }
 
-/// A scale factor of the capture's resolution for evaluation, `0.01..=4` (above 4 the body
-/// images would pass the renderer's image-size limit for ordinary captures).
+/// A scale factor of the capture's resolution for evaluation, `0.01..=4` (beyond 4 the body
+/// images of ordinary captures would exceed the renderer's image-size limit).
 pub fn eval_scale(text: &str) -> Result<f32, String> {
     let v: f32 = text
         .trim()
