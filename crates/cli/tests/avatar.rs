@@ -1,8 +1,12 @@
 //! `f3g train`, `train --resume`, `eval`, `animate` and `export-ply` end to end on a tiny
 //! synthetic capture with a tiny configuration file.
 
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Output};
+
+use common::ok;
 
 fn f3g(dir: &Path, args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_f3g"))
@@ -11,28 +15,6 @@ fn f3g(dir: &Path, args: &[&str]) -> Output {
         .output()
         .unwrap()
 }
-
-fn ok(out: &Output) {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// The cpu preset shrunk so that a step takes a fraction of a second.
-const TINY: &str = r#"{
-  "preset": "cpu",
-  "map_resolution": 32,
-  "body_net": {"input_size": 16, "output_size": 32, "max_channels": 16, "channel_base": 256,
-               "style_dim": 16, "middle_size": 4},
-  "face_net": {"input_size": 16, "output_size": 16, "max_channels": 16, "channel_base": 128,
-               "style_dim": 16, "middle_size": 4},
-  "face_crop_size": 32, "lpips_size": 32, "face_init_frames": 2,
-  "discriminator": {"resolution": 32, "max_channels": 16, "channel_base": 128},
-  "steps": {"pretrain": 2, "body": 2, "face_pretrain": 1, "joint": 2, "face_finetune": 1}
-}"#;
 
 #[test]
 fn train_resume_evaluate_animate_and_export() {
@@ -50,7 +32,11 @@ fn train_resume_evaluate_animate_and_export() {
             "128",
         ],
     ));
-    std::fs::write(d.join("tiny.json"), TINY).unwrap();
+    std::fs::write(
+        d.join("tiny.json"),
+        common::tiny_config([2, 2, 1, 2, 1], ""),
+    )
+    .unwrap();
     let out = f3g(
         d,
         &[

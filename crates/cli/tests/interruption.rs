@@ -10,37 +10,16 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use common::ok;
 use f3g_avatar::trained::TrainedAvatar;
+
+mod common;
 
 fn f3g(dir: &Path) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_f3g"));
     c.current_dir(dir);
     c
 }
-
-fn ok(out: &Output) {
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
-/// The cpu preset shrunk to a fraction of a second per step, with a checkpoint after every
-/// step so that kills land in checkpoint writes too.
-const TINY: &str = r#"{
-  "preset": "cpu",
-  "map_resolution": 32,
-  "body_net": {"input_size": 16, "output_size": 32, "max_channels": 16, "channel_base": 256,
-               "style_dim": 16, "middle_size": 4},
-  "face_net": {"input_size": 16, "output_size": 16, "max_channels": 16, "channel_base": 128,
-               "style_dim": 16, "middle_size": 4},
-  "face_crop_size": 32, "lpips_size": 32, "face_init_frames": 2,
-  "discriminator": {"resolution": 32, "max_channels": 16, "channel_base": 128},
-  "steps": {"pretrain": 2, "body": 2, "face_pretrain": 1, "joint": 3, "face_finetune": 2},
-  "checkpoint_every": 1
-}"#;
 
 /// A capture and the configuration in a fresh folder.
 fn setup() -> tempfile::TempDir {
@@ -58,7 +37,9 @@ fn setup() -> tempfile::TempDir {
         ])
         .output()
         .unwrap());
-    std::fs::write(d.join("tiny.json"), TINY).unwrap();
+    // A checkpoint after every step, so that kills land in checkpoint writes too.
+    let config = common::tiny_config([2, 2, 1, 3, 2], r#", "checkpoint_every": 1"#);
+    std::fs::write(d.join("tiny.json"), config).unwrap();
     dir
 }
 
