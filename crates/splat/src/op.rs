@@ -2,10 +2,11 @@
 //!
 //! [`SplatBackend`] is a backend extension: [`SplatBackend::splat_forward`] renders and saves
 //! what the backward needs ([`RasterState`]); [`SplatBackend::splat_backward`] turns output
-//! gradients into input gradients. `Flex` implements both with the CPU reference in
-//! [`crate::cpu`]; `Autodiff<B>` records one graph node whose backward calls
-//! `B::splat_backward`. A GPU backend slots in by implementing the same two methods with
-//! kernels: the saved state is plain tensors, so nothing else changes.
+//! gradients into input gradients. `Flex` implements both with the CPU path in
+//! [`crate::cpu`], `Cube` (features `gpu` and `cuda`: wgpu and CUDA devices) with the kernels
+//! of `crate::cube`; `Autodiff<B>` records one graph node whose backward calls
+//! `B::splat_backward`. The saved state is plain tensors (on the device that rendered), so
+//! callers never know which backend ran.
 //!
 //! The forward returns one packed `[H, W, 5]` image (RGB, alpha, depth) so that a single
 //! autodiff node carries all differentiable outputs; [`render`] slices it apart.
@@ -80,7 +81,7 @@ pub struct SplatForward<B: Backend> {
 }
 
 /// Gaussian rasterisation as a backend operation.
-#[backend_extension(Autodiff, Flex)]
+#[backend_extension(Autodiff, Flex, Cube: cfg(any(feature = "gpu", feature = "cuda")))]
 pub trait SplatBackend: Backend {
     /// Renders `inputs` seen by `camera`.
     fn splat_forward(

@@ -60,8 +60,9 @@ fn scene(seed: u64, n: usize, degree: usize) -> common::Scene {
 }
 
 #[test]
-fn projection_matches_the_cpu() {
+fn projection_and_bins_match_the_cpu() {
     let device = device();
+    let mut binned = 0;
     for (seed, degree) in [(1, 0), (2, 1), (3, 2), (4, 3), (5, 3)] {
         let s = scene(seed, 300, degree);
         let f = |v: &[f64]| common::Scene::to_f32(v);
@@ -98,14 +99,11 @@ fn projection_matches_the_cpu() {
             ints(got.radii.clone()),
             ints(got.tiles.clone()),
         );
-        let inter = cube::intersect(&got, s.camera.width);
-        let (tile_of, gaussian_of, offsets) = (
-            ints(inter.tile_of),
-            ints(inter.gaussian_of),
-            ints(inter.offsets),
-        );
-        assert_eq!(inter.count, tiles.iter().sum::<i32>() as usize);
-        let tiles_x = (s.camera.width as usize).div_ceil(TILE_SIZE);
+        let depth = cube::depth_order(&got);
+        let count = depth.count();
+        assert_eq!(count, tiles.iter().sum::<i32>() as usize);
+        let bins = cube::bin_tiles(&got, &depth, count, s.camera.width, s.camera.height);
+        let (offsets, ids) = (ints(bins.offsets), ints(bins.ids));
         let mut visible = 0;
         for (i, e) in expected.iter().enumerate() {
             let r = [radii[2 * i] as u32, radii[2 * i + 1] as u32];
@@ -141,17 +139,15 @@ fn projection_matches_the_cpu() {
                 let t = TILE_SIZE;
                 let want_tiles = ((x1 - 1) / t - x0 / t + 1) * ((y1 - 1) / t - y0 / t + 1);
                 assert_eq!(tiles[i] as usize, want_tiles, "seed {seed}, Gaussian {i}");
-                // Its run of the intersection list: its tiles row by row, and its own id.
-                let want: Vec<i32> = (y0 / t..=(y1 - 1) / t)
-                    .flat_map(|ty| {
-                        (x0 / t..=(x1 - 1) / t).map(move |tx| (ty * tiles_x + tx) as i32)
-                    })
-                    .collect();
-                let start = offsets[i] as usize;
-                let run = start..start + want.len();
-                assert_eq!(tile_of[run.clone()], want[..], "seed {seed}, Gaussian {i}");
-                assert!(gaussian_of[run].iter().all(|&g| g == i as i32));
             }
+        }
+        // Where the footprints agree, so do the bins: tile by tile, front to back.
+        if (0..n).all(|i| [radii[2 * i] as u32, radii[2 * i + 1] as u32] == expected[i].radii) {
+            let want = cpu::bin_tiles(&expected, s.camera.width as usize, s.camera.height as usize);
+            let as_i32 = |v: &[u32]| v.iter().map(|&x| x as i32).collect::<Vec<_>>();
+            assert_eq!(offsets, as_i32(&want.offsets), "seed {seed}: tile offsets");
+            assert_eq!(ids, as_i32(&want.ids), "seed {seed}: tile lists");
+            binned += 1;
         }
         assert!(
             visible > n / 3,
@@ -159,6 +155,7 @@ fn projection_matches_the_cpu() {
         );
         assert!(visible < n, "seed {seed}: nothing was culled");
     }
+    assert!(binned >= 3, "only {binned} scenes had identical footprints");
 }
 
 #[test]
@@ -174,7 +171,11 @@ fn an_empty_scene_projects_to_nothing() {
         background: upload(&[0.0; 3], &[3], &device),
     };
     let got = cube::project(&inputs, &s.camera);
-    assert!(floats(got.screen).is_empty());
+    assert!(floats(got.screen.clone()).is_empty());
+    let depth = cube::depth_order(&got);
+    assert_eq!(depth.count(), 0);
+    let bins = cube::bin_tiles(&got, &depth, 0, s.camera.width, s.camera.height);
+    assert!(ints(bins.offsets).iter().all(|&o| o == 0));
 }
 
 #[test]
@@ -250,4 +251,210 @@ fn radix_sort_is_stable_and_sorts_by_the_low_bits() {
             "n = {n}, bits = {bits}"
         );
     }
+}
+
+/// A render and its gradients (loss = Σ weights · outputs) on `device`.
+struct Rendered {
+    color: Vec<f32>,
+    alpha: Vec<f32>,
+    depth: Vec<f32>,
+    grads: Vec<(&'static str, Vec<f32>)>,
+}
+
+fn render_with_grads(s: &common::Scene, device: &burn::tensor::Device) -> Rendered {
+    use burn::tensor::Tensor;
+    let cloud = f3g_splat::GaussianCloud {
+        means: common::Scene::to_f32(&s.means),
+        log_scales: common::Scene::to_f32(&s.log_scales),
+        quats: common::Scene::to_f32(&s.quats),
+        opacity_logits: common::Scene::to_f32(&s.opacity_logits),
+        sh: common::Scene::to_f32(&s.sh),
+        sh_degree: f3g_splat::sh::degree_for(s.sh.len() / (3 * s.len())).unwrap(),
+    };
+    let g = cloud.to_tensors(device);
+    let g = f3g_splat::Gaussians {
+        means: g.means.require_grad(),
+        log_scales: g.log_scales.require_grad(),
+        quats: g.quats.require_grad(),
+        opacity_logits: g.opacity_logits.require_grad(),
+        sh: g.sh.require_grad(),
+    };
+    let bg = Tensor::<1>::from_data(
+        TensorData::new(s.background.map(|v| v as f32).to_vec(), [3]),
+        device,
+    )
+    .require_grad();
+    let out = f3g_splat::render(&g, &s.camera, bg.clone(), &Default::default()).unwrap();
+    let (w, h) = (s.camera.width as usize, s.camera.height as usize);
+    let (wc, wa, wd) = common::loss_weights(5, w * h);
+    let weights = |v: &[f64], shape: Vec<usize>| {
+        Tensor::<3>::from_data(TensorData::new(common::Scene::to_f32(v), shape), device)
+    };
+    let loss = (out.color.clone() * weights(&wc, vec![h, w, 3])).sum()
+        + (out.alpha.clone().reshape([h, w, 1]) * weights(&wa, vec![h, w, 1])).sum()
+        + (out.depth.clone().reshape([h, w, 1]) * weights(&wd, vec![h, w, 1])).sum();
+    let grads = loss.backward();
+    let v = |t: Tensor<3>| t.to_data().convert::<f32>().try_into_vec::<f32>().unwrap();
+    let flat = |t: Tensor<2>| t.to_data().convert::<f32>().try_into_vec::<f32>().unwrap();
+    let one = |t: Tensor<1>| t.to_data().convert::<f32>().try_into_vec::<f32>().unwrap();
+    Rendered {
+        color: v(out.color),
+        alpha: flat(out.alpha),
+        depth: flat(out.depth),
+        grads: vec![
+            ("means", flat(g.means.grad(&grads).unwrap())),
+            ("log_scales", flat(g.log_scales.grad(&grads).unwrap())),
+            ("quats", flat(g.quats.grad(&grads).unwrap())),
+            (
+                "opacity_logits",
+                one(g.opacity_logits.grad(&grads).unwrap()),
+            ),
+            ("sh", v(g.sh.grad(&grads).unwrap())),
+            ("background", one(bg.grad(&grads).unwrap())),
+        ],
+    }
+}
+
+/// The whole op on wgpu against the CPU op: images to 1e-5, gradients to 1e-4 of the largest
+/// one of their kind (atomics sum tiles in any order).
+fn assert_op_matches_the_cpu(name: &str, s: &common::Scene) {
+    let gpu = render_with_grads(
+        s,
+        &burn::tensor::Device::wgpu(DeviceKind::DefaultDevice).autodiff(),
+    );
+    let cpu = render_with_grads(s, &burn::tensor::Device::flex().autodiff());
+    for (what, got, want) in [
+        ("colour", &gpu.color, &cpu.color),
+        ("alpha", &gpu.alpha, &cpu.alpha),
+        ("depth", &gpu.depth, &cpu.depth),
+    ] {
+        assert_eq!(got.len(), want.len());
+        for (i, (a, b)) in got.iter().zip(want.iter()).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-5 * (1.0 + b.abs()),
+                "{name}: {what}[{i}]: {a} vs {b}"
+            );
+        }
+    }
+    for ((field, got), (_, want)) in gpu.grads.iter().zip(&cpu.grads) {
+        let scale = want.iter().fold(0f32, |m, v| m.max(v.abs()));
+        assert!(scale > 1e-6, "{name}: the {field} gradient vanished");
+        for (i, (a, b)) in got.iter().zip(want).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-4 * scale,
+                "{name}: ∂L/∂{field}[{i}]: {a} vs {b} (largest {scale})"
+            );
+        }
+    }
+}
+
+#[test]
+fn the_op_matches_the_cpu_on_random_scenes() {
+    for (seed, degree) in [(21, 0), (22, 1), (23, 2), (24, 3)] {
+        assert_op_matches_the_cpu(&format!("seed {seed}"), &scene(seed, 200, degree));
+    }
+}
+
+#[test]
+fn the_op_matches_the_cpu_with_more_gaussians_per_tile_than_one_batch() {
+    // 700 small Gaussians packed around the image centre: the central tiles list several
+    // batches of 256.
+    let mut s = common::random_scene(31, 700, 1, 0.6, 40, 36);
+    for v in s.means.iter_mut() {
+        *v *= 0.15;
+    }
+    for v in s.log_scales.iter_mut() {
+        *v -= 0.5;
+    }
+    let f = common::Scene::to_f32;
+    let (means, log_scales, quats) = (f(&s.means), f(&s.log_scales), f(&s.quats));
+    let (opacity_logits, sh) = (f(&s.opacity_logits), f(&s.sh));
+    let slices = GaussianSlices {
+        means: &means,
+        log_scales: &log_scales,
+        quats: &quats,
+        opacity_logits: &opacity_logits,
+        sh: &sh,
+    };
+    let bins = cpu::bin_tiles(&cpu::project(&slices, &s.camera), 40, 36);
+    let longest = bins.offsets.windows(2).map(|w| w[1] - w[0]).max().unwrap();
+    assert!(
+        longest > 2 * 256,
+        "the longest tile list has {longest} entries"
+    );
+    assert_op_matches_the_cpu("dense", &s);
+}
+
+#[test]
+fn the_op_matches_the_cpu_where_every_pixel_stops_early() {
+    // Large, nearly opaque Gaussians in front of many others: every pixel of the inner tiles
+    // reaches the transmittance floor before the end of its list.
+    let mut s = common::random_scene(32, 150, 2, 0.99, 33, 33);
+    for i in 0..60 {
+        s.means[3 * i] *= 0.2;
+        s.means[3 * i + 1] *= 0.2;
+        s.means[3 * i + 2] = 0.8;
+        for (a, v) in [0.0, -0.3, -0.5].into_iter().enumerate() {
+            s.log_scales[3 * i + a] = v;
+        }
+        s.opacity_logits[i] = 6.0;
+    }
+    // Check the premise on the CPU: every pixel of the tile at the image centre saturates and
+    // stops before the end of the tile's list.
+    let f = common::Scene::to_f32;
+    let (means, log_scales, quats) = (f(&s.means), f(&s.log_scales), f(&s.quats));
+    let (opacity_logits, sh) = (f(&s.opacity_logits), f(&s.sh));
+    let slices = GaussianSlices {
+        means: &means,
+        log_scales: &log_scales,
+        quats: &quats,
+        opacity_logits: &opacity_logits,
+        sh: &sh,
+    };
+    let fwd = cpu::render(&slices, &s.camera, [0.0; 3], &Default::default()).unwrap();
+    let tile = fwd.bins.tiles_x + 1;
+    let listed = fwd.bins.offsets[tile + 1] - fwd.bins.offsets[tile];
+    for y in TILE_SIZE..2 * TILE_SIZE {
+        for x in TILE_SIZE..2 * TILE_SIZE {
+            let p = y * s.camera.width as usize + x;
+            assert!(
+                fwd.final_transmittance[p] < 0.02,
+                "pixel ({x}, {y}) is not saturated: T = {}, last {} of {listed}",
+                fwd.final_transmittance[p],
+                fwd.n_contrib[p]
+            );
+            assert!(
+                fwd.n_contrib[p] < listed,
+                "pixel ({x}, {y}) did not stop early"
+            );
+        }
+    }
+    assert_op_matches_the_cpu("saturated", &s);
+}
+
+#[test]
+fn a_non_finite_input_gets_the_cpu_error() {
+    let mut s = scene(41, 50, 1);
+    s.log_scales[3 * 17 + 1] = f64::NAN;
+    let cloud = f3g_splat::GaussianCloud {
+        means: common::Scene::to_f32(&s.means),
+        log_scales: common::Scene::to_f32(&s.log_scales),
+        quats: common::Scene::to_f32(&s.quats),
+        opacity_logits: common::Scene::to_f32(&s.opacity_logits),
+        sh: common::Scene::to_f32(&s.sh),
+        sh_degree: 1,
+    };
+    let device = burn::tensor::Device::wgpu(DeviceKind::DefaultDevice);
+    let g = cloud.to_tensors(&device);
+    let bg = burn::tensor::Tensor::<1>::zeros([3], &device);
+    let err = f3g_splat::render(&g, &s.camera, bg, &Default::default()).unwrap_err();
+    assert_eq!(
+        err.to_string(),
+        f3g_splat::SplatError::NonFinite {
+            name: "log_scales",
+            index: 3 * 17 + 1,
+            value: f64::NAN
+        }
+        .to_string()
+    );
 }

@@ -1,21 +1,26 @@
 //! The splat op's GPU kernels (CubeCL; features `gpu` for wgpu and `cuda`): one `#[cube]`
 //! source for every runtime, checked against the CPU path in `tests/gpu.rs` on a wgpu device
-//! (Mesa lavapipe in CI).
+//! (Mesa lavapipe in CI). [`backend`] chains them into `SplatBackend for Cube`.
 //!
-//! Built so far: [`project`] (projection, culling, SH colour, radii, tiles touched),
-//! [`exclusive_scan`] and [`intersect`] (the unsorted Gaussian–tile list; the one readback of
-//! a render, its length, happens there) and [`sort_pairs`] (a stable radix sort for the depth
-//! and tile orders). Still to come before `impl SplatBackend for Cube` (issue "GPU
-//! splatting"): sorting the intersections by depth then tile, tile ranges, rasterisation
-//! forward and backward, and the projection backward — `crates/splat/GSPLAT.md` records the formulas. Conventions are the CPU path's
-//! (`crate::cpu`): tensors are f32 except counts and radii (i32, the Int dtype of Cube devices).
+//! Forward: [`project`] (projection, culling, SH colour, radii, tiles touched) →
+//! [`depth_order`] (a depth sort of the Gaussians and the [`exclusive_scan`] of their tile
+//! counts) → the one readback of a render (the intersection count) → [`bin_tiles`] (the
+//! Gaussian–tile list sorted stably by tile with [`sort_pairs`], tile ranges) →
+//! [`rasterize`]. Backward: [`rasterize_backward`] (screen-space gradients, atomically summed
+//! per Gaussian) → [`project_backward`]. Conventions are the CPU path's (`crate::cpu`):
+//! tensors are f32 except counts, ids and radii (i32, the Int dtype of Cube devices).
 
-pub mod intersect;
+mod backend;
+pub mod bin;
 pub mod project;
+pub mod project_backward;
+pub mod raster;
 pub mod scan;
 pub mod sort;
 
-pub use intersect::{Intersections, intersect};
+pub use bin::{DepthOrder, TileBins, bin_tiles, depth_order};
 pub use project::{Projection, project};
+pub use project_backward::project_backward;
+pub use raster::{Raster, rasterize, rasterize_backward};
 pub use scan::exclusive_scan;
 pub use sort::sort_pairs;

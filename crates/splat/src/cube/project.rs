@@ -29,10 +29,40 @@ const CAMERA_FLOATS: usize = 25;
 /// Units per cube of the projection launch.
 const UNITS: u32 = 256;
 
-mod kernels {
+pub(super) mod kernels {
     // The prelude brings its own `Tensor`, `min` and `max`: kernels live apart.
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
+
+    /// The first `k` real SH basis functions at the unit direction `(x, y, z)` into `out`
+    /// (the constants and signs of [`crate::sh::basis`]).
+    #[cube]
+    pub fn sh_basis(x: f32, y: f32, z: f32, out: &mut Array<f32>, #[comptime] k: usize) {
+        out[0] = 0.282_094_8f32;
+        if comptime![k > 1] {
+            out[1] = -0.488_602_5f32 * y;
+            out[2] = 0.488_602_5f32 * z;
+            out[3] = -0.488_602_5f32 * x;
+        }
+        if comptime![k > 4] {
+            let (xx, yy, zz) = (x * x, y * y, z * z);
+            out[4] = 1.092_548_4f32 * x * y;
+            out[5] = -1.092_548_4f32 * y * z;
+            out[6] = 0.315_391_57f32 * (2.0f32 * zz - xx - yy);
+            out[7] = -1.092_548_4f32 * x * z;
+            out[8] = 0.546_274_24f32 * (xx - yy);
+        }
+        if comptime![k > 9] {
+            let (xx, yy, zz) = (x * x, y * y, z * z);
+            out[9] = -0.590_043_6f32 * y * (3.0f32 * xx - yy);
+            out[10] = 2.890_611_4f32 * x * y * z;
+            out[11] = -0.457_045_8f32 * y * (4.0f32 * zz - xx - yy);
+            out[12] = 0.373_176_33f32 * z * (2.0f32 * zz - 3.0f32 * xx - 3.0f32 * yy);
+            out[13] = -0.457_045_8f32 * x * (4.0f32 * zz - xx - yy);
+            out[14] = 1.445_305_7f32 * z * (xx - yy);
+            out[15] = -0.590_043_6f32 * x * (xx - 3.0f32 * yy);
+        }
+    }
 
     /// Projects Gaussian `ABSOLUTE_POS`. `cam` is [`super::camera_constants`]. The culling
     /// tests are written `!(x > 0)` on purpose: they must also be true for NaN.
@@ -166,34 +196,13 @@ mod kernels {
             vy = dy / dn;
             vz = dz / dn;
         }
+        let mut basis = Array::<f32>::new(16usize);
+        sh_basis(vx, vy, vz, &mut basis, sh_coeffs);
         let base = i * sh_coeffs * 3;
         for ch in 0..3usize {
-            let f = base + ch;
-            let mut v = 0.5f32 + 0.282_094_8f32 * sh[f];
-            if comptime![sh_coeffs > 1] {
-                let c1 = 0.488_602_5f32;
-                v += -c1 * vy * sh[f + 3] + c1 * vz * sh[f + 6] - c1 * vx * sh[f + 9];
-            }
-            if comptime![sh_coeffs > 4] {
-                let xx = vx * vx;
-                let yy = vy * vy;
-                let zz = vz * vz;
-                v += 1.092_548_4f32 * vx * vy * sh[f + 12] - 1.092_548_4f32 * vy * vz * sh[f + 15]
-                    + 0.315_391_57f32 * (2.0f32 * zz - xx - yy) * sh[f + 18]
-                    - 1.092_548_4f32 * vx * vz * sh[f + 21]
-                    + 0.546_274_24f32 * (xx - yy) * sh[f + 24];
-            }
-            if comptime![sh_coeffs > 9] {
-                let xx = vx * vx;
-                let yy = vy * vy;
-                let zz = vz * vz;
-                v += -0.590_043_6f32 * vy * (3.0f32 * xx - yy) * sh[f + 27]
-                    + 2.890_611_4f32 * vx * vy * vz * sh[f + 30]
-                    - 0.457_045_8f32 * vy * (4.0f32 * zz - xx - yy) * sh[f + 33]
-                    + 0.373_176_33f32 * vz * (2.0f32 * zz - 3.0f32 * xx - 3.0f32 * yy) * sh[f + 36]
-                    - 0.457_045_8f32 * vx * (4.0f32 * zz - xx - yy) * sh[f + 39]
-                    + 1.445_305_7f32 * vz * (xx - yy) * sh[f + 42]
-                    - 0.590_043_6f32 * vx * (xx - 3.0f32 * yy) * sh[f + 45];
+            let mut v = 0.5f32;
+            for j in 0..sh_coeffs {
+                v += basis[j] * sh[base + 3 * j + ch];
             }
             screen[10 * i + 5 + ch] = v.max(0.0f32);
         }

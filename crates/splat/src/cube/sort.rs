@@ -86,7 +86,13 @@ mod kernels {
         let block = CUBE_POS;
         let n = keys.len();
         let mut counts = Shared::<[i32]>::new_slice(comptime![16 * units]);
+        // Local arrays start undefined on CUDA (WGSL zeroes them): clear them.
         let mut own = Array::<i32>::new(16usize);
+        let mut seen = Array::<i32>::new(16usize);
+        for b in 0..16usize {
+            own[b] = 0i32;
+            seen[b] = 0i32;
+        }
         let start = (block * units + t) * per_unit;
         for j in 0..per_unit {
             let g = start + j;
@@ -116,7 +122,6 @@ mod kernels {
             sync_cube();
             offset *= 2;
         }
-        let mut seen = Array::<i32>::new(16usize);
         for j in 0..per_unit {
             let g = start + j;
             if g < n {

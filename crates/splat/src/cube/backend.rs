@@ -1,0 +1,267 @@
+//! [`SplatBackend`] for Cube devices (wgpu, CUDA): the kernels of this module chained into
+//! the op's forward and backward, with the state the backward needs kept on the device.
+//!
+//! Host round trips: the forward reads back one small tensor — the intersection count, which
+//! sizes the tile list, together with a flag that says whether any input is NaN or infinite.
+//! Only when that flag is set are the inputs read back, to name the first bad value exactly as
+//! the CPU path does. The backward reads nothing back.
+
+use burn::backend::Cube;
+use burn::backend::ops::{FloatTensorOps, IntTensorOps};
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::{FloatDType, IntDType, Shape};
+use burn_cubecl::cubecl::CubeDim;
+use burn_cubecl::kernel::into_contiguous;
+
+use super::bin::{TileBins, bin_tiles, depth_order, read_count};
+use super::project::{Projection, project};
+use super::project_backward::project_backward;
+use super::raster::{rasterize, rasterize_backward};
+use super::scan::grid;
+use crate::cpu::{GaussianSlices, RenderOptions};
+use crate::op::{
+    GaussianTensors, PACKED_CHANNELS, RasterState, SCREEN_FLOATS, SplatBackend, SplatForward,
+};
+use crate::{Camera, SplatError, sh};
+
+/// Units per cube of the input check.
+const UNITS: usize = 256;
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// Sets `flag[0]` when any value is NaN or infinite: its exponent bits are all ones.
+    /// (On the bits, because WGSL lets a compiler assume floats are never NaN.)
+    #[allow(clippy::collapsible_if)]
+    #[cube(launch)]
+    pub fn flag_non_finite(values: &Tensor<f32>, flag: &mut Tensor<Atomic<i32>>) {
+        let i = ABSOLUTE_POS;
+        // Nested: `&&` in a kernel evaluates both sides, and the index must be checked first.
+        if i < values.len() {
+            if f32::to_bits(values[i]) & 0x7f80_0000u32 == 0x7f80_0000u32 {
+                flag[0].store(1i32);
+            }
+        }
+    }
+}
+
+/// A contiguous f32 copy of `t` (a no-op for the f32 tensors the trainer makes).
+fn f32_contiguous(t: &FloatTensor<Cube>) -> FloatTensor<Cube> {
+    let t = if t.dtype == burn::tensor::DType::F32 {
+        t.clone()
+    } else {
+        Cube::float_cast(t.clone(), FloatDType::F32)
+    };
+    into_contiguous(t)
+}
+
+fn f32_inputs(inputs: &GaussianTensors<Cube>) -> GaussianTensors<Cube> {
+    GaussianTensors {
+        means: f32_contiguous(&inputs.means),
+        log_scales: f32_contiguous(&inputs.log_scales),
+        quats: f32_contiguous(&inputs.quats),
+        opacity_logits: f32_contiguous(&inputs.opacity_logits),
+        sh: f32_contiguous(&inputs.sh),
+        background: f32_contiguous(&inputs.background),
+    }
+}
+
+fn host(t: &FloatTensor<Cube>) -> Vec<f32> {
+    burn::tensor::read_sync(Cube::float_into_data(t.clone()))
+        .expect("reading a tensor back from the device")
+        .convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("f32 values")
+}
+
+/// Checks the shapes (metadata only, no device work).
+fn check_shapes(inputs: &GaussianTensors<Cube>) -> Result<(), SplatError> {
+    let n = inputs.opacity_logits.meta.shape()[0];
+    let expect = |name: &'static str, t: &FloatTensor<Cube>, want: Vec<usize>, text: &str| {
+        let got = t.meta.shape().to_vec();
+        if got != want {
+            return Err(SplatError::Shape {
+                name,
+                got,
+                expected: format!("{text} with N = {n}"),
+            });
+        }
+        Ok(())
+    };
+    expect("means", &inputs.means, vec![n, 3], "[N, 3]")?;
+    expect("log_scales", &inputs.log_scales, vec![n, 3], "[N, 3]")?;
+    expect("quats", &inputs.quats, vec![n, 4], "[N, 4]")?;
+    let sh_shape = inputs.sh.meta.shape().to_vec();
+    let k = sh_shape.get(1).copied().unwrap_or(0);
+    expect("sh", &inputs.sh, vec![n, k, 3], "[N, K, 3]")?;
+    if sh::degree_for(k).is_none() {
+        return Err(SplatError::ShDegree { coeffs: k });
+    }
+    expect("background", &inputs.background, vec![3], "[3]")
+}
+
+/// The error the CPU path gives for these inputs (called only once the device found a
+/// non-finite value, so reading everything back is the rare path).
+fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
+    let (means, log_scales, quats) = (
+        host(&inputs.means),
+        host(&inputs.log_scales),
+        host(&inputs.quats),
+    );
+    let (opacity_logits, sh) = (host(&inputs.opacity_logits), host(&inputs.sh));
+    let slices = GaussianSlices {
+        means: &means,
+        log_scales: &log_scales,
+        quats: &quats,
+        opacity_logits: &opacity_logits,
+        sh: &sh,
+    };
+    slices
+        .validate()
+        .and_then(|()| crate::cpu::check_finite("background", &host(&inputs.background)))
+        .err()
+        .unwrap_or(SplatError::NonFinite {
+            name: "inputs",
+            index: 0,
+            value: f64::NAN,
+        })
+}
+
+/// The placeholders of a rejected render (see [`SplatForward::error`]).
+fn rejected(
+    camera: &Camera,
+    error: SplatError,
+    device: &<Cube as burn::backend::BackendTypes>::Device,
+) -> SplatForward<Cube> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let int = |shape: Vec<usize>| Cube::int_zeros(Shape::from(shape), device, IntDType::I32);
+    SplatForward {
+        image: Cube::float_zeros(Shape::new([h, w, PACKED_CHANNELS]), device, FloatDType::F32),
+        state: RasterState {
+            screen: Cube::float_zeros(Shape::new([0, SCREEN_FLOATS]), device, FloatDType::F32),
+            radii: int(vec![0, 2]),
+            tile_offsets: int(vec![0]),
+            tile_ids: int(vec![0]),
+            final_transmittance: Cube::float_ones(Shape::new([h, w]), device, FloatDType::F32),
+            n_contrib: int(vec![h, w]),
+        },
+        error: Some(error),
+    }
+}
+
+impl SplatBackend for Cube {
+    fn splat_forward(
+        inputs: GaussianTensors<Self>,
+        camera: Camera,
+        options: RenderOptions,
+    ) -> SplatForward<Self> {
+        let device = inputs.means.device.clone();
+        let checked = camera
+            .validate()
+            .and_then(|()| options.validate())
+            .and_then(|()| check_shapes(&inputs));
+        if let Err(error) = checked {
+            return rejected(&camera, error, &device);
+        }
+        let inputs = f32_inputs(&inputs);
+        let client = inputs.means.client.clone();
+        let flag = Cube::int_zeros(Shape::new([1]), &device, IntDType::I32);
+        for t in [
+            &inputs.means,
+            &inputs.log_scales,
+            &inputs.quats,
+            &inputs.opacity_logits,
+            &inputs.sh,
+            &inputs.background,
+        ] {
+            let len = t.meta.shape().num_elements();
+            if len > 0 {
+                kernels::flag_non_finite::launch(
+                    &client,
+                    grid(len.div_ceil(UNITS)),
+                    CubeDim::new_1d(UNITS as u32),
+                    t.clone().into_tensor_arg(),
+                    flag.clone().into_tensor_arg(),
+                );
+            }
+        }
+        let projection: Projection = project(&inputs, &camera);
+        let depth = depth_order(&projection);
+        // The render's one readback: the intersection count and the input check.
+        let read = if depth.total.meta.shape()[0] == 0 {
+            read_count(flag).into_iter().chain([0]).collect::<Vec<_>>()
+        } else {
+            read_count(Cube::int_cat(vec![flag, depth.total.clone()], 0))
+        };
+        if read[0] != 0 {
+            return rejected(&camera, host_error(&inputs), &device);
+        }
+        let bins = bin_tiles(&projection, &depth, read[1], camera.width, camera.height);
+        let raster = rasterize(
+            &projection.screen,
+            &projection.radii,
+            &bins,
+            &inputs.background,
+            camera.width,
+            camera.height,
+            options.alpha_max,
+        );
+        SplatForward {
+            image: raster.image,
+            state: RasterState {
+                screen: projection.screen,
+                radii: projection.radii,
+                tile_offsets: bins.offsets,
+                tile_ids: bins.ids,
+                final_transmittance: raster.final_transmittance,
+                n_contrib: raster.n_contrib,
+            },
+            error: None,
+        }
+    }
+
+    fn splat_backward(
+        inputs: GaussianTensors<Self>,
+        state: RasterState<Self>,
+        grad_image: FloatTensor<Self>,
+        camera: Camera,
+        options: RenderOptions,
+    ) -> GaussianTensors<Self> {
+        let dtype = inputs.means.dtype;
+        let inputs = f32_inputs(&inputs);
+        let count = state.tile_ids.meta.shape()[0];
+        let bins = TileBins {
+            offsets: state.tile_offsets,
+            ids: state.tile_ids,
+            count,
+        };
+        let (screen_grads, background) = rasterize_backward(
+            &state.screen,
+            &state.radii,
+            &bins,
+            &inputs.background,
+            &state.final_transmittance,
+            &state.n_contrib,
+            &f32_contiguous(&grad_image),
+            camera.width,
+            camera.height,
+            options.alpha_max,
+        );
+        let mut grads =
+            project_backward(&inputs, &camera, &state.screen, &state.radii, &screen_grads);
+        grads.background = background;
+        if dtype == burn::tensor::DType::F32 {
+            return grads;
+        }
+        let back = |t: FloatTensor<Cube>| Cube::float_cast(t, dtype.into());
+        GaussianTensors {
+            means: back(grads.means),
+            log_scales: back(grads.log_scales),
+            quats: back(grads.quats),
+            opacity_logits: back(grads.opacity_logits),
+            sh: back(grads.sh),
+            background: back(grads.background),
+        }
+    }
+}
