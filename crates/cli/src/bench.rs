@@ -16,6 +16,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use crate::device::DeviceSpec;
 use crate::memory;
 
 /// Benchmarks.
@@ -93,10 +94,10 @@ pub struct SplatBenchArgs {
     #[arg(long, value_delimiter = ',', default_value = "10000,100000,300000",
           value_parser = crate::bounds::size::<1, 50_000_000>)]
     pub gaussians: Vec<usize>,
-    /// Square image sizes in pixels, comma-separated (16–8192).
+    /// Image sizes, comma-separated: `N` for N×N or `WIDTHxHEIGHT` (16–8192 a side).
     #[arg(long, value_delimiter = ',', default_value = "512,1024",
-          value_parser = crate::bounds::side::<16, 8192>)]
-    pub resolutions: Vec<u32>,
+          value_parser = crate::bounds::resolution)]
+    pub resolutions: Vec<(u32, u32)>,
     /// Timed repetitions per case (the median is reported).
     #[arg(long, default_value_t = 7)]
     pub repeats: usize,
@@ -106,13 +107,18 @@ pub struct SplatBenchArgs {
     /// Write the results as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Device: cpu (the CPU path, stage by stage, and the Burn op) or wgpu[:N] / cuda[:N] (the
+    /// Burn op on that GPU).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 /// One measured case.
 #[derive(Serialize, Debug)]
 pub struct SplatCase {
     pub gaussians: usize,
-    pub resolution: u32,
+    pub width: u32,
+    pub height: u32,
     pub visible: usize,
     pub intersections: usize,
     /// Median milliseconds of the CPU reference: projection+binning+rasterisation.
@@ -174,15 +180,15 @@ pub fn sphere_shell(n: usize, seed: u64) -> GaussianCloud {
     cloud
 }
 
-/// The benchmark camera: 3 m from the centre, focal length 1.2 × the image size.
-pub fn bench_camera(resolution: u32) -> Camera {
+/// The benchmark camera: 3 m from the centre, focal length 1.2 × the image width.
+pub fn bench_camera(width: u32, height: u32) -> Camera {
     Camera::look_at(
         [0.0, 0.3, 3.0],
         [0.0; 3],
         [0.0, 1.0, 0.0],
-        1.2 * resolution as f64,
-        resolution,
-        resolution,
+        1.2 * width as f64,
+        width,
+        height,
     )
 }
 
@@ -254,13 +260,159 @@ fn burn_op_fwd_bwd(
     let out = render(&g, camera, bg, &RenderOptions::default())?;
     let grads = (out.color * weights).sum().backward();
     let d = g.means.grad(&grads).expect("means receive a gradient");
+    // Until the device has finished, not until the work is queued.
+    device
+        .sync()
+        .map_err(|e| anyhow::anyhow!("running the splat op: {e:?}"))?;
     let elapsed = millis(start);
     ensure!(d.dims() == [cloud.len(), 3], "unexpected gradient shape");
     Ok(elapsed)
 }
 
-pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
+pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
     ensure!(args.repeats > 0, "--repeats must be at least 1");
+    if args.device == DeviceSpec::Cpu {
+        run_splat_cpu(args)
+    } else {
+        run_splat_device(args)
+    }
+}
+
+/// One case measured on a GPU.
+#[derive(Serialize, Debug)]
+pub struct DeviceSplatCase {
+    pub gaussians: usize,
+    pub width: u32,
+    pub height: u32,
+    pub visible: usize,
+    pub intersections: usize,
+    /// Median milliseconds of a forward render (until the device is done).
+    pub forward_ms: f64,
+    /// Median milliseconds of forward + backward through the autodiff op.
+    pub forward_backward_ms: f64,
+    /// Milliseconds of the first forward + backward (kernel compilation, autotuning).
+    pub first_ms: f64,
+    /// Gaussian–pixel evaluations of one forward + backward (counted by the CPU path on the
+    /// same scene: the GPU evaluates the same pairs).
+    pub evaluations: u64,
+    /// Evaluations per second of forward + backward.
+    pub evaluations_per_second: f64,
+    /// The most device memory the allocator held after a forward + backward, in MiB (its
+    /// pools only grow within a case, so this bounds the peak from below by at most a page).
+    pub device_reserved_mib: Option<f64>,
+}
+
+/// `bench splat --device wgpu|cuda`: the Burn op (forward, and forward + backward on the
+/// autodiff device) on the GPU; each timing ends when the device has finished.
+fn run_splat_device(args: &SplatBenchArgs) -> Result<()> {
+    let plain = args.device.open()?;
+    let train = plain.clone().autodiff();
+    eprintln!(
+        "timing the splat op on {} (the first repetition of each case compiles kernels and is not counted)",
+        args.device
+    );
+    let options = RenderOptions::default();
+    let sync = |device: &Device| {
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("running on {}: {e:?}", args.device))
+    };
+    let mut cases = Vec::new();
+    for &n in &args.gaussians {
+        let cloud = sphere_shell(n, args.seed);
+        for &(width, height) in &args.resolutions {
+            let camera = bench_camera(width, height);
+            let pixels = (width * height) as usize;
+            let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ 0xbe7c);
+            let d_color: Vec<f32> = (0..3 * pixels)
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            // The work done, counted once by the CPU path.
+            let bg = [1.0f32; 3];
+            let fwd = cpu::render(&cloud.slices(), &camera, bg, &options)?;
+            let zeros = vec![0.0f32; pixels];
+            let raster = cpu::rasterize_backward(
+                &fwd,
+                &camera,
+                &options,
+                &PixelGrads {
+                    color: &d_color,
+                    alpha: &zeros,
+                    depth: &zeros,
+                },
+            );
+            let evaluations = fwd.evaluations + raster.evaluations;
+            let visible = fwd.projected.iter().filter(|p| p.is_visible()).count();
+            let intersections = fwd.bins.num_intersections();
+            drop((fwd, raster));
+
+            let gaussians = cloud.to_tensors(&plain);
+            let bg_plain = Tensor::<1>::ones([3], &plain);
+            let (mut forward, mut both, mut first, mut reserved) =
+                (Vec::new(), Vec::new(), 0.0, None);
+            for rep in 0..=args.repeats {
+                let start = Instant::now();
+                let out = render(&gaussians, &camera, bg_plain.clone(), &options)?;
+                std::hint::black_box(&out);
+                sync(&plain)?;
+                let t_fwd = millis(start);
+                drop(out);
+                let t_both = burn_op_fwd_bwd(&cloud, &camera, &d_color, &train)?;
+                if let Some(usage) = train.memory_pool_usage() {
+                    let mib = usage.bytes_reserved as f64 / (1 << 20) as f64;
+                    reserved = Some(reserved.map_or(mib, |r: f64| r.max(mib)));
+                }
+                if rep == 0 {
+                    first = t_both;
+                    eprintln!("  N={n} {width}x{height}: first forward+backward {t_both:.0} ms");
+                } else {
+                    forward.push(t_fwd);
+                    both.push(t_both);
+                }
+            }
+            let forward_backward_ms = median(both);
+            cases.push(DeviceSplatCase {
+                gaussians: n,
+                width,
+                height,
+                visible,
+                intersections,
+                forward_ms: median(forward),
+                forward_backward_ms,
+                first_ms: first,
+                evaluations,
+                evaluations_per_second: evaluations as f64 / (forward_backward_ms / 1e3),
+                device_reserved_mib: reserved,
+            });
+        }
+    }
+    println!(
+        "{:>8} {:>9} {:>9} {:>9} {:>9} {:>10} {:>8} {:>12}",
+        "N", "image", "fwd ms", "fwd+bwd", "first ms", "evals M", "Geval/s", "device MiB"
+    );
+    for c in &cases {
+        println!(
+            "{:>8} {:>9} {:>9.2} {:>9.2} {:>9.0} {:>10.1} {:>8.2} {:>12}",
+            c.gaussians,
+            format!("{}x{}", c.width, c.height),
+            c.forward_ms,
+            c.forward_backward_ms,
+            c.first_ms,
+            c.evaluations as f64 / 1e6,
+            c.evaluations_per_second / 1e9,
+            c.device_reserved_mib
+                .map_or("n/a".to_string(), |m| format!("{m:.0}"))
+        );
+    }
+    if let Some(path) = &args.json {
+        let doc = serde_json::json!({ "device": args.device.to_string(), "cases": cases });
+        f3g_io::write_atomic(path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
+    }
+    Ok(())
+}
+
+/// `bench splat --device cpu`: the CPU path stage by stage, and the Burn op on Flex.
+fn run_splat_cpu(args: &SplatBenchArgs) -> Result<()> {
     let flop_rate = measure_flop_rate();
     println!(
         "machine: {} threads; measured peak f32 FMA throughput {:.1} GFLOP/s",
@@ -277,10 +429,10 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
     let mut cases = Vec::new();
     for &n in &args.gaussians {
         let cloud = sphere_shell(n, args.seed);
-        for &res in &args.resolutions {
-            bar.set_message(format!("N={n} {res}²"));
-            let camera = bench_camera(res);
-            let pixels = (res * res) as usize;
+        for &(width, height) in &args.resolutions {
+            bar.set_message(format!("N={n} {width}×{height}"));
+            let camera = bench_camera(width, height);
+            let pixels = (width * height) as usize;
             let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ 0xbe7c);
             let d_color: Vec<f32> = (0..3 * pixels)
                 .map(|_| rng.random_range(-1.0..1.0))
@@ -305,7 +457,7 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
                 let start = Instant::now();
                 let projected = cpu::project(&cloud.slices(), &camera);
                 let t_project = millis(start);
-                let bins = cpu::bin_tiles(&projected, res as usize, res as usize);
+                let bins = cpu::bin_tiles(&projected, width as usize, height as usize);
                 let t_bin = millis(start);
                 let fwd = cpu::rasterize(projected, bins, &camera, bg, &options);
                 let t_fwd = millis(start);
@@ -340,7 +492,8 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
                 * 1e3;
             cases.push(SplatCase {
                 gaussians: n,
-                resolution: res,
+                width,
+                height,
                 visible,
                 intersections,
                 forward_ms: median(forward),
@@ -359,7 +512,7 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
     bar.finish_and_clear();
 
     println!(
-        "{:>8} {:>6} {:>9} {:>8} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8}",
+        "{:>8} {:>9} {:>9} {:>8} {:>10} {:>10} {:>8} {:>8} {:>9} {:>8}",
         "N",
         "image",
         "fwd ms",
@@ -373,9 +526,9 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
     );
     for c in &cases {
         println!(
-            "{:>8} {:>5}² {:>9.1} {:>8.1} {:>10.1} {:>10.1} {:>8.2} {:>8.1} {:>9.2} {:>8.1}",
+            "{:>8} {:>9} {:>9.1} {:>8.1} {:>10.1} {:>10.1} {:>8.2} {:>8.1} {:>9.2} {:>8.1}",
             c.gaussians,
-            c.resolution,
+            format!("{}x{}", c.width, c.height),
             c.forward_ms,
             c.forward_backward_ms,
             c.burn_op_forward_backward_ms,
@@ -392,13 +545,19 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<Vec<SplatCase>> {
     for c in &cases {
         let s = c.stage_ms;
         println!(
-            "{:>8} {:>5}²  {:.1} / {:.1} / {:.1} / {:.1} / {:.1}",
-            c.gaussians, c.resolution, s[0], s[1], s[2], s[3], s[4]
+            "{:>8} {:>9}  {:.1} / {:.1} / {:.1} / {:.1} / {:.1}",
+            c.gaussians,
+            format!("{}x{}", c.width, c.height),
+            s[0],
+            s[1],
+            s[2],
+            s[3],
+            s[4]
         );
     }
     if let Some(path) = &args.json {
         let doc = serde_json::json!({ "flop_rate_gflops": flop_rate, "threads": rayon::current_num_threads(), "cases": cases });
         f3g_io::write_atomic(path, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     }
-    Ok(cases)
+    Ok(())
 }

@@ -31,6 +31,15 @@ pub fn image_size(text: &str) -> Result<(u32, u32), String> {
     Ok((side::<16, 8192>(w)?, side::<16, 8192>(h)?))
 }
 
+/// A benchmark image size: `N` (square) or `WIDTHxHEIGHT`, 16–8192 pixels a side.
+pub fn resolution(text: &str) -> Result<(u32, u32), String> {
+    if text.contains('x') {
+        image_size(text)
+    } else {
+        side::<16, 8192>(text).map(|n| (n, n))
+    }
+}
+
 /// A scale factor of the capture's resolution for evaluation, `0.01..=4` (beyond 4 the body
 /// images of ordinary captures would exceed the renderer's image-size limit).
 pub fn eval_scale(text: &str) -> Result<f32, String> {

@@ -78,7 +78,7 @@ fn main() -> Result<()> {
         Command::Data(cmd) => data::run(&cmd),
         Command::Template(args) => template::run(&args),
         Command::Posmaps(args) => template::posmaps(&args),
-        Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args).map(|_| ()),
+        Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
         Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
         Command::Bench(bench::BenchCommand::Quality(args)) => quality::quality(&args),

@@ -3,9 +3,12 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use burn::tensor::{Tensor, TensorData};
 use clap::Args;
 use f3g_io::Image;
 use f3g_splat::{Camera, RenderOptions, cpu, ply};
+
+use crate::device::DeviceSpec;
 
 /// Render a 3DGS `.ply` file with a pinhole camera.
 #[derive(Args, Debug)]
@@ -29,6 +32,10 @@ pub struct RenderPlyArgs {
     /// Upper clamp of one Gaussian's alpha (3DGS 0.99, gsplat 0.999).
     #[arg(long, default_value_t = 0.99)]
     pub alpha_max: f64,
+    /// Device: cpu, wgpu[:N] or cuda[:N] (GPUs need a binary built with `--features gpu` or
+    /// `cuda`). The image is the same to float rounding.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 /// Parses `r,g,b` with each component in [0, 1].
@@ -72,15 +79,38 @@ pub fn run(args: &RenderPlyArgs) -> Result<()> {
     let options = RenderOptions {
         alpha_max: args.alpha_max,
     };
-    let out = cpu::render(&cloud.slices(), &camera, args.background, &options)
-        .with_context(|| format!("rendering {}", args.ply.display()))?;
+    let (color, visible) = if args.device == DeviceSpec::Cpu {
+        let out = cpu::render(&cloud.slices(), &camera, args.background, &options)
+            .with_context(|| format!("rendering {}", args.ply.display()))?;
+        let visible = out.projected.iter().filter(|g| g.is_visible()).count();
+        (out.color, visible)
+    } else {
+        let device = args.device.open()?;
+        let background =
+            Tensor::<1>::from_data(TensorData::new(args.background.to_vec(), [3]), &device);
+        let out = f3g_splat::render(&cloud.to_tensors(&device), &camera, background, &options)
+            .with_context(|| format!("rendering {} on {}", args.ply.display(), args.device))?;
+        let color = out
+            .color
+            .to_data()
+            .convert::<f32>()
+            .try_into_vec::<f32>()
+            .map_err(|e| anyhow::anyhow!("reading the image back from {}: {e:?}", args.device))?;
+        let radii = out
+            .radii
+            .to_data()
+            .convert::<i64>()
+            .try_into_vec::<i64>()
+            .map_err(|e| anyhow::anyhow!("reading the radii back from {}: {e:?}", args.device))?;
+        let visible = radii.chunks_exact(2).filter(|r| r != &[0, 0]).count();
+        (color, visible)
+    };
     let (w, h) = (camera.width as usize, camera.height as usize);
-    let image = Image::from_vec(w, h, 3, out.color).map_err(anyhow::Error::msg)?;
+    let image = Image::from_vec(w, h, 3, color).map_err(anyhow::Error::msg)?;
     f3g_io::write_png(&args.out, &image)?;
     if let Some(raw) = &args.raw {
         f3g_io::write_npy_f32(raw, &[h, w, 3], &image.data)?;
     }
-    let visible = out.projected.iter().filter(|g| g.is_visible()).count();
     println!(
         "rendered {} of {} Gaussians at {w}x{h} to {}",
         visible,

@@ -1,29 +1,47 @@
-//! The GPU kernels (`f3g_splat::cube`) against the CPU path, on a wgpu device (Mesa lavapipe
-//! in CI; `cargo test --release -p f3g-splat --features gpu --test gpu`).
+//! The GPU kernels (`f3g_splat::cube`) and the op on a GPU against the CPU path: on a wgpu
+//! device (Mesa lavapipe in CI; `cargo test --release -p f3g-splat --features gpu --test
+//! gpu`) or, with `F3G_TEST_DEVICE=cuda` and `--features cuda`, on the first CUDA GPU.
 //!
 //! Projection: every Gaussian of random scenes (SH degrees 0–3, Gaussians behind the near
 //! plane, across the image border, off-screen, nearly transparent) gets the CPU's screen
 //! values to 1e-5 relative, the same radii and tile counts (a radius may differ by one where
 //! `k√Σ₂ᴅ` lies within 1e-4 of a whole number: f32 rounding in a different order), and the
-//! same culling; each Gaussian's run of the (unsorted) intersection list holds its tiles.
-#![cfg(feature = "gpu")]
+//! same culling; where all radii agree, the tile bins equal the CPU's entry for entry. The
+//! whole op (forward and gradients) equals the CPU op; every way of summing the backward's
+//! gradients that the device supports gives the same sums.
+#![cfg(any(feature = "gpu", feature = "cuda"))]
 
 mod common;
 
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::{Cube, DispatchDevice};
-use burn::tensor::{DeviceKind, TensorData};
+use burn::tensor::TensorData;
 use f3g_splat::cpu::{self, GaussianSlices, TILE_SIZE};
 use f3g_splat::cube;
 use f3g_splat::op::GaussianTensors;
 
 type CubeDevice = <Cube as burn::backend::BackendTypes>::Device;
 
+/// The device under test: wgpu's default adapter (lavapipe in CI), or the first CUDA GPU
+/// when `F3G_TEST_DEVICE=cuda` (build with `--features cuda`).
+fn test_device() -> burn::tensor::Device {
+    if std::env::var("F3G_TEST_DEVICE").as_deref() == Ok("cuda") {
+        #[cfg(feature = "cuda")]
+        return burn::tensor::Device::cuda(0usize);
+        #[cfg(not(feature = "cuda"))]
+        panic!("F3G_TEST_DEVICE=cuda needs the `cuda` feature");
+    }
+    #[cfg(feature = "gpu")]
+    return burn::tensor::Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+    #[cfg(not(feature = "gpu"))]
+    panic!("without the `gpu` feature, set F3G_TEST_DEVICE=cuda");
+}
+
 fn device() -> CubeDevice {
-    match burn::tensor::Device::wgpu(DeviceKind::DefaultDevice).as_dispatch() {
+    match test_device().as_dispatch() {
         DispatchDevice::Cube(d) => d.clone(),
         #[allow(unreachable_patterns)]
-        _ => unreachable!("a wgpu device is a cubecl device"),
+        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
     }
 }
 
@@ -318,10 +336,7 @@ fn render_with_grads(s: &common::Scene, device: &burn::tensor::Device) -> Render
 /// The whole op on wgpu against the CPU op: images to 1e-5, gradients to 1e-4 of the largest
 /// one of their kind (atomics sum tiles in any order).
 fn assert_op_matches_the_cpu(name: &str, s: &common::Scene) {
-    let gpu = render_with_grads(
-        s,
-        &burn::tensor::Device::wgpu(DeviceKind::DefaultDevice).autodiff(),
-    );
+    let gpu = render_with_grads(s, &test_device().autodiff());
     let cpu = render_with_grads(s, &burn::tensor::Device::flex().autodiff());
     for (what, got, want) in [
         ("colour", &gpu.color, &cpu.color),
@@ -444,7 +459,7 @@ fn a_non_finite_input_gets_the_cpu_error() {
         sh: common::Scene::to_f32(&s.sh),
         sh_degree: 1,
     };
-    let device = burn::tensor::Device::wgpu(DeviceKind::DefaultDevice);
+    let device = test_device();
     let g = cloud.to_tensors(&device);
     let bg = burn::tensor::Tensor::<1>::zeros([3], &device);
     let err = f3g_splat::render(&g, &s.camera, bg, &Default::default()).unwrap_err();
@@ -457,4 +472,86 @@ fn a_non_finite_input_gets_the_cpu_error() {
         }
         .to_string()
     );
+}
+
+#[test]
+fn every_accumulation_the_device_has_gives_the_same_gradients() {
+    let device = device();
+    let s = scene(51, 300, 2);
+    let f = |v: &[f64]| common::Scene::to_f32(v);
+    let n = s.len();
+    let k = s.sh.len() / (3 * n);
+    let inputs = GaussianTensors::<Cube> {
+        means: upload(&f(&s.means), &[n, 3], &device),
+        log_scales: upload(&f(&s.log_scales), &[n, 3], &device),
+        quats: upload(&f(&s.quats), &[n, 4], &device),
+        opacity_logits: upload(&f(&s.opacity_logits), &[n], &device),
+        sh: upload(&f(&s.sh), &[n, k, 3], &device),
+        background: upload(&[0.2, 0.5, 0.9], &[3], &device),
+    };
+    let (w, h) = (s.camera.width, s.camera.height);
+    let projection = cube::project(&inputs, &s.camera);
+    let depth = cube::depth_order(&projection);
+    let bins = cube::bin_tiles(&projection, &depth, depth.count(), w, h);
+    let raster = cube::rasterize(
+        &projection.screen,
+        &projection.radii,
+        &bins,
+        &inputs.background,
+        w,
+        h,
+        0.99,
+    );
+    let (wc, _, _) = common::loss_weights(3, (w * h) as usize);
+    let grad_image: Vec<f32> = (0..(w * h) as usize)
+        .flat_map(|p| [wc[3 * p], wc[3 * p + 1], wc[3 * p + 2], 0.3, -0.1].map(|v| v as f32))
+        .collect();
+    let grad_image = upload(&grad_image, &[h as usize, w as usize, 5], &device);
+    let best = cube::Accumulation::best(&projection.screen.client);
+    let mut variants = vec![cube::Accumulation {
+        float_atomics: false,
+        planes: false,
+    }];
+    if best.float_atomics {
+        variants.push(cube::Accumulation {
+            float_atomics: true,
+            planes: false,
+        });
+    }
+    if best.planes {
+        variants.push(cube::Accumulation {
+            float_atomics: best.float_atomics,
+            planes: true,
+        });
+    }
+    let sums: Vec<Vec<f32>> = variants
+        .iter()
+        .map(|&accumulation| {
+            let (screen_grads, _) = cube::rasterize_backward(
+                &projection.screen,
+                &projection.radii,
+                &bins,
+                &inputs.background,
+                &raster.final_transmittance,
+                &raster.n_contrib,
+                &grad_image,
+                w,
+                h,
+                0.99,
+                accumulation,
+            );
+            floats(screen_grads)
+        })
+        .collect();
+    let scale = sums[0].iter().fold(0f32, |m, v| m.max(v.abs()));
+    assert!(scale > 1e-3, "the gradients vanished");
+    for (variant, got) in variants.iter().zip(&sums).skip(1) {
+        for (i, (a, b)) in got.iter().zip(&sums[0]).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-5 * scale,
+                "{variant:?}: gradient {i}: {a} vs {b} (compare-and-swap, no planes)"
+            );
+        }
+    }
+    eprintln!("accumulations compared: {variants:?}");
 }

@@ -16,7 +16,7 @@ use burn_cubecl::kernel::into_contiguous;
 use super::bin::{TileBins, bin_tiles, depth_order, read_count};
 use super::project::{Projection, project};
 use super::project_backward::project_backward;
-use super::raster::{rasterize, rasterize_backward};
+use super::raster::{Accumulation, rasterize, rasterize_backward};
 use super::scan::grid;
 use crate::cpu::{GaussianSlices, RenderOptions};
 use crate::op::{
@@ -247,6 +247,7 @@ impl SplatBackend for Cube {
             camera.width,
             camera.height,
             options.alpha_max,
+            Accumulation::best(&inputs.means.client),
         );
         let mut grads =
             project_backward(&inputs, &camera, &state.screen, &state.radii, &screen_grads);

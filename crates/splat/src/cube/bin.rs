@@ -1,5 +1,7 @@
-//! Tile binning on the GPU, as brush does it (two sorts, measured cheaper than one sort of
-//! 64-bit keys: the depth sort runs over the N Gaussians, not the M ≥ N intersections):
+//! Tile binning on the GPU with two sorts, as brush does it, rather than gsplat's one sort of
+//! 64-bit (tile, depth) keys: the depth sort runs over the N Gaussians instead of the M ≥ N
+//! intersections, and the tile sort needs only ⌈log₂ tiles⌉ bits (4 passes of 4 bits for up to
+//! 65 536 tiles) instead of 32 + those. (Not yet timed against the 64-bit variant on a GPU.)
 //!
 //! 1. sort the Gaussians by depth (32-bit keys: depths are positive, so their IEEE bits sort
 //!    like the values; ties keep the index order, as the CPU's `(depth, index)` sort does);

@@ -21,6 +21,6 @@ pub mod sort;
 pub use bin::{DepthOrder, TileBins, bin_tiles, depth_order};
 pub use project::{Projection, project};
 pub use project_backward::project_backward;
-pub use raster::{Raster, rasterize, rasterize_backward};
+pub use raster::{Accumulation, Raster, rasterize, rasterize_backward};
 pub use scan::exclusive_scan;
 pub use sort::sort_pairs;

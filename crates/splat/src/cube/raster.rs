@@ -11,17 +11,21 @@
 //!
 //! Backward: each unit walks its pixel's contributions back to front from the final
 //! transmittance and computes the pixel's share of the current Gaussian's 10 screen-space
-//! gradients; the cube sums the 256 shares in shared memory (a fixed tree, the CPU's order
-//! is not reproduced) and one unit adds the sum to the Gaussian's gradient with an atomic
-//! add — float atomics where the device has them (CUDA, most desktop GPUs), a
-//! compare-and-swap loop on the bits where it does not (WGSL without `SHADER_FLOAT32_ATOMIC`,
-//! lavapipe). Sums over tiles therefore arrive in any order: gradients agree with the CPU to
-//! rounding, not bit for bit.
+//! gradients. The shares are summed and added to the Gaussian's gradient in global memory as
+//! [`Accumulation`] says, the fastest the device has: within each plane (warp) with
+//! `plane_sum`, skipping planes no pixel of which touched the Gaussian, then one atomic add per
+//! plane (CUDA; gsplat's scheme), or over the whole cube in shared memory, then one atomic add
+//! (lavapipe and other adapters without plane operations); the add is a float atomic where the
+//! device has one, a compare-and-swap loop on the bits where it does not. Sums over tiles
+//! arrive in any order, so gradients agree with the CPU to rounding, not bit for bit.
 
 use burn::backend::Cube;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, FloatDType, Shape};
+use burn_cubecl::cubecl::client::Client;
+use burn_cubecl::cubecl::ir::features::{AtomicUsage, Plane};
+use burn_cubecl::cubecl::ir::{ElemType, FloatKind, Type};
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
@@ -33,6 +37,48 @@ use crate::op::{PACKED_CHANNELS, SCREEN_FLOATS};
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
+
+    /// How a sum reaches a Gaussian's gradient slot in global memory.
+    #[cube]
+    pub trait Accumulate: Send + Sync + 'static {
+        /// What a slot holds: f32, or its bits as u32.
+        type Slot: Numeric;
+
+        fn add(slot: &mut Atomic<Self::Slot>, value: f32);
+    }
+
+    /// A float atomic add (CUDA; wgpu adapters with `SHADER_FLOAT32_ATOMIC`).
+    #[derive(CubeType)]
+    pub struct FloatAdd;
+
+    /// A compare-and-swap loop on the bits (every device).
+    #[derive(CubeType)]
+    pub struct SwapAdd;
+
+    #[cube]
+    impl Accumulate for FloatAdd {
+        type Slot = f32;
+
+        fn add(slot: &mut Atomic<f32>, value: f32) {
+            slot.fetch_add(value);
+        }
+    }
+
+    #[cube]
+    impl Accumulate for SwapAdd {
+        type Slot = u32;
+
+        fn add(slot: &mut Atomic<u32>, value: f32) {
+            let mut old = slot.load();
+            let mut done = false;
+            while !done {
+                let seen =
+                    slot.compare_exchange_weak(old, f32::to_bits(f32::from_bits(old) + value));
+                done = seen == old;
+                old = seen;
+            }
+        }
+    }
 
     /// Composites the tile `CUBE_POS_X, CUBE_POS_Y` front to back.
     #[allow(clippy::too_many_arguments)]
@@ -172,7 +218,7 @@ mod kernels {
     /// `screen`) into `grads`, whose f32 values are held as bits.
     #[allow(clippy::too_many_arguments, clippy::collapsible_if)]
     #[cube(launch)]
-    pub fn backward(
+    pub fn backward<A: Accumulate>(
         screen: &Tensor<f32>,
         radii: &Tensor<i32>,
         offsets: &Tensor<i32>,
@@ -181,12 +227,13 @@ mod kernels {
         final_t: &Tensor<f32>,
         n_contrib: &Tensor<i32>,
         grad_image: &Tensor<f32>,
-        grads: &mut Tensor<Atomic<u32>>,
+        grads: &mut Tensor<Atomic<A::Slot>>,
         width: u32,
         height: u32,
         alpha_max: f32,
         alpha_min: f32,
         #[comptime] tile: u32,
+        #[comptime] planes: bool,
     ) {
         let units = comptime![(tile * tile) as usize];
         let t = UNIT_POS as usize;
@@ -197,7 +244,7 @@ mod kernels {
         let start = usize::cast_from(offsets[tile_id]);
         let mut gaussians = Shared::<[f32]>::new_slice(comptime![10 * units]);
         let mut boxes = Shared::<[i32]>::new_slice(comptime![4 * units]);
-        let mut sums = Shared::<[f32]>::new_slice(comptime![10 * units]);
+        let mut sums = Shared::<[f32]>::new_slice(comptime![if planes { 1 } else { 10 * units }]);
         let mut lasts = Shared::<[i32]>::new_slice(units);
 
         let px = f32::cast_from(x) + 0.5f32;
@@ -332,35 +379,45 @@ mod kernels {
                         }
                     }
                 }
-                for j in 0..10usize {
-                    sums[j * units + t] = shares[j];
-                }
-                sync_cube();
-                let mut stride = 1usize;
-                while stride < units {
-                    if t & (2 * stride - 1) == 0 {
+                let gid = usize::cast_from(ids[batch_start + k]);
+                if comptime![planes] {
+                    // Sum within each plane (no barrier), one atomic add per plane; planes
+                    // where no pixel touched the Gaussian skip it.
+                    let mut touched = false;
+                    for j in 0..10usize {
+                        touched = touched || shares[j] != 0.0f32;
+                    }
+                    if plane_any(touched) {
                         for j in 0..10usize {
-                            sums[j * units + t] += sums[j * units + t + stride];
+                            let total = plane_sum(shares[j]);
+                            if UNIT_POS_PLANE == 0 && total != 0.0f32 {
+                                A::add(&mut grads[10 * gid + j], total);
+                            }
                         }
                     }
-                    sync_cube();
-                    stride *= 2;
-                }
-                if t == 0 {
-                    let gid = usize::cast_from(ids[batch_start + k]);
+                } else {
+                    // Sum over the cube in shared memory (pairwise with doubling strides; a
+                    // loop variable must start from a literal: one initialised from a
+                    // comptime value and then changed fails verification), one atomic add.
                     for j in 0..10usize {
-                        let total = sums[j * units];
-                        if total != 0.0f32 {
-                            // A compare-and-swap loop on the bits: devices without float
-                            // atomics have it.
-                            let slot = 10 * gid + j;
-                            let mut old = grads[slot].load();
-                            let mut done = false;
-                            while !done {
-                                let sum = f32::to_bits(f32::from_bits(old) + total);
-                                let seen = grads[slot].compare_exchange_weak(old, sum);
-                                done = seen == old;
-                                old = seen;
+                        sums[j * units + t] = shares[j];
+                    }
+                    sync_cube();
+                    let mut stride = 1usize;
+                    while stride < units {
+                        if t & (2 * stride - 1) == 0 {
+                            for j in 0..10usize {
+                                sums[j * units + t] += sums[j * units + t + stride];
+                            }
+                        }
+                        sync_cube();
+                        stride *= 2;
+                    }
+                    if t == 0 {
+                        for j in 0..10usize {
+                            let total = sums[j * units];
+                            if total != 0.0f32 {
+                                A::add(&mut grads[10 * gid + j], total);
                             }
                         }
                     }
@@ -433,6 +490,29 @@ pub fn rasterize(
     }
 }
 
+/// How the backward sums each Gaussian's gradient over the pixels of a tile and over tiles.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Accumulation {
+    /// Float atomic adds into global memory; otherwise a compare-and-swap loop on the bits.
+    pub float_atomics: bool,
+    /// Sums within planes (warps) and one atomic per plane; otherwise sums over the whole
+    /// cube in shared memory and one atomic per cube.
+    pub planes: bool,
+}
+
+impl Accumulation {
+    /// The fastest that `client`'s device supports.
+    pub fn best(client: &Client) -> Self {
+        let properties = client.properties();
+        Self {
+            float_atomics: properties
+                .atomic_type_usage(Type::atomic(ElemType::Float(FloatKind::F32)))
+                .contains(AtomicUsage::Add),
+            planes: properties.features.plane.contains(Plane::Ops),
+        }
+    }
+}
+
 /// Gradients of a render with respect to its screen-space Gaussians (`[N, 10]`, the layout of
 /// `screen`) and its background (`[3]`), given the gradient of the packed image.
 #[allow(clippy::too_many_arguments)]
@@ -447,16 +527,23 @@ pub fn rasterize_backward(
     width: u32,
     height: u32,
     alpha_max: f64,
+    accumulation: Accumulation,
 ) -> (FloatTensor<Cube>, FloatTensor<Cube>) {
     let screen = into_contiguous(screen.clone());
     let n = screen.meta.shape()[0];
     let (client, device) = (screen.client.clone(), screen.device.clone());
     let grad_image = into_contiguous(grad_image.clone());
     let (w, h) = (width as usize, height as usize);
-    // Held as bits for the compare-and-swap adds; the same bytes are the f32 result.
+    // Zero bits are 0.0 either way; the compare-and-swap path reads and writes the same bytes
+    // as u32.
     let grads = Cube::float_zeros(Shape::new([n, SCREEN_FLOATS]), &device, FloatDType::F32);
     if n > 0 && bins.count > 0 {
-        kernels::backward::launch(
+        let launch = if accumulation.float_atomics {
+            kernels::backward::launch::<kernels::FloatAdd>
+        } else {
+            kernels::backward::launch::<kernels::SwapAdd>
+        };
+        launch(
             &client,
             tile_grid(width, height),
             CubeDim::new_2d(TILE_SIZE as u32, TILE_SIZE as u32),
@@ -474,6 +561,7 @@ pub fn rasterize_backward(
             alpha_max as f32,
             ALPHA_MIN as f32,
             TILE_SIZE as u32,
+            accumulation.planes,
         );
     }
     // Background: Σ over pixels of T_final · ∂L/∂colour.
