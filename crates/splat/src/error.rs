@@ -30,6 +30,11 @@ pub enum SplatError {
     /// A render option is out of its valid range.
     #[error("invalid render option `{name}`: {reason}")]
     Option { name: &'static str, reason: String },
+    /// The footprints cover more (Gaussian, tile) pairs than the tile lists can index.
+    #[error(
+        "the Gaussians' footprints cover about {count} (Gaussian, tile) pairs, more than the {limit} a render can list; render a smaller image or fewer, smaller Gaussians"
+    )]
+    Intersections { count: u64, limit: u64 },
     /// A `.ply` file could not be read or written.
     #[error("{path}: {reason}")]
     Ply { path: PathBuf, reason: String },

@@ -75,8 +75,8 @@ pub struct SplatForward<B: Backend> {
     pub image: FloatTensor<B>,
     #[extension_type]
     pub state: RasterState<B>,
-    /// Set when the inputs were rejected (non-finite values, bad shapes); the tensors are then
-    /// placeholders and must not be used.
+    /// Set when the inputs were rejected (non-finite values, bad shapes, too many
+    /// intersections); the tensors are then empty placeholders and must not be used.
     pub error: Option<SplatError>,
 }
 
@@ -187,19 +187,16 @@ impl SplatBackend for Flex {
         let bg = [0, 1, 2].map(|c| background.get(c).copied().unwrap_or(f32::NAN));
         match cpu::render(&slices, &camera, bg, &options) {
             Ok(fwd) => pack_forward(fwd, w, h, dtype),
+            // Empty placeholders: a request that failed for its size allocates nothing of it.
             Err(error) => SplatForward {
-                image: flex_tensor(
-                    vec![0f32; w * h * PACKED_CHANNELS],
-                    &[h, w, PACKED_CHANNELS],
-                    dtype,
-                ),
+                image: flex_tensor(Vec::<f32>::new(), &[0, 0, PACKED_CHANNELS], dtype),
                 state: RasterState {
                     screen: flex_tensor(Vec::<f32>::new(), &[0, SCREEN_FLOATS], dtype),
                     radii: flex_int(Vec::<i32>::new(), &[0, 2]),
                     tile_offsets: flex_int(Vec::<u32>::new(), &[0]),
                     tile_ids: flex_int(Vec::<u32>::new(), &[0]),
-                    final_transmittance: flex_tensor(vec![1f32; w * h], &[h, w], dtype),
-                    n_contrib: flex_int(vec![0u32; w * h], &[h, w]),
+                    final_transmittance: flex_tensor(Vec::<f32>::new(), &[0, 0], dtype),
+                    n_contrib: flex_int(Vec::<u32>::new(), &[0, 0]),
                 },
                 error: Some(error),
             },

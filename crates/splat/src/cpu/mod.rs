@@ -39,6 +39,9 @@ pub const TILE_SIZE: usize = 16;
 pub const ALPHA_MIN: f64 = 1.0 / 255.0;
 /// A pixel stops compositing before its transmittance would fall to this or below.
 pub const TRANSMITTANCE_MIN: f64 = 1e-4;
+/// The most (Gaussian, tile) pairs a render lists: tile offsets are 32-bit (i32 on GPUs,
+/// whose Int tensors are i32), and the lists would take tens of GB beyond it anyway.
+pub const MAX_INTERSECTIONS: u64 = i32::MAX as u64;
 /// Isotropic screen-space variance (pixels²) added to every projected covariance.
 pub const LOW_PASS: f64 = 0.3;
 
@@ -185,6 +188,13 @@ pub fn render<T: Real>(
     gaussians.validate()?;
     check_finite("background", &background)?;
     let projected = project(gaussians, camera);
+    let count: u64 = projected.iter().map(raster::tiles_touched).sum();
+    if count > MAX_INTERSECTIONS {
+        return Err(SplatError::Intersections {
+            count,
+            limit: MAX_INTERSECTIONS,
+        });
+    }
     let bins = bin_tiles(&projected, camera.width as usize, camera.height as usize);
     Ok(rasterize(projected, bins, camera, background, options))
 }

@@ -42,6 +42,16 @@ fn min<T: Real>(a: T, b: T) -> T {
     if a < b { a } else { b }
 }
 
+/// How many tiles the footprint of `g` touches (0 when culled).
+pub(crate) fn tiles_touched<T: Real>(g: &ScreenGaussian<T>) -> u64 {
+    if !g.is_visible() {
+        return 0;
+    }
+    let [x0, x1, y0, y1] = g.pixels.map(|v| v as u64);
+    let t = TILE_SIZE as u64;
+    ((x1 - 1) / t - x0 / t + 1) * ((y1 - 1) / t - y0 / t + 1)
+}
+
 /// Visible Gaussians listed per tile in depth order.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct TileBins {

@@ -18,7 +18,7 @@ use super::project::{Projection, project};
 use super::project_backward::project_backward;
 use super::raster::{Accumulation, rasterize, rasterize_backward};
 use super::scan::grid;
-use crate::cpu::{GaussianSlices, RenderOptions};
+use crate::cpu::{GaussianSlices, MAX_INTERSECTIONS, RenderOptions};
 use crate::op::{
     GaussianTensors, PACKED_CHANNELS, RasterState, SCREEN_FLOATS, SplatBackend, SplatForward,
 };
@@ -128,23 +128,23 @@ fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
         })
 }
 
-/// The placeholders of a rejected render (see [`SplatForward::error`]).
+/// The placeholders of a rejected render (see [`SplatForward::error`]): empty, so that a
+/// request that failed for its size allocates nothing of that size.
 fn rejected(
-    camera: &Camera,
     error: SplatError,
     device: &<Cube as burn::backend::BackendTypes>::Device,
 ) -> SplatForward<Cube> {
-    let (w, h) = (camera.width as usize, camera.height as usize);
     let int = |shape: Vec<usize>| Cube::int_zeros(Shape::from(shape), device, IntDType::I32);
+    let float = |shape: Vec<usize>| Cube::float_zeros(Shape::from(shape), device, FloatDType::F32);
     SplatForward {
-        image: Cube::float_zeros(Shape::new([h, w, PACKED_CHANNELS]), device, FloatDType::F32),
+        image: float(vec![0, 0, PACKED_CHANNELS]),
         state: RasterState {
-            screen: Cube::float_zeros(Shape::new([0, SCREEN_FLOATS]), device, FloatDType::F32),
+            screen: float(vec![0, SCREEN_FLOATS]),
             radii: int(vec![0, 2]),
             tile_offsets: int(vec![0]),
             tile_ids: int(vec![0]),
-            final_transmittance: Cube::float_ones(Shape::new([h, w]), device, FloatDType::F32),
-            n_contrib: int(vec![h, w]),
+            final_transmittance: float(vec![0, 0]),
+            n_contrib: int(vec![0, 0]),
         },
         error: Some(error),
     }
@@ -162,7 +162,7 @@ impl SplatBackend for Cube {
             .and_then(|()| options.validate())
             .and_then(|()| check_shapes(&inputs));
         if let Err(error) = checked {
-            return rejected(&camera, error, &device);
+            return rejected(error, &device);
         }
         let inputs = f32_inputs(&inputs);
         let client = inputs.means.client.clone();
@@ -188,14 +188,35 @@ impl SplatBackend for Cube {
         }
         let projection: Projection = project(&inputs, &camera);
         let depth = depth_order(&projection);
-        // The render's one readback: the intersection count and the input check.
+        // The render's one readback: the input check, the intersection count and the same
+        // count summed in f32 in units of 1024 (the i32 scan wraps past i32::MAX; this does not).
         let read = if depth.total.meta.shape()[0] == 0 {
-            read_count(flag).into_iter().chain([0]).collect::<Vec<_>>()
+            // No Gaussians: nothing to count, but the background must still be finite.
+            vec![read_count(flag)[0], 0, 0]
         } else {
-            read_count(Cube::int_cat(vec![flag, depth.total.clone()], 0))
+            let coarse = Cube::float_into_int(
+                Cube::float_div_scalar(
+                    Cube::float_sum(Cube::int_into_float(
+                        projection.tiles.clone(),
+                        FloatDType::F32,
+                    )),
+                    1024.0f64.into(),
+                ),
+                IntDType::I32,
+            );
+            read_count(Cube::int_cat(vec![flag, depth.total.clone(), coarse], 0))
         };
         if read[0] != 0 {
-            return rejected(&camera, host_error(&inputs), &device);
+            return rejected(host_error(&inputs), &device);
+        }
+        let coarse = read[2] as u64 * 1024;
+        // f32 rounding of the sum is far below the 2²⁵ margin.
+        if coarse + (1 << 25) > MAX_INTERSECTIONS {
+            let error = SplatError::Intersections {
+                count: coarse.max(read[1] as u64),
+                limit: MAX_INTERSECTIONS,
+            };
+            return rejected(error, &device);
         }
         let bins = bin_tiles(&projection, &depth, read[1], camera.width, camera.height);
         let raster = rasterize(
