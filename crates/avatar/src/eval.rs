@@ -120,36 +120,48 @@ fn whiten(image: &Image, mask: &Image) -> Image {
     out
 }
 
-fn lpips_distance(lpips: Option<&Lpips>, a: &Image, b: &Image) -> Result<Option<f64>, AvatarError> {
+fn lpips_distance(
+    lpips: Option<&Lpips>,
+    a: &Image,
+    b: &Image,
+    device: &Device,
+) -> Result<Option<f64>, AvatarError> {
     let Some(l) = lpips else { return Ok(None) };
-    let d = Device::flex();
-    let v = l.forward(image_tensor(a, &d), image_tensor(b, &d))?;
+    let v = l.forward(image_tensor(a, device), image_tensor(b, device))?;
     Ok(Some(
         v.into_data().try_into_vec::<f32>().expect("f32")[0] as f64,
     ))
 }
 
-fn scores(lpips: Option<&Lpips>, render: &Image, gt: &Image) -> Result<Scores, AvatarError> {
+fn scores(
+    lpips: Option<&Lpips>,
+    render: &Image,
+    gt: &Image,
+    device: &Device,
+) -> Result<Scores, AvatarError> {
     Ok(Scores {
         psnr: psnr(render, gt)?,
         ssim: ssim_skimage(render, gt)?,
         ssim_3dgs: ssim_images(render, gt)?,
-        lpips: lpips_distance(lpips, render, gt)?,
+        lpips: lpips_distance(lpips, render, gt, device)?,
     })
 }
 
 /// Padding (capture pixels) of the body's LPIPS box (Animatable Gaussians' `eval/score.py`).
 const LPIPS_PAD: f32 = 50.0;
 
-/// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`).
+/// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`), rendering
+/// and scoring LPIPS on `device`.
 pub fn evaluate(
     run_dir: &Path,
     data: Option<&Path>,
     model: Option<&f3g_rig::ModelSpec>,
     options: &EvalOptions,
+    device: &Device,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<EvalReport, AvatarError> {
-    let avatar = TrainedAvatar::load(run_dir)?;
+    let avatar = TrainedAvatar::load(run_dir, device)?;
+    let device = avatar.device().clone();
     let data = data.map_or_else(|| avatar.info.data.clone(), Path::to_path_buf);
     let ds = Dataset::open(&data, model)?;
     if ds.model != avatar.info.model {
@@ -193,7 +205,7 @@ pub fn evaluate(
             data.display()
         )));
     }
-    let lpips = Lpips::load(options.lpips_net, &Device::flex()).ok();
+    let lpips = Lpips::load(options.lpips_net, &device).ok();
     let out_dir = options
         .out
         .clone()
@@ -217,7 +229,7 @@ pub fn evaluate(
         let render = quantise(avatar.render(params, &camera, [1.0; 3], use_pca)?);
         let mut body = Scores {
             lpips: None,
-            ..scores(None, &render, &gt)?
+            ..scores(None, &render, &gt, &device)?
         };
         let pad = (LPIPS_PAD * options.scale).round() as usize;
         if let Some(square) = CentredSquare::around_mask(&resize(&mask, w, h), pad) {
@@ -233,7 +245,7 @@ pub fn evaluate(
                 ))
             };
             let (a, b) = (lpips_crop(&render), lpips_crop(&gt));
-            body.lpips = lpips_distance(lpips.as_ref(), &a, &b)?;
+            body.lpips = lpips_distance(lpips.as_ref(), &a, &b, &device)?;
             let name = format!("{}_{f:08}_lpips", cam.name);
             f3g_io::write_png(&renders.join(format!("{name}.png")), &a)?;
             f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &b)?;
@@ -252,7 +264,7 @@ pub fn evaluate(
                     crop_view(&gt_full, &cam.camera, &b, options.face_size, &[1.0; 3]);
                 let gt_face = quantise(gt_face);
                 let face = quantise(avatar.render(params, &face_cam, [1.0; 3], use_pca)?);
-                let s = scores(lpips.as_ref(), &face, &gt_face)?;
+                let s = scores(lpips.as_ref(), &face, &gt_face, &device)?;
                 let name = format!("{}_{f:08}_head", cam.name);
                 f3g_io::write_png(&renders.join(format!("{name}.png")), &face)?;
                 f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt_face)?;

@@ -2,7 +2,7 @@
 //!
 //! - [`config`]: the training configuration (presets `cpu` and `paper`, JSON files, overrides).
 //! - [`setup`]: what a run derives from the body model: template, position and head maps,
-//!   initial attributes, per-frame network inputs.
+//!   initial attributes; [`inputs`]: the networks' inputs for a frame and a camera.
 //! - [`model`]: body and face networks, canonical face model, fusion, LBS, rendering.
 //! - [`train`]: region-aware training with stages, checkpoints and exact resume.
 //! - [`run`]: the run folder (config, checkpoints, PCA, logs).
@@ -19,6 +19,7 @@ pub mod config;
 mod error;
 pub mod eval;
 pub mod export;
+pub mod inputs;
 pub mod model;
 pub mod report;
 pub mod run;

@@ -35,6 +35,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::AvatarError;
 use crate::config::{ColourActivation, TrainConfig};
+use crate::inputs::NetInputs;
 use crate::setup::{Setup, logit};
 use f3g_nets::DualStyleUNet;
 use f3g_nets::layers::resize;
@@ -183,19 +184,6 @@ pub struct BodyAttributes {
     pub opacity_logits: Vec<f32>,
     pub log_scales: Vec<f32>,
     pub quats: Vec<f32>,
-}
-
-/// Everything the networks need for one (frame, camera), as tensors.
-pub struct NetInputs {
-    pub body_map: Tensor<4>,
-    pub body_view: (Tensor<4>, Tensor<4>),
-    pub face_map: Option<Tensor<4>>,
-    pub face_view: Option<(Tensor<4>, Tensor<4>)>,
-    /// `[N, 3]` canonical displacement of every Gaussian by the frame's blend shapes and
-    /// correctives (body then face).
-    pub displacement: Tensor<2>,
-    /// Skinning transforms of every Gaussian (body then face).
-    pub transforms: Vec<PointTransform>,
 }
 
 /// Canonical Gaussians as tensors, before posing.

@@ -50,6 +50,10 @@ pub struct TrainState {
     pub seconds: f64,
     /// Discriminator steps so far (drives lazy R1).
     pub disc_steps: u64,
+    /// The device that wrote the checkpoint (Burn's name for it; empty in checkpoints written
+    /// before it was recorded). Resuming and evaluating may use another.
+    #[serde(default)]
+    pub device: String,
 }
 
 fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, AvatarError> {

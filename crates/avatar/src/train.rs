@@ -34,9 +34,10 @@ use serde::Serialize;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
+use crate::inputs::{NetInputs, inputs_for};
 use crate::model::{
-    AvatarNets, Canonical, Constants, FaceBase, NetInputs, body_attributes_host, body_outputs,
-    canonical, nchw, render_posed,
+    AvatarNets, Canonical, Constants, FaceBase, body_attributes_host, body_outputs, canonical,
+    nchw, render_posed,
 };
 use crate::report;
 use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
@@ -132,7 +133,8 @@ fn adam_disc() -> ModuleOptimizer {
 }
 
 impl Trainer {
-    /// Starts a new run in `run_dir` (which must not hold one) on the capture `data`.
+    /// Starts a new run in `run_dir` (which must not hold one) on the capture `data`, training
+    /// on `device` (with or without its autodiff flag: the trainer sets it).
     pub fn create(
         run_dir: &Path,
         data: &Path,
@@ -140,6 +142,7 @@ impl Trainer {
         config: TrainConfig,
         cameras: Option<&[usize]>,
         frames: Option<&[usize]>,
+        device: &Device,
     ) -> Result<Self, AvatarError> {
         config.validate()?;
         let run = Run::new(run_dir);
@@ -178,12 +181,20 @@ impl Trainer {
             step: 0,
             seconds: 0.0,
             disc_steps: 0,
+            device: String::new(),
         };
-        Self::assemble(run, config, setup, dataset, split, state, None, None)
+        Self::assemble(
+            run, config, setup, dataset, split, state, None, None, device,
+        )
     }
 
-    /// Reopens `run_dir` at its newest checkpoint (or at step 0 when it has none).
-    pub fn resume(run_dir: &Path, model: Option<&ModelSpec>) -> Result<Self, AvatarError> {
+    /// Reopens `run_dir` at its newest checkpoint (or at step 0 when it has none) on `device`,
+    /// which may differ from the one the checkpoint was written on.
+    pub fn resume(
+        run_dir: &Path,
+        model: Option<&ModelSpec>,
+        device: &Device,
+    ) -> Result<Self, AvatarError> {
         let run = Run::new(run_dir);
         let config = run.config()?;
         let info = run.info()?;
@@ -210,6 +221,7 @@ impl Trainer {
                 step: 0,
                 seconds: 0.0,
                 disc_steps: 0,
+                device: String::new(),
             },
         };
         let face_base = match &checkpoint {
@@ -220,7 +232,7 @@ impl Trainer {
             _ => None,
         };
         Self::assemble(
-            run, config, setup, dataset, split, state, checkpoint, face_base,
+            run, config, setup, dataset, split, state, checkpoint, face_base, device,
         )
     }
 
@@ -234,8 +246,9 @@ impl Trainer {
         state: TrainState,
         checkpoint: Option<PathBuf>,
         face_base: Option<FaceBase>,
+        device: &Device,
     ) -> Result<Self, AvatarError> {
-        let device = Device::flex().autodiff();
+        let device = device.clone().without_autodiff().autodiff();
         let mut nets = AvatarNets::new(&config, &setup, &device)?;
         let mut optim_body = adam(config.adam_epsilon);
         let mut optim_face = config.face_branch.then(|| adam(config.adam_epsilon));
@@ -284,6 +297,9 @@ impl Trainer {
         }
         let constants = Constants::new(&setup, &config, face_base.as_ref(), &device);
         let lpips = Lpips::load(config.lpips_net, &device)?;
+        // Checkpoints from now on are written by this device.
+        let mut state = state;
+        state.device = format!("{:?}", device.clone().without_autodiff());
         let validation_view = preset(
             Protocol::of(&dataset),
             SplitKind::NovelView,
@@ -750,7 +766,7 @@ impl Trainer {
             .face_init_frames
             .min(self.split.frames.len())
             .max(1);
-        let plain = Device::flex();
+        let plain = self.device.clone().without_autodiff();
         let body = self.nets.body.valid();
         let nets = AvatarNets { body, face: None };
         let constants = Constants::new(&self.setup, &self.config, None, &plain);
@@ -825,7 +841,7 @@ impl Trainer {
         let Some((camera, frame)) = self.validation_view else {
             return Ok(());
         };
-        let plain = Device::flex();
+        let plain = self.device.clone().without_autodiff();
         let nets = AvatarNets {
             body: self.nets.body.valid(),
             face: self.nets.face.as_ref().map(Module::valid),
@@ -863,61 +879,6 @@ impl Trainer {
         f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
         Ok(())
     }
-}
-
-/// The network inputs for body parameters seen from `camera`. With `pca`, the body's posed map
-/// is first projected onto the training poses' principal components (Animatable Gaussians'
-/// treatment of unseen poses; the head maps are used as they are).
-pub fn inputs_for(
-    setup: &Setup,
-    constants: &Constants,
-    params: &f3g_rig::RigParams,
-    camera: &f3g_splat::Camera,
-    noise: Option<(f32, u64)>,
-    pca: Option<&f3g_template::PosePca>,
-    device: &Device,
-) -> Result<NetInputs, AvatarError> {
-    let frame = setup.frame(params)?;
-    let mut posed_body = frame.posed_body.clone();
-    if let Some(pca) = pca {
-        let flat: Vec<f32> = posed_body.iter().flat_map(|v| v.to_array()).collect();
-        posed_body = pca
-            .project(&flat)?
-            .chunks_exact(3)
-            .map(glam::Vec3::from_slice)
-            .collect();
-    }
-    let s = constants.net_input_size;
-    let body_map = setup.body_input(&posed_body, s, device);
-    let body_view = setup.body_view_maps(&frame, camera, s, noise, device);
-    let (face_map, face_view) = match (&frame.posed_face, constants.has_face()) {
-        (Some(pf), true) => {
-            let f = constants.face_input_size;
-            (
-                Some(setup.face_input(pf, f, device)),
-                Some(setup.face_view_maps(&frame, camera, f, noise, device)),
-            )
-        }
-        _ => (None, None),
-    };
-    let count = setup.body_count()
-        + if constants.has_face() {
-            setup.face_count()
-        } else {
-            0
-        };
-    let displacement: Vec<f32> = frame.displacement[..count]
-        .iter()
-        .flat_map(|v| v.to_array())
-        .collect();
-    Ok(NetInputs {
-        body_map,
-        body_view,
-        face_map,
-        face_view,
-        displacement: Tensor::from_data(TensorData::new(displacement, [count, 3]), device),
-        transforms: frame.transforms[..count].to_vec(),
-    })
 }
 
 /// Mean length of per-Gaussian offsets (smooth at zero).

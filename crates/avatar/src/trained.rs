@@ -7,17 +7,18 @@ use burn::tensor::Device;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
+use crate::inputs::inputs_for;
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
 use crate::report::tensor_to_image;
 use crate::run::{Run, RunInfo, load_face_base};
 use crate::setup::Setup;
-use crate::train::inputs_for;
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
 use f3g_template::PosePca;
 
-/// The networks, canonical face model and setup of a run, on the CPU without autodiff.
+/// The networks, canonical face model and setup of a run, on the device it was loaded onto
+/// (without autodiff).
 pub struct TrainedAvatar {
     pub config: TrainConfig,
     pub info: RunInfo,
@@ -32,8 +33,9 @@ pub struct TrainedAvatar {
 }
 
 impl TrainedAvatar {
-    /// Loads the newest checkpoint of `run_dir`.
-    pub fn load(run_dir: &Path) -> Result<Self, AvatarError> {
+    /// Loads the newest checkpoint of `run_dir` onto `device` (any device: a checkpoint does
+    /// not remember where it was trained).
+    pub fn load(run_dir: &Path, device: &Device) -> Result<Self, AvatarError> {
         let run = Run::new(run_dir);
         let config = run.config()?;
         let info = run.info()?;
@@ -42,7 +44,7 @@ impl TrainedAvatar {
             .ok_or_else(|| AvatarError::file(run_dir, "has no checkpoint yet: train it first"))?;
         let step = crate::run::read_state(&checkpoint)?.step;
         let setup = Setup::new(&info.model, &info.identity, &config)?;
-        let device = Device::flex();
+        let device = device.clone().without_autodiff();
         let nets = f3g_nets::checkpoint::load(
             AvatarNets::new(&config, &setup, &device)?,
             &checkpoint.join("nets.bpk"),
@@ -81,6 +83,11 @@ impl TrainedAvatar {
             device,
             step,
         })
+    }
+
+    /// The device the avatar computes on.
+    pub fn device(&self) -> &Device {
+        &self.device
     }
 
     /// Number of Gaussians rendered (body + face when the face model exists).

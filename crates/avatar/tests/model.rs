@@ -5,9 +5,9 @@
 use burn::tensor::{Device, Tensor};
 use f3g_avatar::TrainConfig;
 use f3g_avatar::config::BodyLayout;
+use f3g_avatar::inputs::inputs_for;
 use f3g_avatar::model::{AvatarNets, Canonical, Constants, canonical};
 use f3g_avatar::setup::Setup;
-use f3g_avatar::train::inputs_for;
 use f3g_rig::RigParams;
 use f3g_splat::Camera;
 

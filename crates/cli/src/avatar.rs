@@ -9,6 +9,8 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use f3g_avatar::animate::{AnimateOptions, CameraPath};
 use f3g_avatar::eval::EvalOptions;
+
+use crate::device::DeviceSpec;
 use f3g_avatar::export::{ExportOptions, Up, export_cloud};
 use f3g_avatar::trained::TrainedAvatar;
 use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
@@ -78,6 +80,10 @@ pub struct TrainArgs {
     /// split training into sessions.
     #[arg(long)]
     pub max_steps: Option<u64>,
+    /// Device to train on: cpu, wgpu[:N] or cuda[:N]. A run may resume on another device (the
+    /// CPU resumes bit-exactly; a GPU within float rounding).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 /// The configuration of a new run from the command line.
@@ -131,8 +137,9 @@ fn stop_flag() -> Arc<AtomicBool> {
 }
 
 pub fn train(a: &TrainArgs) -> Result<PathBuf> {
+    let device = a.device.open()?;
     let mut trainer = match &a.resume {
-        Some(dir) => Trainer::resume(dir, a.model.as_ref())
+        Some(dir) => Trainer::resume(dir, a.model.as_ref(), &device)
             .with_context(|| format!("resuming {}", dir.display()))?,
         None => {
             let data = a.data.as_ref().context("--data is required")?;
@@ -157,6 +164,7 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
                 config,
                 cameras.as_deref(),
                 frames.as_deref(),
+                &device,
             )?
         }
     };
@@ -243,6 +251,10 @@ pub struct EvalArgs {
     /// Output folder (default RUN/eval/<split>).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
+    /// run's checkpoints.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
@@ -276,11 +288,13 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
     let bar = ProgressBar::new(0).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} images [{elapsed} < {eta}]",
     )?);
+    let device = a.device.open()?;
     let report = f3g_avatar::eval::evaluate(
         &a.run,
         a.data.as_deref(),
         a.model.as_ref(),
         &options,
+        &device,
         &mut |i, n| {
             bar.set_length(n as u64);
             bar.set_position(i as u64);
@@ -338,10 +352,14 @@ pub struct AnimateArgs {
     /// Feed poses as they are, without the pose-PCA projection.
     #[arg(long)]
     pub no_pca: bool,
+    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
+    /// run's checkpoints.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
-    let avatar = TrainedAvatar::load(&a.run)?;
+    let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let motion = f3g_avatar::animate::read_motion(&a.motion, &avatar)?;
     let (width, height) = a.size;
     let camera = if a.camera == "orbit" {
@@ -425,10 +443,14 @@ pub struct ExportPlyArgs {
     /// (COLMAP-style 3DGS scenes, which SuperSplat assumes: the avatar turned 180° about X).
     #[arg(long, value_enum, default_value = "y", allow_hyphen_values = true)]
     pub up: UpArg,
+    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
+    /// run's checkpoints.
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
-    let avatar = TrainedAvatar::load(&a.run)?;
+    let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let (params, use_pca) = match &a.motion {
         Some(m) => {
             let motion = f3g_avatar::animate::read_motion(m, &avatar)?;

@@ -9,6 +9,7 @@ use f3g_data::split::SplitKind;
 
 use crate::avatar::{AnimateArgs, EvalArgs, TrainArgs, animate, eval, train};
 use crate::data::{SynthArgs, synth};
+use crate::device::DeviceSpec;
 
 /// The synthetic capture and training overrides shared by `f3g demo` and `f3g bench quality`.
 #[derive(Args, Debug)]
@@ -25,6 +26,9 @@ pub struct CaptureAndTraining {
     /// Override a training configuration key (repeatable), e.g. `--set steps.joint=50`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
+    /// Device for training, evaluation and animation: cpu, wgpu[:N] or cuda[:N].
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 /// Options of `f3g demo`.
@@ -66,6 +70,7 @@ pub(crate) fn train_or_resume(
     preset: &str,
     seed: u64,
     set: &[String],
+    device: DeviceSpec,
 ) -> Result<()> {
     let mut args = TrainArgs {
         data: Some(data.to_path_buf()),
@@ -86,6 +91,7 @@ pub(crate) fn train_or_resume(
         face_n_mlp: None,
         seed: Some(seed),
         max_steps: None,
+        device,
     };
     if run.join("config.json").exists() {
         println!("resuming the run in {}", run.display());
@@ -102,7 +108,12 @@ pub(crate) fn train_or_resume(
     Ok(())
 }
 
-pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs {
+pub(crate) fn eval_args(
+    run: &Path,
+    split: SplitKind,
+    every: usize,
+    device: DeviceSpec,
+) -> EvalArgs {
     EvalArgs {
         run: run.to_path_buf(),
         split,
@@ -116,6 +127,7 @@ pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize) -> EvalArgs 
         lpips_size: 512,
         lpips: None,
         out: None,
+        device,
     }
 }
 
@@ -133,10 +145,18 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     println!("1/4 synthetic capture");
     ensure_capture(&capture, &a.capture)?;
     println!("2/4 training ({preset} preset)");
-    train_or_resume(&run, &capture, preset, a.capture.seed, &a.capture.set)?;
+    let device = a.capture.device;
+    train_or_resume(
+        &run,
+        &capture,
+        preset,
+        a.capture.seed,
+        &a.capture.set,
+        device,
+    )?;
     println!("3/4 evaluation");
-    let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4))?;
-    let novel_pose = eval(&eval_args(&run, SplitKind::NovelPose, 1))?;
+    let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4, device))?;
+    let novel_pose = eval(&eval_args(&run, SplitKind::NovelPose, 1, device))?;
     println!("4/4 animation");
     let animation = out.join("animation");
     animate(&AnimateArgs {
@@ -150,6 +170,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         elevation: 5.0,
         fps: 8.0,
         no_pca: false,
+        device,
     })?;
     let report = out.join("report.html");
     f3g_io::write_atomic(

@@ -34,6 +34,10 @@ pub struct MetricsArgs {
     /// images before scoring (the AvatarReX evaluation protocol).
     #[arg(long)]
     pub mask: Option<PathBuf>,
+    /// Device LPIPS runs on: cpu, wgpu[:N] or cuda[:N] (PSNR and SSIM are computed on the
+    /// host).
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
 #[derive(Serialize)]
@@ -85,7 +89,7 @@ pub fn metrics(a: &MetricsArgs) -> Result<()> {
         apply_mask(&mut x, &mask);
         apply_mask(&mut y, &mask);
     }
-    let device = Device::flex();
+    let device = a.device.open()?;
     let (lpips, lpips_error) = match Lpips::load(a.lpips, &device) {
         Ok(net) => {
             let d = net.forward(image_tensor(&x, &device), image_tensor(&y, &device))?;

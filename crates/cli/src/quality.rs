@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::avatar::eval;
 use crate::demo::{CaptureAndTraining, ensure_capture, eval_args, train_or_resume};
+use crate::device::DeviceSpec;
 
 /// One ablation of the full method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -147,7 +148,12 @@ struct VariantResult {
 }
 
 /// The evaluation of `split` in `run`, reused when it scored the run's final step.
-fn evaluation(run: &Path, split: SplitKind, every: usize) -> Result<EvalReport> {
+fn evaluation(
+    run: &Path,
+    split: SplitKind,
+    every: usize,
+    device: DeviceSpec,
+) -> Result<EvalReport> {
     let metrics = run
         .join("eval")
         .join(split.to_string())
@@ -160,7 +166,7 @@ fn evaluation(run: &Path, split: SplitKind, every: usize) -> Result<EvalReport> 
         println!("reusing {}", metrics.display());
         return Ok(report);
     }
-    eval(&eval_args(run, split, every))
+    eval(&eval_args(run, split, every, device))
 }
 
 pub fn quality(a: &QualityArgs) -> Result<()> {
@@ -175,10 +181,11 @@ pub fn quality(a: &QualityArgs) -> Result<()> {
             let mut set = a.capture.set.clone();
             set.extend(variant.overrides().iter().map(|s| s.to_string()));
             println!("training `{}` with seed {seed}", variant.name());
-            train_or_resume(&run, &capture, "cpu", seed, &set)?;
+            let device = a.capture.device;
+            train_or_resume(&run, &capture, "cpu", seed, &set, device)?;
             runs.push((
-                evaluation(&run, SplitKind::NovelView, a.every)?,
-                evaluation(&run, SplitKind::NovelPose, 1)?,
+                evaluation(&run, SplitKind::NovelView, a.every, device)?,
+                evaluation(&run, SplitKind::NovelPose, 1, device)?,
             ));
         }
         let (nv, np): (Vec<_>, Vec<_>) = runs.iter().cloned().unzip();

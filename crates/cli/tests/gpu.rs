@@ -1,10 +1,14 @@
 //! The `f3g` binary on a wgpu device (Mesa lavapipe in CI): `render-ply --device wgpu` gives
-//! the CPU's image, `bench splat --device wgpu` measures and writes its JSON, and a missing
-//! adapter is an error that lists the ones there are. Run with `cargo test --release -p
-//! f3g-cli --features gpu --test gpu`.
+//! the CPU's image, `bench splat --device wgpu` measures and writes its JSON, a run trained on
+//! the CPU evaluates, animates and exports on wgpu as on the CPU, and a missing adapter is an
+//! error that lists the ones there are. Run with `cargo test --release -p f3g-cli --features
+//! gpu --test gpu`.
 #![cfg(feature = "gpu")]
 
-use std::process::Command;
+mod common;
+
+use std::path::Path;
+use std::process::{Command, Output};
 
 use f3g_splat::{Camera, GaussianCloud, ply};
 
@@ -138,4 +142,158 @@ fn a_missing_adapter_is_an_error_listing_the_adapters() {
         "{stderr}"
     );
     assert!(!stderr.contains("panicked"), "{stderr}");
+}
+
+fn run_in(dir: &Path, args: &[&str]) -> Output {
+    f3g().args(args).current_dir(dir).output().unwrap()
+}
+
+/// The `total` loss of every step in a run's `log.jsonl`.
+fn losses(run: &Path) -> Vec<f64> {
+    std::fs::read_to_string(run.join("log.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v["total"].as_f64().unwrap()
+        })
+        .collect()
+}
+
+/// One test, so that lavapipe compiles the kernels of each command once: training on wgpu
+/// follows the CPU run and resumes on the CPU; the CPU-trained run evaluates, animates and
+/// exports on wgpu as on the CPU.
+#[test]
+fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::ok(&run_in(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "4",
+            "--resolution",
+            "96",
+        ],
+    ));
+    // One step of every stage.
+    std::fs::write(
+        d.join("tiny.json"),
+        common::tiny_config([1, 1, 1, 1, 1], ""),
+    )
+    .unwrap();
+    let train = ["train", "--data", "cap", "--config", "tiny.json", "--out"];
+    common::ok(&run_in(
+        d,
+        &[&train[..], &["cpu", "--device", "cpu"]].concat(),
+    ));
+    // Three steps on wgpu (through the face model's construction), the rest on the CPU.
+    common::ok(&run_in(
+        d,
+        &[
+            &train[..],
+            &["mixed", "--device", "wgpu", "--max-steps", "3"],
+        ]
+        .concat(),
+    ));
+    let written_on = |step: &str| {
+        let state = d.join("mixed/checkpoints").join(step).join("state.json");
+        let v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(state).unwrap()).unwrap();
+        v["device"].as_str().unwrap().to_string()
+    };
+    assert!(written_on("step-000000003").contains("Cube"));
+    common::ok(&run_in(
+        d,
+        &["train", "--resume", "mixed", "--device", "cpu"],
+    ));
+    assert!(written_on("step-000000005").contains("Flex"));
+    let (cpu, mixed) = (losses(&d.join("cpu")), losses(&d.join("mixed")));
+    assert_eq!((cpu.len(), mixed.len()), (5, 5));
+    // Same initialisation (seeded on the host), same samples: the same losses to float
+    // rounding, step after step (LPIPS and adversarial terms included).
+    for (step, (c, m)) in cpu.iter().zip(&mixed).enumerate() {
+        assert!(
+            (c - m).abs() <= 2e-3 * c.abs().max(1e-3),
+            "step {step}: cpu {c} vs wgpu then cpu {m}"
+        );
+    }
+
+    let mut metrics = Vec::new();
+    for device in ["cpu", "wgpu"] {
+        let out = format!("eval-{device}");
+        common::ok(&run_in(
+            d,
+            &[
+                "eval", "cpu", "--every", "2", "--out", &out, "--device", device,
+            ],
+        ));
+        let m: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(d.join(&out).join("metrics.json")).unwrap(),
+        )
+        .unwrap();
+        metrics.push(m);
+        common::ok(&run_in(
+            d,
+            &[
+                "animate",
+                "cpu",
+                "--motion",
+                "cap/body_params.npz",
+                "--out",
+                &format!("anim-{device}"),
+                "--size",
+                "48x64",
+                "--device",
+                device,
+            ],
+        ));
+        common::ok(&run_in(
+            d,
+            &[
+                "export-ply",
+                "cpu",
+                "--out",
+                &format!("{device}.ply"),
+                "--frame",
+                "1",
+                "--device",
+                device,
+            ],
+        ));
+    }
+    // Metrics of the same checkpoint: the renders differ by float rounding only.
+    for key in ["mean_body", "mean_head"] {
+        let (a, b) = (
+            metrics[0][key]["psnr"].as_f64().unwrap(),
+            metrics[1][key]["psnr"].as_f64().unwrap(),
+        );
+        assert!((a - b).abs() < 0.05, "{key} PSNR: cpu {a} vs wgpu {b}");
+    }
+    // Animation frames: at most a few levels of 8 bits apart.
+    for frame in ["frame_00000.png", "frame_00003.png"] {
+        let a = f3g_io::read_rgb(&d.join("anim-cpu/frames").join(frame)).unwrap();
+        let b = f3g_io::read_rgb(&d.join("anim-wgpu/frames").join(frame)).unwrap();
+        let worst = a
+            .data
+            .iter()
+            .zip(&b.data)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0f32, f32::max);
+        assert!(worst <= 3.0 / 255.0, "{frame}: differs by {worst}");
+    }
+    // The exported Gaussians.
+    let a = ply::read_ply(&d.join("cpu.ply")).unwrap();
+    let b = ply::read_ply(&d.join("wgpu.ply")).unwrap();
+    assert_eq!(a.len(), b.len());
+    let worst = a
+        .means
+        .iter()
+        .zip(&b.means)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0f32, f32::max);
+    assert!(worst < 1e-4, "means differ by {worst}");
 }

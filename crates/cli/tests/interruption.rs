@@ -106,7 +106,8 @@ fn check_whole(run: &Path) -> usize {
         }
     }
     if run.join("checkpoints/latest").exists() {
-        TrainedAvatar::load(run).unwrap_or_else(|e| panic!("after a kill: {e}"));
+        TrainedAvatar::load(run, &burn::tensor::Device::flex())
+            .unwrap_or_else(|e| panic!("after a kill: {e}"));
     }
     temporaries
 }

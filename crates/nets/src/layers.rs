@@ -77,16 +77,59 @@ pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
 }
 
-/// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`].
+/// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`]. On the CPU
+/// (Flex) other sizes use Burn's `interpolate`; on other devices [`resize_separable`], because
+/// Burn 0.22's CubeCL backends (CUDA, wgpu) have no backward for bilinear interpolation.
 pub fn resize(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
     let [_, _, h, w] = x.dims();
     if [height, width] == [2 * h, 2 * w] {
         return upsample2(x);
     }
+    if x.device().without_autodiff() != Device::flex() {
+        return resize_separable(x, height, width);
+    }
     let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
     options.align_corners = false;
     options.output_size = Some([height, width]);
     interpolate(x, options)
+}
+
+/// Bilinear resize (`align_corners = false`, no antialiasing: PyTorch's and Burn's semantics)
+/// as two matrix products with the interpolation weights of each axis — differentiable on
+/// every backend.
+pub fn resize_separable(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
+    let [n, c, h, w] = x.dims();
+    let device = x.device();
+    // Along x: [n·c·h, w] · [w, width].
+    let y = x
+        .reshape([n * c * h, w])
+        .matmul(bilinear_weights(w, width, &device).transpose());
+    // Along y: [n·c·width, h] · [h, height].
+    let y = y
+        .reshape([n * c, h, width])
+        .swap_dims(1, 2)
+        .reshape([n * c * width, h])
+        .matmul(bilinear_weights(h, height, &device).transpose());
+    y.reshape([n * c, width, height])
+        .swap_dims(1, 2)
+        .reshape([n, c, height, width])
+}
+
+/// `[to, from]`: row `o` holds the weights of the source samples that output `o` blends
+/// (source coordinate `(o + ½)·from/to − ½`, clamped at 0; the upper neighbour clamped to the
+/// last sample).
+fn bilinear_weights(from: usize, to: usize, device: &Device) -> Tensor<2> {
+    let mut weights = vec![0f32; to * from];
+    let scale = from as f64 / to as f64;
+    for o in 0..to {
+        let source = ((o as f64 + 0.5) * scale - 0.5).max(0.0);
+        let lower = (source.floor() as usize).min(from - 1);
+        let upper = (lower + 1).min(from - 1);
+        let t = (source - lower as f64) as f32;
+        weights[o * from + lower] += 1.0 - t;
+        weights[o * from + upper] += t;
+    }
+    Tensor::from_data(TensorData::new(weights, [to, from]), device)
 }
 
 /// Bilinear up-sampling by 2 (`align_corners = false`), written with slices, sums and a
@@ -537,6 +580,43 @@ mod tests {
                 .chain(ours_grad.iter().zip(&theirs_grad))
             {
                 assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn separable_resize_equals_interpolate_forward_and_backward() {
+        let device = Device::flex().autodiff();
+        for (h, w, to_h, to_w) in [(5, 7, 9, 4), (8, 8, 3, 13), (16, 12, 16, 12), (1, 3, 4, 6)] {
+            let v: Vec<f32> = (0..2 * 3 * h * w)
+                .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
+                .collect();
+            let x = Tensor::<4>::from_data(TensorData::new(v, [2, 3, h, w]), &device);
+            let weights: Vec<f32> = (0..2 * 3 * to_h * to_w)
+                .map(|i| ((i * 31) % 13) as f32 - 6.0)
+                .collect();
+            let weights =
+                Tensor::<4>::from_data(TensorData::new(weights, [2, 3, to_h, to_w]), &device);
+            let run = |up: &dyn Fn(Tensor<4>) -> Tensor<4>| {
+                let x = x.clone().require_grad();
+                let y = up(x.clone());
+                let grads = (y.clone() * weights.clone()).sum().backward();
+                (values(y), values(x.grad(&grads).unwrap()))
+            };
+            let (ours, ours_grad) = run(&|x| resize_separable(x, to_h, to_w));
+            let (theirs, theirs_grad) = run(&|x| {
+                let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
+                options.align_corners = false;
+                options.output_size = Some([to_h, to_w]);
+                interpolate(x, options)
+            });
+            assert_eq!(ours.len(), theirs.len());
+            for (a, b) in ours
+                .iter()
+                .zip(&theirs)
+                .chain(ours_grad.iter().zip(&theirs_grad))
+            {
+                assert!((a - b).abs() < 1e-5, "{h}×{w} → {to_h}×{to_w}: {a} vs {b}");
             }
         }
     }
