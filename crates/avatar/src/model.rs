@@ -531,12 +531,23 @@ pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
 
 /// Poses canonical Gaussians with their skinning transforms: `(means, quats)`.
 pub fn pose(canonical: &Canonical, transforms: &[PointTransform]) -> (Tensor<2>, Tensor<2>) {
-    let n = canonical.means.dims()[0];
-    let device = canonical.means.device();
+    pose_gaussians(canonical.means.clone(), canonical.quats.clone(), transforms)
+}
+
+/// Linear blend skinning of Gaussians, the one training, inference and `f3g bench lbs` use:
+/// means `[N, 3]` by their blended transforms, rotations `[N, 4]` (w, x, y, z) by the nearest
+/// rotation of each blend; on the device of `means`.
+pub fn pose_gaussians(
+    means: Tensor<2>,
+    quats: Tensor<2>,
+    transforms: &[PointTransform],
+) -> (Tensor<2>, Tensor<2>) {
+    let n = means.dims()[0];
+    let device = means.device();
     let (a, t, q) = transform_tensors(transforms, n, &device);
-    let x = canonical.means.clone().reshape([n, 1, 3]);
-    let means = (a * x).sum_dim(2).reshape([n, 3]) + t;
-    (means, quat_mul(q, canonical.quats.clone()))
+    let x = means.reshape([n, 1, 3]);
+    let posed = (a * x).sum_dim(2).reshape([n, 3]) + t;
+    (posed, quat_mul(q, quats))
 }
 
 /// Poses and renders the canonical Gaussians from `camera` over `background`.

@@ -34,6 +34,16 @@ pub enum BenchCommand {
     Quality(crate::quality::QualityArgs),
 }
 
+/// Bytes `bench lbs` holds per Gaussian, an upper estimate: 8 skin influences (64 B), the
+/// blended transform (64 B), its tensors (64 B), inputs and posed outputs (56 B), slack.
+const LBS_BYTES_PER_GAUSSIAN: u64 = 400;
+
+/// Bytes a CPU render holds per pixel (forward state, the backward's gradients and state) and
+/// per Gaussian with its intersections: upper estimates, above the peaks `bench splat`
+/// measured (40 MiB at 100k / 512², 235 MiB at 100k / 2048×1500).
+const SPLAT_BYTES_PER_PIXEL: u64 = 96;
+const SPLAT_BYTES_PER_GAUSSIAN: u64 = 400;
+
 /// Options of `f3g bench lbs`.
 #[derive(Args, Debug)]
 pub struct LbsBenchArgs {
@@ -43,11 +53,24 @@ pub struct LbsBenchArgs {
     /// Timed repetitions (the median is reported).
     #[arg(long, default_value_t = 7)]
     pub repeats: usize,
+    /// Device the Gaussians are posed on: cpu, wgpu[:N] or cuda[:N].
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
 }
 
-/// Times `rig.pose` on the built-in human and LBS of `points` Gaussians with its weights.
+/// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms), the
+/// per-Gaussian blended transforms and their nearest rotations (host), and
+/// [`f3g_avatar::model::pose_gaussians`] (upload and tensor LBS on `--device`, until the device
+/// is done).
 pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
     ensure!(args.repeats > 0, "--repeats must be at least 1");
+    // Per Gaussian: skin weights, the blended transform, its tensors and the posed outputs.
+    memory::ensure_fits(
+        args.points as u64 * LBS_BYTES_PER_GAUSSIAN,
+        memory::available_bytes(),
+        &format!("--points {}", args.points),
+    )?;
+    let device = args.device.open()?;
     let human = f3g_rig::builtin::load()?;
     let rig = &human.rig;
     let mut params = rig.zero_params();
@@ -58,31 +81,56 @@ pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
     let n = rig.mesh.vertices.len();
     let index: Vec<usize> = (0..args.points).map(|i| i % n).collect();
     let skin = rig.skin.select(&index);
-    let means: Vec<glam::Vec3> = index.iter().map(|&i| rig.mesh.vertices[i]).collect();
-    let rotations = vec![glam::Quat::IDENTITY; args.points];
-    let (mut pose_ms, mut lbs_ms) = (Vec::new(), Vec::new());
+    let means: Vec<f32> = index
+        .iter()
+        .flat_map(|&i| rig.mesh.vertices[i].to_array())
+        .collect();
+    let means = Tensor::<2>::from_data(TensorData::new(means, [args.points, 3]), &device);
+    let quats = Tensor::<2>::from_data(
+        TensorData::new(
+            [1.0f32, 0.0, 0.0, 0.0].repeat(args.points),
+            [args.points, 4],
+        ),
+        &device,
+    );
+    let (mut pose_ms, mut blend_ms, mut lbs_ms) = (Vec::new(), Vec::new(), Vec::new());
     for rep in 0..=args.repeats {
         let start = Instant::now();
         let posed = rig.pose(&params)?;
         let t_pose = millis(start);
         let start = Instant::now();
-        let (m, r) = f3g_rig::skin_gaussians(&posed.skinning, &skin, &means, &rotations);
+        let transforms = f3g_rig::point_transforms(&posed.skinning, &skin);
+        let t_blend = millis(start);
+        let start = Instant::now();
+        let (m, q) = f3g_avatar::model::pose_gaussians(means.clone(), quats.clone(), &transforms);
+        std::hint::black_box((m, q));
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("posing on {}: {e:?}", args.device))?;
         let t_lbs = millis(start);
-        std::hint::black_box((m, r));
         if rep > 0 {
             pose_ms.push(t_pose);
+            blend_ms.push(t_blend);
             lbs_ms.push(t_lbs);
         }
     }
+    let per = |ms: f64| ms * 1e6 / args.points as f64;
+    let (blend, lbs) = (median(blend_ms), median(lbs_ms));
     println!(
-        "built-in human ({} vertices, {} joints): pose {:.2} ms; skinning {} Gaussians (means + rotations) {:.1} ms ({:.0} ns per Gaussian, {} threads)",
+        "built-in human ({} vertices, {} joints), {} Gaussians, {} host threads, LBS on {}:\n  \
+         pose (joint transforms) {:.2} ms\n  \
+         blended transforms + nearest rotations (host) {:.1} ms ({:.0} ns per Gaussian)\n  \
+         upload + tensor LBS of means and rotations {:.1} ms ({:.0} ns per Gaussian)",
         n,
         rig.skeleton.len(),
-        median(pose_ms),
         args.points,
-        median(lbs_ms.clone()),
-        median(lbs_ms) * 1e6 / args.points as f64,
-        rayon::current_num_threads()
+        rayon::current_num_threads(),
+        args.device,
+        median(pose_ms),
+        blend,
+        per(blend),
+        lbs,
+        per(lbs),
     );
     Ok(())
 }
@@ -271,6 +319,20 @@ fn burn_op_fwd_bwd(
 
 pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
     ensure!(args.repeats > 0, "--repeats must be at least 1");
+    let largest_n = args.gaussians.iter().copied().max().unwrap_or(0) as u64;
+    let largest_image = args
+        .resolutions
+        .iter()
+        .map(|&(w, h)| w as u64 * h as u64)
+        .max()
+        .unwrap_or(0);
+    // The scene is made on the host on every device; the CPU render is counted on GPUs too
+    // (it counts the evaluations).
+    memory::ensure_fits(
+        largest_n * SPLAT_BYTES_PER_GAUSSIAN + largest_image * SPLAT_BYTES_PER_PIXEL,
+        memory::available_bytes(),
+        &format!("--gaussians {largest_n} with an image of {largest_image} pixels (--resolutions)"),
+    )?;
     if args.device == DeviceSpec::Cpu {
         run_splat_cpu(args)
     } else {

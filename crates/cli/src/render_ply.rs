@@ -10,6 +10,11 @@ use f3g_splat::{Camera, RenderOptions, cpu, ply};
 
 use crate::device::DeviceSpec;
 
+/// Host bytes a forward render holds per pixel (colour, alpha, depth, transmittance,
+/// contributor count, the PNG's buffer) and per Gaussian (parameters, projection, tile lists).
+const RENDER_BYTES_PER_PIXEL: u64 = 48;
+const RENDER_BYTES_PER_GAUSSIAN: u64 = 400;
+
 /// Render a 3DGS `.ply` file with a pinhole camera.
 #[derive(Args, Debug)]
 pub struct RenderPlyArgs {
@@ -79,6 +84,18 @@ pub fn run(args: &RenderPlyArgs) -> Result<()> {
     let options = RenderOptions {
         alpha_max: args.alpha_max,
     };
+    let pixels = camera.width as u64 * camera.height as u64;
+    crate::memory::ensure_fits(
+        pixels * RENDER_BYTES_PER_PIXEL + cloud.len() as u64 * RENDER_BYTES_PER_GAUSSIAN,
+        crate::memory::available_bytes(),
+        &format!(
+            "rendering {} Gaussians at {}x{} ({})",
+            cloud.len(),
+            camera.width,
+            camera.height,
+            args.camera.display()
+        ),
+    )?;
     let (color, visible) = if args.device == DeviceSpec::Cpu {
         let out = cpu::render(&cloud.slices(), &camera, args.background, &options)
             .with_context(|| format!("rendering {}", args.ply.display()))?;

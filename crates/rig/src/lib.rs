@@ -31,7 +31,5 @@ pub use error::RigError;
 pub use params::{ModelDefinition, ParameterTransform, parse_model, read_model_file};
 pub use rig::{JointModel, Mesh, Parameterization, Posed, Rig, RigParams, vertex_normals};
 pub use skeleton::{Joint, JointPose, PARAMS_PER_JOINT, Similarity, Skeleton, euler_xyz};
-pub use skin::{
-    MAX_INFLUENCES, PointTransform, SkinWeights, point_transforms, skin_gaussians, skin_points,
-};
+pub use skin::{MAX_INFLUENCES, PointTransform, SkinWeights, point_transforms, skin_points};
 pub use spec::ModelSpec;

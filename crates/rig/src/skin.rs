@@ -162,21 +162,6 @@ pub fn point_transforms(transforms: &[Affine3A], skin: &SkinWeights) -> Vec<Poin
         .collect()
 }
 
-/// Poses Gaussians: means as points, rotations (w, x, y, z quaternions as [`Quat`]) rotated by
-/// the rotation part of the blended transform. Scales are unchanged.
-pub fn skin_gaussians(
-    transforms: &[Affine3A],
-    skin: &SkinWeights,
-    means: &[Vec3],
-    rotations: &[Quat],
-) -> (Vec<Vec3>, Vec<Quat>) {
-    point_transforms(transforms, skin)
-        .par_iter()
-        .zip(means.par_iter().zip(rotations))
-        .map(|(t, (m, q))| (t.affine.transform_point3(*m), (t.rotation * *q).normalize()))
-        .unzip()
-}
-
 /// The rotation closest to `m` (the orthogonal polar factor), for matrices with positive
 /// determinant such as blends of rotations, by Newton's iteration `X ← ½(γX + (γX)⁻ᵀ/γ)`
 /// with determinant scaling γ.
@@ -266,15 +251,18 @@ mod tests {
             let m = Mat3::from_quat(q) * scales;
             m * m.transpose()
         };
-        let (means, rots) = skin_gaussians(&transforms, &skin, &[Vec3::new(1.0, 0.0, 0.0)], &[q]);
+        // A Gaussian posed as training poses it: mean by the blended transform, rotation by
+        // the blend's nearest rotation.
+        let t = point_transforms(&transforms, &skin)[0];
+        let (mean, rot) = (t.affine.transform_point3(Vec3::X), t.rotation * q);
         let expected = Mat3::from_quat(r) * sigma(q) * Mat3::from_quat(r).transpose();
         assert!(
-            (sigma(rots[0]) - expected)
+            (sigma(rot) - expected)
                 .abs()
                 .to_cols_array()
                 .iter()
                 .all(|v| *v < 1e-7)
         );
-        assert!((means[0] - (r * Vec3::X + Vec3::new(0.1, 0.2, 0.3))).length() < 1e-6);
+        assert!((mean - (r * Vec3::X + Vec3::new(0.1, 0.2, 0.3))).length() < 1e-6);
     }
 }
