@@ -25,6 +25,28 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
+    /// How many of the `per_unit` keys from `start` have each digit at `shift`, into `own`
+    /// (cleared first: local arrays start undefined on CUDA).
+    #[cube]
+    fn digit_counts(
+        keys: &Tensor<u32>,
+        start: usize,
+        shift: u32,
+        own: &mut Array<i32>,
+        #[comptime] per_unit: usize,
+    ) {
+        for b in 0..16usize {
+            own[b] = 0i32;
+        }
+        for j in 0..per_unit {
+            let g = start + j;
+            if g < keys.len() {
+                let bin = usize::cast_from((keys[g] >> shift) & 15u32);
+                own[bin] += 1i32;
+            }
+        }
+    }
+
     /// `hist[bin · blocks + block]` = how many keys of the block have digit `bin` at `shift`.
     #[cube(launch)]
     pub fn count(
@@ -37,18 +59,17 @@ mod kernels {
     ) {
         let t = UNIT_POS as usize;
         let block = CUBE_POS;
-        let n = keys.len();
         let mut counts = Shared::<[i32]>::new_slice(comptime![16 * units]);
+        let mut own = Array::<i32>::new(16usize);
+        digit_counts(
+            keys,
+            (block * units + t) * per_unit,
+            shift,
+            &mut own,
+            per_unit,
+        );
         for b in 0..16usize {
-            counts[b * units + t] = 0i32;
-        }
-        let start = (block * units + t) * per_unit;
-        for j in 0..per_unit {
-            let g = start + j;
-            if g < n {
-                let bin = usize::cast_from((keys[g] >> shift) & 15u32);
-                counts[bin * units + t] += 1i32;
-            }
+            counts[b * units + t] = own[b];
         }
         sync_cube();
         // Pairwise sums with doubling strides; unit 0 ends with the block's totals.
@@ -86,20 +107,13 @@ mod kernels {
         let block = CUBE_POS;
         let n = keys.len();
         let mut counts = Shared::<[i32]>::new_slice(comptime![16 * units]);
-        // Local arrays start undefined on CUDA (WGSL zeroes them): clear them.
+        let start = (block * units + t) * per_unit;
         let mut own = Array::<i32>::new(16usize);
+        digit_counts(keys, start, shift, &mut own, per_unit);
+        // Local arrays start undefined on CUDA (WGSL zeroes them): clear before counting.
         let mut seen = Array::<i32>::new(16usize);
         for b in 0..16usize {
-            own[b] = 0i32;
             seen[b] = 0i32;
-        }
-        let start = (block * units + t) * per_unit;
-        for j in 0..per_unit {
-            let g = start + j;
-            if g < n {
-                let bin = usize::cast_from((keys[g] >> shift) & 15u32);
-                own[bin] += 1i32;
-            }
         }
         for b in 0..16usize {
             counts[b * units + t] = own[b];
