@@ -317,32 +317,9 @@ fn slices_of_a_larger_tensor_render_like_contiguous_ones() {
     assert_eq!(values(&a.color), values(&b.color));
 }
 
-/// 8 200 Gaussians that each cover all 262 144 tiles of an 8192² image: 2.15 × 10⁹ pairs, past
-/// what 32-bit tile offsets can index.
-pub fn overflowing_scene() -> (GaussianCloud, f3g_splat::Camera) {
-    let n = 8_200;
-    let cloud = GaussianCloud {
-        means: vec![0.0; 3 * n],
-        log_scales: vec![5f32.ln(); 3 * n],
-        quats: [1.0, 0.0, 0.0, 0.0].repeat(n),
-        opacity_logits: vec![5.0; n],
-        sh: vec![0.5; 3 * n],
-        sh_degree: 0,
-    };
-    let camera = f3g_splat::Camera::look_at(
-        [0.0, 0.0, 3.0],
-        [0.0; 3],
-        [0.0, 1.0, 0.0],
-        4000.0,
-        8192,
-        8192,
-    );
-    (cloud, camera)
-}
-
 #[test]
 fn too_many_intersections_is_an_error_not_a_wrapped_count() {
-    let (cloud, camera) = overflowing_scene();
+    let (cloud, camera) = common::overflowing_scene();
     let device = Device::flex();
     let bg = Tensor::<1>::zeros([3], &device);
     let err = render(

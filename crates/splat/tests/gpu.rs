@@ -558,24 +558,8 @@ fn every_accumulation_the_device_has_gives_the_same_gradients() {
 
 #[test]
 fn too_many_intersections_is_an_error_on_the_gpu_too() {
-    // The CPU test's scene (tests/burn_op.rs): 2.15 × 10⁹ pairs wrap the i32 scan.
-    let n = 8_200;
-    let cloud = f3g_splat::GaussianCloud {
-        means: vec![0.0; 3 * n],
-        log_scales: vec![5f32.ln(); 3 * n],
-        quats: [1.0, 0.0, 0.0, 0.0].repeat(n),
-        opacity_logits: vec![5.0; n],
-        sh: vec![0.5; 3 * n],
-        sh_degree: 0,
-    };
-    let camera = f3g_splat::Camera::look_at(
-        [0.0, 0.0, 3.0],
-        [0.0; 3],
-        [0.0, 1.0, 0.0],
-        4000.0,
-        8192,
-        8192,
-    );
+    // 2.15 × 10⁹ pairs: they wrap the i32 scan.
+    let (cloud, camera) = common::overflowing_scene();
     let device = test_device();
     let bg = burn::tensor::Tensor::<1>::zeros([3], &device);
     let err = f3g_splat::render(&cloud.to_tensors(&device), &camera, bg, &Default::default())

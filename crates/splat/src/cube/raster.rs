@@ -80,6 +80,33 @@ mod kernels {
         }
     }
 
+    /// Puts Gaussian `id`'s screen values and pixel box into slot `t` of the shared batch. The
+    /// box is the CPU's `pixel_box` before clipping: pixels whose centre `i + 0.5` lies within
+    /// the radius of the mean (in f32 `m − r − ½` rounds, but never across a whole number, so
+    /// `ceil` and `floor` agree with the CPU's f64).
+    #[cube]
+    fn load_gaussian(
+        screen: &Tensor<f32>,
+        radii: &Tensor<i32>,
+        id: i32,
+        t: usize,
+        gaussians: &mut Shared<[f32]>,
+        boxes: &mut Shared<[i32]>,
+    ) {
+        let id = usize::cast_from(id);
+        for j in 0..10usize {
+            gaussians[10 * t + j] = screen[10 * id + j];
+        }
+        let rx = f32::cast_from(radii[2 * id]);
+        let ry = f32::cast_from(radii[2 * id + 1]);
+        let mx = screen[10 * id];
+        let my = screen[10 * id + 1];
+        boxes[4 * t] = i32::cast_from(f32::ceil(mx - rx - 0.5f32));
+        boxes[4 * t + 1] = i32::cast_from(f32::floor(mx + rx - 0.5f32));
+        boxes[4 * t + 2] = i32::cast_from(f32::ceil(my - ry - 0.5f32));
+        boxes[4 * t + 3] = i32::cast_from(f32::floor(my + ry - 0.5f32));
+    }
+
     /// Composites the tile `CUBE_POS_X, CUBE_POS_Y` front to back.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
@@ -147,22 +174,7 @@ mod kernels {
             }
             let slot = batch_start + t;
             if slot < end {
-                // The Gaussian's screen values and pixel box (the CPU's `pixel_box` before
-                // clipping: pixels whose centre `i + 0.5` lies within the radius of the mean;
-                // in f32 `m − r − ½` rounds, but never across a whole number, so `ceil` and
-                // `floor` agree with the CPU's f64).
-                let id = usize::cast_from(ids[slot]);
-                for j in 0..10usize {
-                    gaussians[10 * t + j] = screen[10 * id + j];
-                }
-                let rx = f32::cast_from(radii[2 * id]);
-                let ry = f32::cast_from(radii[2 * id + 1]);
-                let mx = screen[10 * id];
-                let my = screen[10 * id + 1];
-                boxes[4 * t] = i32::cast_from(f32::ceil(mx - rx - 0.5f32));
-                boxes[4 * t + 1] = i32::cast_from(f32::floor(mx + rx - 0.5f32));
-                boxes[4 * t + 2] = i32::cast_from(f32::ceil(my - ry - 0.5f32));
-                boxes[4 * t + 3] = i32::cast_from(f32::floor(my + ry - 0.5f32));
+                load_gaussian(screen, radii, ids[slot], t, &mut gaussians, &mut boxes);
             }
             sync_cube();
             let mut batch = batch_start + units;
@@ -303,22 +315,7 @@ mod kernels {
             };
             let slot = batch_start + t;
             if slot < batch_end {
-                // The Gaussian's screen values and pixel box (the CPU's `pixel_box` before
-                // clipping: pixels whose centre `i + 0.5` lies within the radius of the mean;
-                // in f32 `m − r − ½` rounds, but never across a whole number, so `ceil` and
-                // `floor` agree with the CPU's f64).
-                let id = usize::cast_from(ids[slot]);
-                for j in 0..10usize {
-                    gaussians[10 * t + j] = screen[10 * id + j];
-                }
-                let rx = f32::cast_from(radii[2 * id]);
-                let ry = f32::cast_from(radii[2 * id + 1]);
-                let mx = screen[10 * id];
-                let my = screen[10 * id + 1];
-                boxes[4 * t] = i32::cast_from(f32::ceil(mx - rx - 0.5f32));
-                boxes[4 * t + 1] = i32::cast_from(f32::floor(mx + rx - 0.5f32));
-                boxes[4 * t + 2] = i32::cast_from(f32::ceil(my - ry - 0.5f32));
-                boxes[4 * t + 3] = i32::cast_from(f32::floor(my + ry - 0.5f32));
+                load_gaussian(screen, radii, ids[slot], t, &mut gaussians, &mut boxes);
             }
             sync_cube();
             let batch = batch_end - batch_start;

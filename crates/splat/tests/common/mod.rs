@@ -135,3 +135,26 @@ pub fn loss_weights(seed: u64, pixels: usize) -> (Vec<f64>, Vec<f64>, Vec<f64>) 
         (0..pixels).map(|_| rng.random_range(-0.3..0.3)).collect(),
     )
 }
+
+/// 8 200 Gaussians that each cover all 262 144 tiles of an 8192² image: 2.15 × 10⁹ pairs, past
+/// what 32-bit tile offsets can index.
+pub fn overflowing_scene() -> (f3g_splat::GaussianCloud, Camera) {
+    let n = 8_200;
+    let cloud = f3g_splat::GaussianCloud {
+        means: vec![0.0; 3 * n],
+        log_scales: vec![5f32.ln(); 3 * n],
+        quats: [1.0, 0.0, 0.0, 0.0].repeat(n),
+        opacity_logits: vec![5.0; n],
+        sh: vec![0.5; 3 * n],
+        sh_degree: 0,
+    };
+    let camera = f3g_splat::Camera::look_at(
+        [0.0, 0.0, 3.0],
+        [0.0; 3],
+        [0.0, 1.0, 0.0],
+        4000.0,
+        8192,
+        8192,
+    );
+    (cloud, camera)
+}
