@@ -6,7 +6,7 @@ use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::module::{Module, ModuleVisitor, Param};
-use burn::tensor::Tensor;
+use burn::tensor::{Device, Tensor};
 use f3g_avatar::eval::{EvalOptions, evaluate};
 use f3g_avatar::trained::TrainedAvatar;
 use f3g_avatar::{Outcome, TrainConfig, Trainer};
@@ -76,20 +76,17 @@ fn tiny_body(steps: [u64; 5]) -> TrainConfig {
     }
 }
 
+/// A new run of `config` on `cap` (the protocol's training split) on the CPU.
+fn create(run: &Path, cap: &Path, config: TrainConfig) -> Result<Trainer, f3g_avatar::AvatarError> {
+    Trainer::create(run, cap, None, config, None, None, &Device::flex())
+}
+
 /// Trains a new run of `config` on `cap` to its last step.
 fn train_to_end(run: &Path, cap: &Path, config: TrainConfig) {
-    Trainer::create(
-        run,
-        cap,
-        None,
-        config,
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap()
-    .train(&AtomicBool::new(false), &mut |_| {})
-    .unwrap();
+    create(run, cap, config)
+        .unwrap()
+        .train(&AtomicBool::new(false), &mut |_| {})
+        .unwrap();
 }
 
 /// Every float parameter's values, in visiting order.
@@ -128,16 +125,7 @@ fn training_lowers_the_loss_and_reaches_every_network() {
     capture(&dir.path().join("cap"));
     let run = dir.path().join("run");
     let config = tiny([30, 25, 3, 6, 2]);
-    let mut t = Trainer::create(
-        &run,
-        &dir.path().join("cap"),
-        None,
-        config,
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap();
+    let mut t = create(&run, &dir.path().join("cap"), config).unwrap();
     let stop = AtomicBool::new(false);
     let mut trainer_steps = 0;
     let outcome = t.train(&stop, &mut |_| trainer_steps += 1).unwrap();
@@ -176,36 +164,17 @@ fn every_network_and_the_discriminator_are_updated() {
     let before = dir.path().join("before");
     let after = dir.path().join("after");
     let stop = AtomicBool::new(false);
-    let mut t = Trainer::create(
-        &before,
-        &cap,
-        None,
-        tiny([2, 2, 0, 0, 0]),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap();
+    let mut t = create(&before, &cap, tiny([2, 2, 0, 0, 0])).unwrap();
     t.train(&stop, &mut |_| {}).unwrap();
-    let mut u = Trainer::create(
-        &after,
-        &cap,
-        None,
-        tiny([2, 2, 2, 3, 2]),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap();
+    let mut u = create(&after, &cap, tiny([2, 2, 2, 3, 2])).unwrap();
     u.train(&stop, &mut |_| {}).unwrap();
-    let b = TrainedAvatar::load(&before, &burn::tensor::Device::flex()).unwrap();
-    let a = TrainedAvatar::load(&after, &burn::tensor::Device::flex()).unwrap();
+    let b = TrainedAvatar::load(&before, &Device::flex()).unwrap();
+    let a = TrainedAvatar::load(&after, &Device::flex()).unwrap();
     let face_init = tiny([1, 0, 0, 0, 0]);
-    let fresh_face =
-        f3g_avatar::model::AvatarNets::new(&face_init, &a.setup, &burn::tensor::Device::flex())
-            .unwrap()
-            .face
-            .unwrap();
+    let fresh_face = f3g_avatar::model::AvatarNets::new(&face_init, &a.setup, &Device::flex())
+        .unwrap()
+        .face
+        .unwrap();
     // The body moved between step 4 and the end (joint stage), and so did the face networks
     // from their initial weights.
     assert_ne!(values(&b.nets.body), values(&a.nets.body));
@@ -244,18 +213,10 @@ fn every_network_and_the_discriminator_are_updated() {
     let weights = after.join("checkpoints").join(ckpt.trim()).join("disc.bpk");
     config.discriminator_weights = Some(weights.to_string_lossy().into_owned());
     let third = dir.path().join("third");
-    Trainer::create(
-        &third,
-        &cap,
-        None,
-        config.clone(),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap()
-    .train(&stop, &mut |_| {})
-    .unwrap();
+    create(&third, &cap, config.clone())
+        .unwrap()
+        .train(&stop, &mut |_| {})
+        .unwrap();
     let ckpt3 = std::fs::read_to_string(third.join("checkpoints/latest")).unwrap();
     let d3 = f3g_nets::checkpoint::load(
         face_init.discriminator.init(0, &device).unwrap(),
@@ -267,18 +228,10 @@ fn every_network_and_the_discriminator_are_updated() {
     .unwrap();
     assert_eq!(values(&d1), values(&d3));
     config.discriminator_weights = Some("missing.bpk".into());
-    let e = Trainer::create(
-        &dir.path().join("fourth"),
-        &cap,
-        None,
-        config,
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .err()
-    .unwrap()
-    .to_string();
+    let e = create(&dir.path().join("fourth"), &cap, config)
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("missing.bpk"), "{e}");
 }
 
@@ -290,31 +243,14 @@ fn a_killed_run_resumes_exactly() {
     let steps = [2, 2, 1, 3, 1];
     let whole = dir.path().join("whole");
     let stop = AtomicBool::new(false);
-    Trainer::create(
-        &whole,
-        &cap,
-        None,
-        tiny(steps),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap()
-    .train(&stop, &mut |_| {})
-    .unwrap();
+    create(&whole, &cap, tiny(steps))
+        .unwrap()
+        .train(&stop, &mut |_| {})
+        .unwrap();
     // Stop after step 5 (inside the face stages), reopen, finish.
     let parts = dir.path().join("parts");
     let stop = AtomicBool::new(false);
-    let mut t = Trainer::create(
-        &parts,
-        &cap,
-        None,
-        tiny(steps),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap();
+    let mut t = create(&parts, &cap, tiny(steps)).unwrap();
     let outcome = t
         .train(&stop, &mut |r| {
             if r.step == 5 {
@@ -324,12 +260,12 @@ fn a_killed_run_resumes_exactly() {
         .unwrap();
     assert_eq!(outcome, Outcome::Stopped);
     drop(t);
-    let mut t = Trainer::resume(&parts, None, &burn::tensor::Device::flex()).unwrap();
+    let mut t = Trainer::resume(&parts, None, &Device::flex()).unwrap();
     assert_eq!(t.step(), 6);
     t.train(&AtomicBool::new(false), &mut |_| {}).unwrap();
     let (a, b) = (
-        TrainedAvatar::load(&whole, &burn::tensor::Device::flex()).unwrap(),
-        TrainedAvatar::load(&parts, &burn::tensor::Device::flex()).unwrap(),
+        TrainedAvatar::load(&whole, &Device::flex()).unwrap(),
+        TrainedAvatar::load(&parts, &Device::flex()).unwrap(),
     );
     assert_eq!(values(&a.nets), values(&b.nets));
     assert_eq!(a.face_base, b.face_base);
@@ -354,18 +290,10 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
         lpips_net: LpipsNet::Alex,
         out: None,
     };
-    let report = evaluate(
-        &run,
-        None,
-        None,
-        &options,
-        &burn::tensor::Device::flex(),
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let report = evaluate(&run, None, None, &options, &Device::flex(), &mut |_, _| {}).unwrap();
     assert!(!report.images.is_empty() && report.lpips_available);
     let images = run.join("eval/novel-view/images");
-    let lpips = f3g_nets::Lpips::load(LpipsNet::Alex, &burn::tensor::Device::flex()).unwrap();
+    let lpips = f3g_nets::Lpips::load(LpipsNet::Alex, &Device::flex()).unwrap();
     let device = burn::tensor::Device::flex();
     for i in &report.images {
         let name = format!("{}_{:08}", i.camera, i.frame);
@@ -417,15 +345,7 @@ fn novel_view_psnr(run: &Path) -> (f64, f64, f64) {
         lpips_net: LpipsNet::Alex,
         out: None,
     };
-    let report = evaluate(
-        run,
-        None,
-        None,
-        &options,
-        &burn::tensor::Device::flex(),
-        &mut |_, _| {},
-    )
-    .unwrap();
+    let report = evaluate(run, None, None, &options, &Device::flex(), &mut |_, _| {}).unwrap();
     let images = run.join("eval/novel-view/images");
     let mut flat = 0.0;
     for i in &report.images {
@@ -536,27 +456,16 @@ fn a_diverged_run_stops_at_the_first_non_finite_loss_and_keeps_its_checkpoint() 
     capture(&cap);
     let run = dir.path().join("run");
     let config = tiny([4, 2, 0, 0, 0]);
-    let mut t = Trainer::create(
-        &run,
-        &cap,
-        None,
-        config.clone(),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .unwrap();
+    let mut t = create(&run, &cap, config.clone()).unwrap();
     t.train(&AtomicBool::new(true), &mut |_| {}).unwrap();
     assert_eq!(t.step(), 1);
     drop(t);
     // Poison the networks of the checkpoint and resume: step 1 meets a NaN loss.
     let ckpt = run.join("checkpoints/step-000000001");
-    let nets = TrainedAvatar::load(&run, &burn::tensor::Device::flex())
-        .unwrap()
-        .nets;
+    let nets = TrainedAvatar::load(&run, &Device::flex()).unwrap().nets;
     f3g_nets::checkpoint::save(nets.map(&mut Poison), &ckpt.join("nets.bpk")).unwrap();
     let log_before = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
-    let mut t = Trainer::resume(&run, None, &burn::tensor::Device::flex()).unwrap();
+    let mut t = Trainer::resume(&run, None, &Device::flex()).unwrap();
     let e = t.train(&AtomicBool::new(false), &mut |_| {}).unwrap_err();
     let text = e.to_string();
     assert!(
@@ -587,18 +496,10 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     let run = dir.path().join("run");
     train_to_end(&run, &cap, tiny([1, 1, 0, 0, 0]));
     // A second run into the same folder is refused.
-    let e = Trainer::create(
-        &run,
-        &cap,
-        None,
-        tiny([1, 1, 0, 0, 0]),
-        None,
-        None,
-        &burn::tensor::Device::flex(),
-    )
-    .err()
-    .unwrap()
-    .to_string();
+    let e = create(&run, &cap, tiny([1, 1, 0, 0, 0]))
+        .err()
+        .unwrap()
+        .to_string();
     assert!(e.contains("already holds a run"), "{e}");
     // A corrupted checkpoint names the file; the files stay as they were.
     let ckpt = run.join("checkpoints").join(
@@ -608,7 +509,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     );
     let nets = ckpt.join("nets.bpk");
     std::fs::write(&nets, b"not a checkpoint").unwrap();
-    let e = Trainer::resume(&run, None, &burn::tensor::Device::flex())
+    let e = Trainer::resume(&run, None, &Device::flex())
         .err()
         .unwrap()
         .to_string();
@@ -620,7 +521,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
         .unwrap()
         .replace("\"model\": \"builtin\"", "\"model\": \"smplx:other.npz\"");
     std::fs::write(&info, text).unwrap();
-    let e = Trainer::resume(&run, None, &burn::tensor::Device::flex())
+    let e = Trainer::resume(&run, None, &Device::flex())
         .err()
         .unwrap()
         .to_string();
@@ -634,7 +535,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     let e = TrainConfig::from_file(&cfg).unwrap_err().to_string();
     assert!(e.contains("losses.l1"), "{e}");
     // Not a run at all.
-    let e = TrainedAvatar::load(&cap, &burn::tensor::Device::flex())
+    let e = TrainedAvatar::load(&cap, &Device::flex())
         .err()
         .unwrap()
         .to_string();
@@ -661,7 +562,7 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
     capture(&cap);
     let run = dir.path().join("run");
     train_to_end(&run, &cap, tiny_body([5, 30, 0, 0, 0]));
-    let avatar = TrainedAvatar::load(&run, &burn::tensor::Device::flex()).unwrap();
+    let avatar = TrainedAvatar::load(&run, &Device::flex()).unwrap();
     let ds = f3g_data::Dataset::open(&cap, None).unwrap();
     let params = &ds.params[1];
     let export = |degree: usize, up: Up| {

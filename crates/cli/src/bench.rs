@@ -192,6 +192,15 @@ pub const FORWARD_FLOPS_PER_EVAL: f64 = 20.0;
 /// FLOPs of one backward evaluation (the forward recomputation plus the gradient terms).
 pub const BACKWARD_FLOPS_PER_EVAL: f64 = 60.0;
 
+/// The random colour gradient `[pixels, 3]` the backward is timed with (the same on every
+/// device for a seed).
+fn colour_gradient(seed: u64, pixels: usize) -> Vec<f32> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0xbe7c);
+    (0..3 * pixels)
+        .map(|_| rng.random_range(-1.0..1.0))
+        .collect()
+}
+
 /// The benchmark scene: `n` Gaussians on the unit sphere.
 pub fn sphere_shell(n: usize, seed: u64) -> GaussianCloud {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -385,10 +394,7 @@ fn run_splat_device(args: &SplatBenchArgs) -> Result<()> {
         for &(width, height) in &args.resolutions {
             let camera = bench_camera(width, height);
             let pixels = (width * height) as usize;
-            let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ 0xbe7c);
-            let d_color: Vec<f32> = (0..3 * pixels)
-                .map(|_| rng.random_range(-1.0..1.0))
-                .collect();
+            let d_color = colour_gradient(args.seed, pixels);
             // The work done, counted once by the CPU path.
             let bg = [1.0f32; 3];
             let fwd = cpu::render(&cloud.slices(), &camera, bg, &options)?;
@@ -495,10 +501,7 @@ fn run_splat_cpu(args: &SplatBenchArgs) -> Result<()> {
             bar.set_message(format!("N={n} {width}×{height}"));
             let camera = bench_camera(width, height);
             let pixels = (width * height) as usize;
-            let mut rng = ChaCha8Rng::seed_from_u64(args.seed ^ 0xbe7c);
-            let d_color: Vec<f32> = (0..3 * pixels)
-                .map(|_| rng.random_range(-1.0..1.0))
-                .collect();
+            let d_color = colour_gradient(args.seed, pixels);
             let zeros = vec![0.0f32; pixels];
             let grads = PixelGrads {
                 color: &d_color,

@@ -3,18 +3,7 @@
 
 mod common;
 
-use std::path::Path;
-use std::process::{Command, Output};
-
-use common::ok;
-
-fn f3g(dir: &Path, args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_f3g"))
-        .args(args)
-        .current_dir(dir)
-        .output()
-        .unwrap()
-}
+use common::{f3g_in as f3g, ok};
 
 #[test]
 fn train_resume_evaluate_animate_and_export() {

@@ -8,13 +8,9 @@
 mod common;
 
 use std::path::Path;
-use std::process::{Command, Output};
 
+use common::{f3g_in, ok};
 use f3g_splat::{Camera, GaussianCloud, ply};
-
-fn f3g() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_f3g"))
-}
 
 /// A ring of 300 overlapping Gaussians with SH degree 3.
 fn scene() -> GaussianCloud {
@@ -41,31 +37,49 @@ fn scene() -> GaussianCloud {
     cloud
 }
 
-#[test]
-fn render_ply_on_wgpu_gives_the_cpu_image() {
-    let dir = tempfile::tempdir().unwrap();
-    ply::write_ply(&dir.path().join("scene.ply"), &scene()).unwrap();
-    let camera = Camera::look_at([0.3, 0.2, 2.5], [0.0; 3], [0.0, 1.0, 0.0], 120.0, 96, 80);
+/// `scene.ply` (the ring) and `cam.json` (a `width × height` view of it) in `dir`.
+fn write_scene(dir: &Path, width: u32, height: u32) {
+    ply::write_ply(&dir.join("scene.ply"), &scene()).unwrap();
+    let camera = Camera::look_at(
+        [0.3, 0.2, 2.5],
+        [0.0; 3],
+        [0.0, 1.0, 0.0],
+        120.0,
+        width,
+        height,
+    );
     std::fs::write(
-        dir.path().join("cam.json"),
+        dir.join("cam.json"),
         serde_json::to_string(&camera).unwrap(),
     )
     .unwrap();
+}
+
+#[test]
+fn render_ply_on_wgpu_gives_the_cpu_image() {
+    let dir = tempfile::tempdir().unwrap();
+    write_scene(dir.path(), 96, 80);
     let mut images = Vec::new();
     for device in ["cpu", "wgpu"] {
-        let out = f3g()
-            .args(["render-ply", "--ply", "scene.ply", "--camera", "cam.json"])
-            .args(["--out", &format!("{device}.png")])
-            .args(["--raw", &format!("{device}.npy"), "--device", device])
-            .args(["--background", "0.1,0.2,0.3"])
-            .current_dir(dir.path())
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{device}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        let (png, npy) = (format!("{device}.png"), format!("{device}.npy"));
+        ok(&f3g_in(
+            dir.path(),
+            &[
+                "render-ply",
+                "--ply",
+                "scene.ply",
+                "--camera",
+                "cam.json",
+                "--out",
+                &png,
+                "--raw",
+                &npy,
+                "--device",
+                device,
+                "--background",
+                "0.1,0.2,0.3",
+            ],
+        ));
         let (shape, raw) = f3g_io::read_npy_f32(&dir.path().join(format!("{device}.npy"))).unwrap();
         assert_eq!(shape, vec![80, 96, 3]);
         images.push(raw);
@@ -85,24 +99,23 @@ fn render_ply_on_wgpu_gives_the_cpu_image() {
 #[test]
 fn bench_splat_on_wgpu_writes_its_measurements() {
     let dir = tempfile::tempdir().unwrap();
-    let out = f3g()
-        .args(["bench", "splat", "--device", "wgpu", "--gaussians", "2000"])
-        .args([
+    ok(&f3g_in(
+        dir.path(),
+        &[
+            "bench",
+            "splat",
+            "--device",
+            "wgpu",
+            "--gaussians",
+            "2000",
             "--resolutions",
             "64,96x48",
             "--repeats",
             "1",
             "--json",
             "b.json",
-        ])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+        ],
+    ));
     let doc: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(dir.path().join("b.json")).unwrap()).unwrap();
     assert_eq!(doc["device"], "wgpu");
@@ -122,19 +135,21 @@ fn bench_splat_on_wgpu_writes_its_measurements() {
 #[test]
 fn a_missing_adapter_is_an_error_listing_the_adapters() {
     let dir = tempfile::tempdir().unwrap();
-    ply::write_ply(&dir.path().join("scene.ply"), &scene()).unwrap();
-    let camera = Camera::look_at([0.3, 0.2, 2.5], [0.0; 3], [0.0, 1.0, 0.0], 120.0, 32, 32);
-    std::fs::write(
-        dir.path().join("cam.json"),
-        serde_json::to_string(&camera).unwrap(),
-    )
-    .unwrap();
-    let out = f3g()
-        .args(["render-ply", "--ply", "scene.ply", "--camera", "cam.json"])
-        .args(["--out", "x.png", "--device", "wgpu:99"])
-        .current_dir(dir.path())
-        .output()
-        .unwrap();
+    write_scene(dir.path(), 32, 32);
+    let out = f3g_in(
+        dir.path(),
+        &[
+            "render-ply",
+            "--ply",
+            "scene.ply",
+            "--camera",
+            "cam.json",
+            "--out",
+            "x.png",
+            "--device",
+            "wgpu:99",
+        ],
+    );
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -144,22 +159,6 @@ fn a_missing_adapter_is_an_error_listing_the_adapters() {
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
 
-fn run_in(dir: &Path, args: &[&str]) -> Output {
-    f3g().args(args).current_dir(dir).output().unwrap()
-}
-
-/// The `total` loss of every step in a run's `log.jsonl`.
-fn losses(run: &Path) -> Vec<f64> {
-    std::fs::read_to_string(run.join("log.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            let v: serde_json::Value = serde_json::from_str(l).unwrap();
-            v["total"].as_f64().unwrap()
-        })
-        .collect()
-}
-
 /// One test, so that lavapipe compiles the kernels of each command once: training on wgpu
 /// follows the CPU run and resumes on the CPU; the CPU-trained run evaluates, animates and
 /// exports on wgpu as on the CPU.
@@ -167,7 +166,7 @@ fn losses(run: &Path) -> Vec<f64> {
 fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    common::ok(&run_in(
+    ok(&f3g_in(
         d,
         &[
             "synth",
@@ -186,12 +185,12 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
     )
     .unwrap();
     let train = ["train", "--data", "cap", "--config", "tiny.json", "--out"];
-    common::ok(&run_in(
+    ok(&f3g_in(
         d,
         &[&train[..], &["cpu", "--device", "cpu"]].concat(),
     ));
     // Three steps on wgpu (through the face model's construction), the rest on the CPU.
-    common::ok(&run_in(
+    ok(&f3g_in(
         d,
         &[
             &train[..],
@@ -206,16 +205,19 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
         v["device"].as_str().unwrap().to_string()
     };
     assert!(written_on("step-000000003").contains("Cube"));
-    common::ok(&run_in(
+    ok(&f3g_in(
         d,
         &["train", "--resume", "mixed", "--device", "cpu"],
     ));
     assert!(written_on("step-000000005").contains("Flex"));
-    let (cpu, mixed) = (losses(&d.join("cpu")), losses(&d.join("mixed")));
+    let (cpu, mixed) = (
+        common::losses(&d.join("cpu")),
+        common::losses(&d.join("mixed")),
+    );
     assert_eq!((cpu.len(), mixed.len()), (5, 5));
     // Same initialisation (seeded on the host), same samples: the same losses to float
     // rounding, step after step (LPIPS and adversarial terms included).
-    for (step, (c, m)) in cpu.iter().zip(&mixed).enumerate() {
+    for (&(step, c), &(_, m)) in cpu.iter().zip(&mixed) {
         assert!(
             (c - m).abs() <= 2e-3 * c.abs().max(1e-3),
             "step {step}: cpu {c} vs wgpu then cpu {m}"
@@ -225,7 +227,7 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
     let mut metrics = Vec::new();
     for device in ["cpu", "wgpu"] {
         let out = format!("eval-{device}");
-        common::ok(&run_in(
+        ok(&f3g_in(
             d,
             &[
                 "eval", "cpu", "--every", "2", "--out", &out, "--device", device,
@@ -236,7 +238,7 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
         )
         .unwrap();
         metrics.push(m);
-        common::ok(&run_in(
+        ok(&f3g_in(
             d,
             &[
                 "animate",
@@ -251,7 +253,7 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
                 device,
             ],
         ));
-        common::ok(&run_in(
+        ok(&f3g_in(
             d,
             &[
                 "export-ply",

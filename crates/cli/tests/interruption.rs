@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::ok;
+use common::{losses, ok};
 use f3g_avatar::trained::TrainedAvatar;
 
 mod common;
@@ -59,18 +59,6 @@ fn new_run(d: &Path, name: &str) -> Command {
     let mut c = f3g(d);
     c.args(args);
     c
-}
-
-/// `(step, total loss)` of every line of a run's log.
-fn losses(run: &Path) -> Vec<(u64, f64)> {
-    std::fs::read_to_string(run.join("log.jsonl"))
-        .unwrap_or_default()
-        .lines()
-        .map(|l| {
-            let v: serde_json::Value = serde_json::from_str(l).unwrap();
-            (v["step"].as_u64().unwrap(), v["total"].as_f64().unwrap())
-        })
-        .collect()
 }
 
 fn files(dir: &Path, out: &mut Vec<PathBuf>) {

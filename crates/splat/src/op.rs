@@ -22,7 +22,7 @@ use burn::backend::autodiff::{
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{AutodiffBackend, Backend, Dispatch, ExtensionType, Flex, backend_extension};
-use burn::tensor::{DType, Element, Int, Tensor, TensorData};
+use burn::tensor::{DType, Element, Int, IntDType, Shape, Tensor, TensorData};
 
 use crate::cpu::{self, ForwardOutput, GaussianSlices, PixelGrads, RenderOptions, TileBins};
 use crate::cpu::{Projected, ScreenGaussian};
@@ -162,6 +162,29 @@ fn screen_from_floats(
         .collect()
 }
 
+/// What [`SplatBackend::splat_forward`] returns for rejected inputs: the error and empty
+/// placeholders, so that a request refused for its size allocates nothing of that size.
+pub(crate) fn rejected<B: Backend>(
+    error: SplatError,
+    device: &<B as burn::backend::BackendTypes>::Device,
+    dtype: DType,
+) -> SplatForward<B> {
+    let float = |shape: Vec<usize>| B::float_zeros(Shape::from(shape), device, dtype.into());
+    let int = |shape: Vec<usize>| B::int_zeros(Shape::from(shape), device, IntDType::I32);
+    SplatForward {
+        image: float(vec![0, 0, PACKED_CHANNELS]),
+        state: RasterState {
+            screen: float(vec![0, SCREEN_FLOATS]),
+            radii: int(vec![0, 2]),
+            tile_offsets: int(vec![0]),
+            tile_ids: int(vec![0]),
+            final_transmittance: float(vec![0, 0]),
+            n_contrib: int(vec![0, 0]),
+        },
+        error: Some(error),
+    }
+}
+
 impl SplatBackend for Flex {
     fn splat_forward(
         inputs: GaussianTensors<Self>,
@@ -187,19 +210,7 @@ impl SplatBackend for Flex {
         let bg = [0, 1, 2].map(|c| background.get(c).copied().unwrap_or(f32::NAN));
         match cpu::render(&slices, &camera, bg, &options) {
             Ok(fwd) => pack_forward(fwd, w, h, dtype),
-            // Empty placeholders: a request that failed for its size allocates nothing of it.
-            Err(error) => SplatForward {
-                image: flex_tensor(Vec::<f32>::new(), &[0, 0, PACKED_CHANNELS], dtype),
-                state: RasterState {
-                    screen: flex_tensor(Vec::<f32>::new(), &[0, SCREEN_FLOATS], dtype),
-                    radii: flex_int(Vec::<i32>::new(), &[0, 2]),
-                    tile_offsets: flex_int(Vec::<u32>::new(), &[0]),
-                    tile_ids: flex_int(Vec::<u32>::new(), &[0]),
-                    final_transmittance: flex_tensor(Vec::<f32>::new(), &[0, 0], dtype),
-                    n_contrib: flex_int(Vec::<u32>::new(), &[0, 0]),
-                },
-                error: Some(error),
-            },
+            Err(error) => rejected(error, &Default::default(), dtype),
         }
     }
 
@@ -474,32 +485,57 @@ impl Gaussians {
 
     /// Checks that all shapes agree with `[N,3]`, `[N,3]`, `[N,4]`, `[N]`, `[N,K,3]`.
     pub fn validate_shapes(&self) -> Result<(), SplatError> {
-        let n = self.len();
-        let check = |name: &'static str, got: Vec<usize>, expected: Vec<usize>, text: &str| {
-            if got != expected {
-                return Err(SplatError::Shape {
-                    name,
-                    got,
-                    expected: format!("{text} with N = {n}"),
-                });
-            }
-            Ok(())
-        };
-        check("means", self.means.dims().to_vec(), vec![n, 3], "[N, 3]")?;
-        check(
-            "log_scales",
-            self.log_scales.dims().to_vec(),
-            vec![n, 3],
-            "[N, 3]",
-        )?;
-        check("quats", self.quats.dims().to_vec(), vec![n, 4], "[N, 4]")?;
-        let [sn, k, c] = self.sh.dims();
-        check("sh", vec![sn, k, c], vec![n, k, 3], "[N, K, 3]")?;
-        if crate::sh::degree_for(k).is_none() {
-            return Err(SplatError::ShDegree { coeffs: k });
+        check_gaussian_shapes(
+            self.len(),
+            &self.means.dims(),
+            &self.log_scales.dims(),
+            &self.quats.dims(),
+            &self.sh.dims(),
+        )
+    }
+}
+
+/// Checks the shapes of a render's inputs against `[N, 3]` (means, log-scales), `[N, 4]`
+/// (quaternions) and `[N, K, 3]` (SH, K = (degree + 1)² for a degree 0..=3), naming the first
+/// field that differs. Every backend's op checks through here.
+pub(crate) fn check_gaussian_shapes(
+    n: usize,
+    means: &[usize],
+    log_scales: &[usize],
+    quats: &[usize],
+    sh: &[usize],
+) -> Result<(), SplatError> {
+    let check = |name: &'static str, got: &[usize], expected: &[usize], text: &str| {
+        if got != expected {
+            return Err(SplatError::Shape {
+                name,
+                got: got.to_vec(),
+                expected: format!("{text} with N = {n}"),
+            });
         }
         Ok(())
+    };
+    check("means", means, &[n, 3], "[N, 3]")?;
+    check("log_scales", log_scales, &[n, 3], "[N, 3]")?;
+    check("quats", quats, &[n, 4], "[N, 4]")?;
+    let k = sh.get(1).copied().unwrap_or(0);
+    check("sh", sh, &[n, k, 3], "[N, K, 3]")?;
+    if crate::sh::degree_for(k).is_none() {
+        return Err(SplatError::ShDegree { coeffs: k });
     }
+    Ok(())
+}
+
+/// Checks that a background has shape `[3]`.
+pub(crate) fn check_background_shape(shape: &[usize]) -> Result<(), SplatError> {
+    if shape != [3] {
+        return Err(SplatError::Shape {
+            name: "background",
+            got: shape.to_vec(),
+            expected: "[3]".into(),
+        });
+    }
+    Ok(())
 }
 
 /// A rendered image and per-Gaussian statistics.
@@ -525,13 +561,7 @@ pub fn render(
     camera.validate()?;
     options.validate()?;
     gaussians.validate_shapes()?;
-    if background.dims() != [3] {
-        return Err(SplatError::Shape {
-            name: "background",
-            got: background.dims().to_vec(),
-            expected: "[3]".into(),
-        });
-    }
+    check_background_shape(&background.dims())?;
     let inputs = GaussianTensors {
         means: gaussians.means.clone().into_dispatch(),
         log_scales: gaussians.log_scales.clone().into_dispatch(),

@@ -1,7 +1,30 @@
-//! What the end-to-end tests of training share: the success check and the tiny configuration.
+//! What the end-to-end tests share: running the binary, the success check and the tiny
+//! training configuration.
 #![allow(dead_code)]
 
-use std::process::Output;
+use std::path::Path;
+use std::process::{Command, Output};
+
+/// Runs the `f3g` binary with `args` in `dir`.
+pub fn f3g_in(dir: &Path, args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_f3g"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .unwrap()
+}
+
+/// `(step, total loss)` of every line of a run's log (none when there is no log yet).
+pub fn losses(run: &Path) -> Vec<(u64, f64)> {
+    std::fs::read_to_string(run.join("log.jsonl"))
+        .unwrap_or_default()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            (v["step"].as_u64().unwrap(), v["total"].as_f64().unwrap())
+        })
+        .collect()
+}
 
 /// Asserts that a command succeeded, showing its output when it did not.
 pub fn ok(out: &Output) {

@@ -9,7 +9,7 @@
 use burn::backend::Cube;
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::{FloatDType, IntDType, Shape};
+use burn::tensor::{DType, FloatDType, IntDType, Shape};
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 
@@ -20,9 +20,10 @@ use super::raster::{Accumulation, rasterize, rasterize_backward};
 use super::scan::grid;
 use crate::cpu::{GaussianSlices, MAX_INTERSECTIONS, RenderOptions};
 use crate::op::{
-    GaussianTensors, PACKED_CHANNELS, RasterState, SCREEN_FLOATS, SplatBackend, SplatForward,
+    GaussianTensors, RasterState, SplatBackend, SplatForward, check_background_shape,
+    check_gaussian_shapes, rejected,
 };
-use crate::{Camera, SplatError, sh};
+use crate::{Camera, SplatError};
 
 /// Units per cube of the input check.
 const UNITS: usize = 256;
@@ -77,28 +78,14 @@ fn host(t: &FloatTensor<Cube>) -> Vec<f32> {
 
 /// Checks the shapes (metadata only, no device work).
 fn check_shapes(inputs: &GaussianTensors<Cube>) -> Result<(), SplatError> {
-    let n = inputs.opacity_logits.meta.shape()[0];
-    let expect = |name: &'static str, t: &FloatTensor<Cube>, want: Vec<usize>, text: &str| {
-        let got = t.meta.shape().to_vec();
-        if got != want {
-            return Err(SplatError::Shape {
-                name,
-                got,
-                expected: format!("{text} with N = {n}"),
-            });
-        }
-        Ok(())
-    };
-    expect("means", &inputs.means, vec![n, 3], "[N, 3]")?;
-    expect("log_scales", &inputs.log_scales, vec![n, 3], "[N, 3]")?;
-    expect("quats", &inputs.quats, vec![n, 4], "[N, 4]")?;
-    let sh_shape = inputs.sh.meta.shape().to_vec();
-    let k = sh_shape.get(1).copied().unwrap_or(0);
-    expect("sh", &inputs.sh, vec![n, k, 3], "[N, K, 3]")?;
-    if sh::degree_for(k).is_none() {
-        return Err(SplatError::ShDegree { coeffs: k });
-    }
-    expect("background", &inputs.background, vec![3], "[3]")
+    check_gaussian_shapes(
+        inputs.opacity_logits.meta.shape()[0],
+        inputs.means.meta.shape(),
+        inputs.log_scales.meta.shape(),
+        inputs.quats.meta.shape(),
+        inputs.sh.meta.shape(),
+    )?;
+    check_background_shape(inputs.background.meta.shape())
 }
 
 /// The error the CPU path gives for these inputs (called only once the device found a
@@ -128,28 +115,6 @@ fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
         })
 }
 
-/// The placeholders of a rejected render (see [`SplatForward::error`]): empty, so that a
-/// request that failed for its size allocates nothing of that size.
-fn rejected(
-    error: SplatError,
-    device: &<Cube as burn::backend::BackendTypes>::Device,
-) -> SplatForward<Cube> {
-    let int = |shape: Vec<usize>| Cube::int_zeros(Shape::from(shape), device, IntDType::I32);
-    let float = |shape: Vec<usize>| Cube::float_zeros(Shape::from(shape), device, FloatDType::F32);
-    SplatForward {
-        image: float(vec![0, 0, PACKED_CHANNELS]),
-        state: RasterState {
-            screen: float(vec![0, SCREEN_FLOATS]),
-            radii: int(vec![0, 2]),
-            tile_offsets: int(vec![0]),
-            tile_ids: int(vec![0]),
-            final_transmittance: float(vec![0, 0]),
-            n_contrib: int(vec![0, 0]),
-        },
-        error: Some(error),
-    }
-}
-
 impl SplatBackend for Cube {
     fn splat_forward(
         inputs: GaussianTensors<Self>,
@@ -162,7 +127,7 @@ impl SplatBackend for Cube {
             .and_then(|()| options.validate())
             .and_then(|()| check_shapes(&inputs));
         if let Err(error) = checked {
-            return rejected(error, &device);
+            return rejected(error, &device, DType::F32);
         }
         let inputs = f32_inputs(&inputs);
         let client = inputs.means.client.clone();
@@ -207,7 +172,7 @@ impl SplatBackend for Cube {
             read_count(Cube::int_cat(vec![flag, depth.total.clone(), coarse], 0))
         };
         if read[0] != 0 {
-            return rejected(host_error(&inputs), &device);
+            return rejected(host_error(&inputs), &device, DType::F32);
         }
         let coarse = read[2] as u64 * 1024;
         // f32 rounding of the sum is far below the 2²⁵ margin.
@@ -216,7 +181,7 @@ impl SplatBackend for Cube {
                 count: coarse.max(read[1] as u64),
                 limit: MAX_INTERSECTIONS,
             };
-            return rejected(error, &device);
+            return rejected(error, &device, DType::F32);
         }
         let bins = bin_tiles(&projection, &depth, read[1], camera.width, camera.height);
         let raster = rasterize(

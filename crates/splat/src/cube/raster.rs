@@ -107,6 +107,12 @@ mod kernels {
         boxes[4 * t + 3] = i32::cast_from(f32::floor(my + ry - 0.5f32));
     }
 
+    /// Whether pixel `(x, y)` lies in the box of batch slot `k`.
+    #[cube]
+    fn in_box(boxes: &Shared<[i32]>, k: usize, x: i32, y: i32) -> bool {
+        x >= boxes[4 * k] && x <= boxes[4 * k + 1] && y >= boxes[4 * k + 2] && y <= boxes[4 * k + 3]
+    }
+
     /// Composites the tile `CUBE_POS_X, CUBE_POS_Y` front to back.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
@@ -183,10 +189,7 @@ mod kernels {
             }
             batch -= batch_start;
             for k in 0..batch {
-                let inside_box = xi >= boxes[4 * k]
-                    && xi <= boxes[4 * k + 1]
-                    && yi >= boxes[4 * k + 2]
-                    && yi <= boxes[4 * k + 3];
+                let inside_box = in_box(&boxes, k, xi, yi);
                 if open && inside_box {
                     let dx = px - gaussians[10 * k];
                     let dy = py - gaussians[10 * k + 1];
@@ -327,10 +330,7 @@ mod kernels {
                     shares[j] = 0.0f32;
                 }
                 let position = i32::cast_from(batch_start + k - start) + 1i32;
-                let inside_box = xi >= boxes[4 * k]
-                    && xi <= boxes[4 * k + 1]
-                    && yi >= boxes[4 * k + 2]
-                    && yi <= boxes[4 * k + 3];
+                let inside_box = in_box(&boxes, k, xi, yi);
                 if inside && position <= last && inside_box {
                     let dx = px - gaussians[10 * k];
                     let dy = py - gaussians[10 * k + 1];
