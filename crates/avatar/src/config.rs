@@ -19,6 +19,12 @@ pub const MAX_MAP_RESOLUTION: usize = 2048;
 pub const MAX_CROP: usize = 2048;
 /// Largest step count of one training stage.
 pub const MAX_STAGE_STEPS: u64 = 1_000_000_000;
+/// Largest `batch`: every sample of a step holds its graph in memory until the backward.
+pub const MAX_BATCH: usize = 64;
+
+fn one_sample() -> usize {
+    1
+}
 
 /// Which canonical template the avatar is built on.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -144,6 +150,10 @@ pub struct TrainConfig {
     pub steps: Stages,
     /// Training frames whose body-branch outputs are averaged into the canonical face model.
     pub face_init_frames: usize,
+    /// Samples per device per step: the step applies the gradient of their mean loss (with
+    /// `--devices`, of the mean over every device's samples). 1 in the paper.
+    #[serde(default = "one_sample")]
+    pub batch: usize,
     /// Adam learning rate of the body and face networks (cosine schedule over the rendering
     /// stages, as Animatable Gaussians).
     pub lr: f64,
@@ -224,6 +234,7 @@ impl TrainConfig {
             face_init_frames: 8,
             lr: 1e-3,
             adam_epsilon: 1e-8,
+            batch: 1,
             initial_opacity: 0.5,
             band_radius: None,
             initial_thickness: 0.3,
@@ -373,10 +384,14 @@ impl TrainConfig {
             ("lpips_size", self.lpips_size, MAX_CROP),
             ("pca_components", self.pca_components, 512),
             ("face_init_frames", self.face_init_frames, 100_000),
+            ("batch", self.batch, MAX_BATCH),
         ] {
             if value > limit {
                 return bad(key, format!("{value} is larger than the limit {limit}"));
             }
+        }
+        if self.batch == 0 {
+            return bad("batch", "0 samples per step: expected at least 1".into());
         }
         // The paper trains 405k steps; a billion per stage keeps every step count summable.
         for (stage, steps) in [

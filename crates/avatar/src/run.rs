@@ -54,6 +54,14 @@ pub struct TrainState {
     /// before it was recorded). Resuming and evaluating may use another.
     #[serde(default)]
     pub device: String,
+    /// Data-parallel replicas (devices) of the run that wrote the checkpoint: step `s` drew
+    /// samples `s·replicas …`; absent in older checkpoints, which had one.
+    #[serde(default = "one")]
+    pub replicas: u64,
+}
+
+fn one() -> u64 {
+    1
 }
 
 fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T, AvatarError> {

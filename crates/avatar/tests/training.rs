@@ -78,7 +78,7 @@ fn tiny_body(steps: [u64; 5]) -> TrainConfig {
 
 /// A new run of `config` on `cap` (the protocol's training split) on the CPU.
 fn create(run: &Path, cap: &Path, config: TrainConfig) -> Result<Trainer, f3g_avatar::AvatarError> {
-    Trainer::create(run, cap, None, config, None, None, &Device::flex())
+    Trainer::create(run, cap, None, config, None, None, &[Device::flex()])
 }
 
 /// Trains a new run of `config` on `cap` to its last step.
@@ -235,6 +235,85 @@ fn every_network_and_the_discriminator_are_updated() {
     assert!(e.contains("missing.bpk"), "{e}");
 }
 
+/// Every logged loss term of every step, by name.
+fn loss_terms(run: &Path) -> Vec<Vec<(String, f64)>> {
+    std::fs::read_to_string(run.join("log.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v["losses"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|t| (t[0].as_str().unwrap().into(), t[1].as_f64().unwrap()))
+                .collect()
+        })
+        .collect()
+}
+
+/// The data-parallel step: two replicas (on the CPU, with the host all-reduce), each on its own
+/// sample, give the update of one replica stepping on both samples' mean loss (`batch = 2`, one
+/// graph, one backward) — through every stage, the discriminator included — and stay equal.
+#[test]
+fn two_replicas_apply_the_update_of_one_batch_of_two() {
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("cap");
+    capture(&cap);
+    let steps = [1, 2, 1, 3, 1];
+    let (replicas, batch, single) = (
+        dir.path().join("replicas"),
+        dir.path().join("batch"),
+        dir.path().join("single"),
+    );
+    let stop = AtomicBool::new(false);
+    let devices = [Device::flex(), Device::flex()];
+    let mut two =
+        Trainer::create(&replicas, &cap, None, tiny(steps), None, None, &devices).unwrap();
+    two.train(&stop, &mut |_| {}).unwrap();
+    let config = TrainConfig {
+        batch: 2,
+        ..tiny(steps)
+    };
+    let mut one = create(&batch, &cap, config).unwrap();
+    one.train(&stop, &mut |_| {}).unwrap();
+    train_to_end(&single, &cap, tiny(steps));
+
+    let (a, b) = (loss_terms(&replicas), loss_terms(&batch));
+    assert_eq!(a.len(), 8);
+    assert!(a[5].iter().any(|t| t.0 == "discriminator"), "{:?}", a[5]);
+    for (step, (x, y)) in a.iter().zip(&b).enumerate() {
+        assert_eq!(x.len(), y.len(), "step {step}: {x:?} vs {y:?}");
+        for (p, q) in x.iter().zip(y) {
+            assert_eq!(p.0, q.0);
+            assert!(
+                (p.1 - q.1).abs() <= 1e-5 * (1.0 + q.1.abs()),
+                "step {step} {}: {} vs {}",
+                p.0,
+                p.1,
+                q.1
+            );
+        }
+    }
+    // The premise: the replicas drew different samples (a single sample per step differs).
+    let c = loss_terms(&single);
+    assert!(
+        a.iter().zip(&c).any(|(x, y)| x[0].1 != y[0].1),
+        "two replicas trained like one sample per step"
+    );
+    let nets: Vec<_> = two.replica_nets().map(values).collect();
+    assert_eq!(nets[0], nets[1], "the replicas diverged");
+    let mut largest = 0.0f32;
+    for (x, y) in nets[0]
+        .iter()
+        .flatten()
+        .zip(values(one.nets()).iter().flatten())
+    {
+        largest = largest.max((x - y).abs());
+    }
+    assert!(largest < 1e-4, "weights differ by {largest}");
+}
+
 #[test]
 fn a_killed_run_resumes_exactly() {
     let dir = tempfile::tempdir().unwrap();
@@ -260,7 +339,7 @@ fn a_killed_run_resumes_exactly() {
         .unwrap();
     assert_eq!(outcome, Outcome::Stopped);
     drop(t);
-    let mut t = Trainer::resume(&parts, None, &Device::flex()).unwrap();
+    let mut t = Trainer::resume(&parts, None, &[Device::flex()]).unwrap();
     assert_eq!(t.step(), 6);
     t.train(&AtomicBool::new(false), &mut |_| {}).unwrap();
     let (a, b) = (
@@ -465,7 +544,7 @@ fn a_diverged_run_stops_at_the_first_non_finite_loss_and_keeps_its_checkpoint() 
     let nets = TrainedAvatar::load(&run, &Device::flex()).unwrap().nets;
     f3g_nets::checkpoint::save(nets.map(&mut Poison), &ckpt.join("nets.bpk")).unwrap();
     let log_before = std::fs::read_to_string(run.join("log.jsonl")).unwrap();
-    let mut t = Trainer::resume(&run, None, &Device::flex()).unwrap();
+    let mut t = Trainer::resume(&run, None, &[Device::flex()]).unwrap();
     let e = t.train(&AtomicBool::new(false), &mut |_| {}).unwrap_err();
     let text = e.to_string();
     assert!(
@@ -509,7 +588,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     );
     let nets = ckpt.join("nets.bpk");
     std::fs::write(&nets, b"not a checkpoint").unwrap();
-    let e = Trainer::resume(&run, None, &Device::flex())
+    let e = Trainer::resume(&run, None, &[Device::flex()])
         .err()
         .unwrap()
         .to_string();
@@ -521,7 +600,7 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
         .unwrap()
         .replace("\"model\": \"builtin\"", "\"model\": \"smplx:other.npz\"");
     std::fs::write(&info, text).unwrap();
-    let e = Trainer::resume(&run, None, &Device::flex())
+    let e = Trainer::resume(&run, None, &[Device::flex()])
         .err()
         .unwrap()
         .to_string();

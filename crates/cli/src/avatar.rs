@@ -84,6 +84,19 @@ pub struct TrainArgs {
     /// CPU resumes bit-exactly; a GPU within float rounding).
     #[arg(long, default_value = "cpu")]
     pub device: DeviceSpec,
+    /// Data-parallel training on several devices, e.g. `cuda:0,cuda:1`: each step draws one
+    /// sample per device and applies the mean of their gradients (instead of --device).
+    /// `cpu,cpu` runs two replicas on the CPU, which tests the path without GPUs.
+    #[arg(long, value_delimiter = ',', conflicts_with = "device")]
+    pub devices: Vec<DeviceSpec>,
+}
+
+/// The devices `--device` or `--devices` names, created.
+fn training_devices(a: &TrainArgs) -> Result<Vec<burn::tensor::Device>> {
+    if a.devices.is_empty() {
+        return Ok(vec![a.device.open()?]);
+    }
+    a.devices.iter().map(|d| d.open()).collect()
 }
 
 /// The configuration of a new run from the command line.
@@ -137,9 +150,9 @@ fn stop_flag() -> Arc<AtomicBool> {
 }
 
 pub fn train(a: &TrainArgs) -> Result<PathBuf> {
-    let device = a.device.open()?;
+    let devices = training_devices(a)?;
     let mut trainer = match &a.resume {
-        Some(dir) => Trainer::resume(dir, a.model.as_ref(), &device)
+        Some(dir) => Trainer::resume(dir, a.model.as_ref(), &devices)
             .with_context(|| format!("resuming {}", dir.display()))?,
         None => {
             let data = a.data.as_ref().context("--data is required")?;
@@ -164,7 +177,7 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
                 config,
                 cameras.as_deref(),
                 frames.as_deref(),
-                &device,
+                &devices,
             )?
         }
     };

@@ -28,6 +28,10 @@ pub enum BenchCommand {
     Lbs(LbsBenchArgs),
     /// Forward and forward+backward time of the StyleUNets, LPIPS and the discriminator.
     Nets(crate::nets::NetsBenchArgs),
+    /// Milliseconds per training step of a preset on a device, phase by phase (data, inputs,
+    /// networks, render, LPIPS, adversarial, readback, backward, optimiser, discriminator),
+    /// and peak memory.
+    Train(crate::train_bench::TrainBenchArgs),
     /// Ablations of the face branch (full, face-crop losses only, no face branch, no
     /// adversarial loss), each with several seeds, on the synthetic capture: mean ± std of body
     /// and head metrics on novel views and novel poses.

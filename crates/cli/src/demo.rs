@@ -92,6 +92,7 @@ pub(crate) fn train_or_resume(
         seed: Some(seed),
         max_steps: None,
         device,
+        devices: Vec::new(),
     };
     if run.join("config.json").exists() {
         println!("resuming the run in {}", run.display());

@@ -12,6 +12,7 @@ mod quality;
 mod render_ply;
 mod rig;
 mod template;
+mod train_bench;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -81,6 +82,7 @@ fn main() -> Result<()> {
         Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args),
         Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
         Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
+        Command::Bench(bench::BenchCommand::Train(args)) => train_bench::run(&args),
         Command::Bench(bench::BenchCommand::Quality(args)) => quality::quality(&args),
         Command::Metrics(args) => nets::metrics(&args),
         Command::Weights(cmd) => nets::weights(&cmd),

@@ -163,3 +163,90 @@ fn train_resume_evaluate_animate_and_export() {
     assert!(!e.status.success());
     assert!(String::from_utf8_lossy(&e.stderr).contains("--set"));
 }
+
+#[test]
+fn data_parallel_training_and_the_training_step_bench() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(&f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "5",
+            "--resolution",
+            "128",
+        ],
+    ));
+    std::fs::write(
+        d.join("tiny.json"),
+        common::tiny_config([1, 1, 0, 0, 0], ""),
+    )
+    .unwrap();
+    let train = |devices: &str, out: &str| {
+        f3g(
+            d,
+            &[
+                "train",
+                "--data",
+                "cap",
+                "--out",
+                out,
+                "--config",
+                "tiny.json",
+                "--devices",
+                devices,
+            ],
+        )
+    };
+    ok(&train("cpu,cpu", "dp"));
+    let state: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("dp/checkpoints/step-000000002/state.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(state["replicas"], 2, "{state}");
+    assert_eq!(state["device"].as_str().unwrap().split(',').count(), 2);
+    let e = train("cpu,gpu", "x");
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("unknown device `gpu`"));
+
+    // The step bench: every phase timed, the phases add up to the step.
+    ok(&f3g(
+        d,
+        &[
+            "bench",
+            "train",
+            "--data",
+            "cap",
+            "--steps",
+            "1",
+            "--warmup",
+            "1",
+            "--json",
+            "bench.json",
+        ],
+    ));
+    let bench: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("bench.json")).unwrap()).unwrap();
+    let phases = bench["phases"]["phases"].as_array().unwrap();
+    let ms = |name: &str| {
+        phases.iter().find(|p| p[0] == name).unwrap()[1]
+            .as_f64()
+            .unwrap()
+    };
+    assert_eq!(phases.len(), 10);
+    for phase in ["networks", "render", "lpips", "backward", "discriminator"] {
+        assert!(ms(phase) > 0.0, "{phase}: {bench}");
+    }
+    let sum: f64 = phases.iter().map(|p| p[1].as_f64().unwrap()).sum();
+    let step = bench["step_ms"].as_f64().unwrap();
+    assert!(sum <= step * 1.001 && sum > 0.9 * step, "{sum} vs {step}");
+    let e = f3g(
+        d,
+        &["bench", "train", "--data", "cap", "--set", "steps.joint=0"],
+    );
+    assert!(!e.status.success());
+    assert!(String::from_utf8_lossy(&e.stderr).contains("no Joint steps"));
+}

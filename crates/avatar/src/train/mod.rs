@@ -1,0 +1,756 @@
+//! Region-aware training (paper §3.5, Animatable Gaussians' schedule).
+//!
+//! The method, one module each: [`schedule`] (stages and learning rates), [`losses`] (body,
+//! face, adversarial, offset), [`face_model`] (the canonical face model built from the body
+//! branch), [`step`] (one step on one device: gradients, then a separate apply, so that
+//! data-parallel replicas can average their gradients between the two). This module is the
+//! loop around them: it owns the run folder, the loader, the log, validation grids and
+//! checkpoints.
+//!
+//! Samples are drawn by the loader as a pure function of the seed and the sample index, so a
+//! resumed run continues exactly as an uninterrupted one would. With `R` replicas (one per
+//! device), step `s` draws samples `s·R … s·R + R − 1`, one per replica, and applies the mean
+//! of their gradients: one replica is the single-device run.
+//!
+//! Stages (see [`schedule::Stage`]):
+//!
+//! 1. **pretrain** — the body network reconstructs the canonical attributes (zero offsets,
+//!    grey colour, opacity 0.1, the initial scales, identity rotations); Adam's state is reset
+//!    afterwards.
+//! 2. **body** — body-only rendering: L1 on the full (down-scaled) image, LPIPS on the
+//!    mask-bounding-box square, offset regulariser.
+//! 3. *(face branch)* the canonical face model is averaged from the body branch over training
+//!    frames; **face_pretrain** — the face networks learn zero residuals on it.
+//! 4. **joint** — body losses plus, on the head crop rendered with its own intrinsics, L1,
+//!    LPIPS and the non-saturating adversarial loss of a StyleGAN2 discriminator trained
+//!    alternately (with lazy R1).
+//! 5. **face_finetune** — the face losses train the face networks only.
+
+pub mod face_model;
+pub mod losses;
+pub mod profile;
+pub mod schedule;
+pub mod step;
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor};
+use serde::Serialize;
+
+use crate::AvatarError;
+use crate::config::TrainConfig;
+use crate::inputs::inputs_for;
+use crate::model::{AvatarNets, Constants, FaceBase, canonical, render_posed};
+use crate::report;
+use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
+use crate::setup::Setup;
+use f3g_data::Dataset;
+use f3g_data::loader::{Loader, LoaderOptions, Sample, View};
+use f3g_data::split::{Protocol, Split, SplitKind, preset};
+use f3g_rig::ModelSpec;
+use profile::{PhaseTimer, mark};
+pub use schedule::{Schedule, Stage};
+use step::{Optimisers, Replica, SampleGradients, StepContext, adam, adam_disc, sum_gradients};
+
+/// What one step did.
+#[derive(Clone, Debug, Serialize)]
+pub struct StepReport {
+    pub step: u64,
+    pub stage: Stage,
+    pub lr: f64,
+    /// The first replica's sample.
+    pub frame: usize,
+    pub camera: usize,
+    /// Named loss terms (already weighted; the mean over replicas) and their sum.
+    pub losses: Vec<(String, f32)>,
+    pub total: f32,
+    pub seconds: f64,
+}
+
+/// How `train` ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    Finished,
+    /// The stop flag was raised; a checkpoint was written.
+    Stopped,
+}
+
+/// The training split of a capture: the protocol's preset unless lists are given.
+pub fn training_split(
+    ds: &Dataset,
+    cameras: Option<&[usize]>,
+    frames: Option<&[usize]>,
+) -> Result<Split, AvatarError> {
+    let p = preset(
+        Protocol::of(ds),
+        SplitKind::Train,
+        ds.cameras.len(),
+        ds.frames(),
+    )?;
+    Ok(Split {
+        cameras: cameras.map_or(p.cameras, <[usize]>::to_vec),
+        frames: frames.map_or(p.frames, <[usize]>::to_vec),
+    })
+}
+
+/// A training run in memory.
+pub struct Trainer {
+    pub config: TrainConfig,
+    pub run: Run,
+    pub setup: Setup,
+    pub dataset: Arc<Dataset>,
+    pub split: Split,
+    schedule: Schedule,
+    /// One per device; the first one's state is what checkpoints, validation and the
+    /// accessors show (every replica holds the same weights).
+    replicas: Vec<Replica>,
+    face_base: Option<FaceBase>,
+    state: TrainState,
+    last_checkpoint: Option<PathBuf>,
+    validation_view: Option<(usize, usize)>,
+}
+
+impl Trainer {
+    /// Starts a new run in `run_dir` (which must not hold one) on the capture `data`, training
+    /// on `devices` (with or without their autodiff flag: the trainer sets it); more than one
+    /// device trains data-parallel (module docs).
+    pub fn create(
+        run_dir: &Path,
+        data: &Path,
+        model: Option<&ModelSpec>,
+        config: TrainConfig,
+        cameras: Option<&[usize]>,
+        frames: Option<&[usize]>,
+        devices: &[Device],
+    ) -> Result<Self, AvatarError> {
+        config.validate()?;
+        let run = Run::new(run_dir);
+        if run.dir.join("config.json").exists() {
+            return Err(AvatarError::file(
+                run_dir,
+                "already holds a run: resume it with --resume, or choose another --out",
+            ));
+        }
+        let dataset = Arc::new(Dataset::open(data, model)?);
+        dataset.rig()?;
+        let split = training_split(&dataset, cameras, frames)?;
+        let identity = dataset.params[split.frames[0]].identity.clone();
+        let setup = Setup::new(&dataset.model, &identity, &config)?;
+        let train_params: Vec<_> = split
+            .frames
+            .iter()
+            .map(|&f| dataset.params[f].clone())
+            .collect();
+        for (f, p) in split.frames.iter().zip(&train_params) {
+            setup.check_params(p, &format!("frame {f} of {}", data.display()))?;
+        }
+        run.write_config(&config)?;
+        run.write_info(&RunInfo {
+            data: std::fs::canonicalize(data).unwrap_or_else(|_| data.to_path_buf()),
+            model: dataset.model.clone(),
+            identity,
+            train_cameras: split.cameras.clone(),
+            train_frames: split.frames.clone(),
+        })?;
+        let pca_frames: Vec<_> = evenly(&train_params, 300);
+        if pca_frames.len() >= 2 {
+            run.write_pca(&setup.fit_pca(&pca_frames, config.pca_components, config.pca_sigma)?)?;
+        }
+        let state = TrainState {
+            step: 0,
+            seconds: 0.0,
+            disc_steps: 0,
+            device: String::new(),
+            replicas: 1,
+        };
+        Self::assemble(
+            run, config, setup, dataset, split, state, None, None, devices,
+        )
+    }
+
+    /// Reopens `run_dir` at its newest checkpoint (or at step 0 when it has none) on
+    /// `devices`, which may differ from the ones the checkpoint was written on (with another
+    /// number of devices the run continues, but draws other samples than it would have).
+    pub fn resume(
+        run_dir: &Path,
+        model: Option<&ModelSpec>,
+        devices: &[Device],
+    ) -> Result<Self, AvatarError> {
+        let run = Run::new(run_dir);
+        let config = run.config()?;
+        let info = run.info()?;
+        run.remove_temporaries()?;
+        let dataset = Arc::new(Dataset::open(&info.data, model)?);
+        if dataset.model != info.model {
+            return Err(AvatarError::file(
+                &info.data,
+                format!(
+                    "the capture's body model is `{}` but the run was trained on `{}`",
+                    dataset.model, info.model
+                ),
+            ));
+        }
+        let split = Split {
+            cameras: info.train_cameras.clone(),
+            frames: info.train_frames.clone(),
+        };
+        let setup = Setup::new(&dataset.model, &info.identity, &config)?;
+        let checkpoint = run.latest()?;
+        let state = match &checkpoint {
+            Some(c) => read_state(c)?,
+            None => TrainState {
+                step: 0,
+                seconds: 0.0,
+                disc_steps: 0,
+                device: String::new(),
+                replicas: 1,
+            },
+        };
+        let face_base = match &checkpoint {
+            Some(c) if c.join("face_base.npz").exists() => Some(load_face_base(
+                &c.join("face_base.npz"),
+                setup.face_count(),
+            )?),
+            _ => None,
+        };
+        Self::assemble(
+            run, config, setup, dataset, split, state, checkpoint, face_base, devices,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn assemble(
+        run: Run,
+        config: TrainConfig,
+        setup: Setup,
+        dataset: Arc<Dataset>,
+        split: Split,
+        state: TrainState,
+        checkpoint: Option<PathBuf>,
+        face_base: Option<FaceBase>,
+        devices: &[Device],
+    ) -> Result<Self, AvatarError> {
+        let Some(first) = devices.first() else {
+            return Err(AvatarError::Invalid(
+                "training needs at least one device".into(),
+            ));
+        };
+        let device = first.clone().without_autodiff().autodiff();
+        let mut nets = AvatarNets::new(&config, &setup, &device)?;
+        let mut optimisers = Optimisers {
+            body: adam(config.adam_epsilon),
+            face: config.face_branch.then(|| adam(config.adam_epsilon)),
+            disc: None,
+        };
+        let with_disc = config.face_losses && config.adversarial;
+        let mut disc = if with_disc {
+            let d = f3g_nets::checkpoint::with_deterministic_ids(
+                config
+                    .discriminator
+                    .init(config.seed.wrapping_add(20), &device)?,
+                crate::model::DISCRIMINATOR_PARAM_IDS,
+            );
+            // A new run may start from pretrained discriminator weights; a resumed one has its
+            // own in the checkpoint.
+            Some(match (&config.discriminator_weights, &checkpoint) {
+                (Some(path), None) => f3g_nets::checkpoint::load(d, Path::new(path))?,
+                _ => d,
+            })
+        } else {
+            None
+        };
+        optimisers.disc = with_disc.then(adam_disc);
+        if let Some(c) = &checkpoint {
+            nets = f3g_nets::checkpoint::load(nets, &c.join("nets.bpk"))?;
+            optimisers.body = load_optim(optimisers.body, &c.join("optim_body.bpk"), &nets.body)?;
+            if let Some(face) = nets.face.as_ref()
+                && let Some(o) = optimisers.face.take()
+            {
+                let path = c.join("optim_face.bpk");
+                optimisers.face = Some(if path.exists() {
+                    load_optim(o, &path, face)?
+                } else {
+                    o
+                });
+            }
+            if let Some(d) = disc.take() {
+                let path = c.join("disc.bpk");
+                disc = Some(if path.exists() {
+                    let d = f3g_nets::checkpoint::load(d, &path)?;
+                    if let Some(o) = optimisers.disc.take() {
+                        optimisers.disc = Some(load_optim(o, &c.join("optim_disc.bpk"), &d)?);
+                    }
+                    d
+                } else {
+                    d
+                });
+            }
+        }
+        let mut replicas = Vec::with_capacity(devices.len());
+        for (rank, d) in devices.iter().enumerate() {
+            let d = d.clone().without_autodiff().autodiff();
+            // Every replica starts from the first one's weights and optimiser state (random
+            // initialisation differs between backends); optimiser state follows its
+            // parameters to their device on the first step.
+            let (n, dc) = if rank == 0 {
+                (nets.clone(), disc.clone())
+            } else {
+                (nets.clone().fork(&d), disc.clone().map(|x| x.fork(&d)))
+            };
+            replicas.push(Replica {
+                constants: Constants::new(&setup, &config, face_base.as_ref(), &d),
+                lpips: f3g_nets::Lpips::load(config.lpips_net, &d)?,
+                nets: n,
+                disc: dc,
+                optimisers: optimisers.clone(),
+                device: d,
+            });
+        }
+        // Checkpoints from now on are written by these devices.
+        let mut state = state;
+        state.device = devices
+            .iter()
+            .map(|d| format!("{:?}", d.clone().without_autodiff()))
+            .collect::<Vec<_>>()
+            .join(",");
+        state.replicas = devices.len() as u64;
+        let validation_view = preset(
+            Protocol::of(&dataset),
+            SplitKind::NovelView,
+            dataset.cameras.len(),
+            dataset.frames(),
+        )
+        .ok()
+        .and_then(|s| {
+            s.frames
+                .iter()
+                .flat_map(|&f| s.cameras.iter().map(move |&c| (c, f)))
+                .find(|&(c, f)| dataset.has_image(c, f))
+        });
+        Ok(Self {
+            schedule: Schedule::new(&config),
+            config,
+            run,
+            setup,
+            dataset,
+            split,
+            replicas,
+            face_base,
+            state,
+            last_checkpoint: checkpoint,
+            validation_view,
+        })
+    }
+
+    /// The next step to run.
+    pub fn step(&self) -> u64 {
+        self.state.step
+    }
+
+    /// Total steps of the configuration.
+    pub fn total_steps(&self) -> u64 {
+        self.schedule.total()
+    }
+
+    /// The stages and learning rates.
+    pub fn schedule(&self) -> &Schedule {
+        &self.schedule
+    }
+
+    /// The networks (for tests and evaluation).
+    pub fn nets(&self) -> &AvatarNets {
+        &self.replicas[0].nets
+    }
+
+    /// The networks of every replica (data-parallel tests check they stay equal).
+    pub fn replica_nets(&self) -> impl Iterator<Item = &AvatarNets> {
+        self.replicas.iter().map(|r| &r.nets)
+    }
+
+    pub fn face_base(&self) -> Option<&FaceBase> {
+        self.face_base.as_ref()
+    }
+
+    /// The loader options of this run (`replicas · batch` samples per step).
+    fn loader_options(&self) -> LoaderOptions {
+        LoaderOptions {
+            body_scale: self.config.body_scale,
+            face_size: self.config.face_crop_size,
+            face_padding: self.config.face_padding,
+            cache_bytes: self.config.cache_bytes,
+            prefetch: 4 * self.replicas.len() * self.config.batch,
+            random_background: true,
+            band_radius: self.config.band_radius.unwrap_or(
+                if Protocol::of(&self.dataset) == Protocol::Synthetic {
+                    0.0
+                } else {
+                    2.0
+                },
+            ),
+            seed: self.config.seed,
+        }
+    }
+
+    /// Trains until the last step or until `stop` is raised, calling `on_step` after each step.
+    pub fn train(
+        &mut self,
+        stop: &AtomicBool,
+        on_step: &mut dyn FnMut(&StepReport),
+    ) -> Result<Outcome, AvatarError> {
+        let total = self.total_steps();
+        self.truncate_log()?;
+        if self.state.step >= total {
+            return Ok(Outcome::Finished);
+        }
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
+        let mut loader = Loader::new(
+            self.dataset.clone(),
+            &self.split,
+            self.loader_options(),
+            self.state.step * per_step,
+        )?;
+        let mut log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(self.run.log_path())
+            .map_err(|e| AvatarError::file(&self.run.log_path(), e))?;
+        while self.state.step < total {
+            let s = self.state.step;
+            let start = Instant::now();
+            let samples = (0..per_step)
+                .map(|_| loader.next_sample())
+                .collect::<Result<Vec<_>, _>>()?;
+            debug_assert_eq!(samples[0].index, s * per_step);
+            let mut report = self.run_step(s, &samples, None).map_err(|e| match e {
+                AvatarError::NonFinite {
+                    step, name, value, ..
+                } => AvatarError::NonFinite {
+                    step,
+                    name,
+                    value,
+                    checkpoint: self.last_checkpoint.clone(),
+                },
+                other => other,
+            })?;
+            self.state.seconds += start.elapsed().as_secs_f64();
+            report.seconds = self.state.seconds;
+            self.state.step = s + 1;
+            let line = serde_json::to_string(&report).expect("serialisable");
+            writeln!(log, "{line}").map_err(|e| AvatarError::file(&self.run.log_path(), e))?;
+            on_step(&report);
+            let done = self.state.step == total;
+            if self.state.step.is_multiple_of(self.config.validate_every) || done {
+                self.validate()?;
+                report::loss_curve(&self.run.log_path(), &self.run.dir.join("loss.png"))?;
+            }
+            let stopping = stop.load(Ordering::Relaxed);
+            if self.state.step.is_multiple_of(self.config.checkpoint_every) || done || stopping {
+                self.checkpoint()?;
+            }
+            if stopping && !done {
+                return Ok(Outcome::Stopped);
+            }
+        }
+        Ok(Outcome::Finished)
+    }
+
+    /// Writes a checkpoint of the current state (the first replica's; all are equal).
+    pub fn checkpoint(&mut self) -> Result<PathBuf, AvatarError> {
+        let r = &self.replicas[0];
+        let dir = self.run.write_checkpoint(
+            &self.state,
+            &r.nets,
+            &r.optimisers.body,
+            r.optimisers.face.as_ref(),
+            r.disc.as_ref().zip(r.optimisers.disc.as_ref()),
+            self.face_base.as_ref(),
+        )?;
+        self.last_checkpoint = Some(dir.clone());
+        Ok(dir)
+    }
+
+    /// Runs `warmup + steps` steps of `stage` (cycling through its steps) and writes nothing:
+    /// `timer` holds the phases of the last `steps` steps afterwards. For `f3g bench train`:
+    /// the trainer is left mid-run and must not be checkpointed or trained further.
+    pub fn bench(
+        &mut self,
+        stage: Stage,
+        warmup: u64,
+        steps: u64,
+        timer: &PhaseTimer,
+    ) -> Result<Vec<StepReport>, AvatarError> {
+        let in_stage: Vec<u64> = (0..self.total_steps())
+            .filter(|&s| self.schedule.stage(s) == stage)
+            .collect();
+        let (Some(&first), len) = (in_stage.first(), in_stage.len() as u64) else {
+            return Err(AvatarError::config(
+                "steps",
+                format!("the configuration has no {stage:?} steps to time"),
+            ));
+        };
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
+        let mut loader = Loader::new(
+            self.dataset.clone(),
+            &self.split,
+            self.loader_options(),
+            first * per_step,
+        )?;
+        let mut reports = Vec::new();
+        for i in 0..warmup + steps {
+            if i == warmup {
+                timer.take(1);
+            }
+            timer.restart()?;
+            let s = first + i % len;
+            let samples = (0..per_step)
+                .map(|_| loader.next_sample())
+                .collect::<Result<Vec<_>, _>>()?;
+            timer.mark("data")?;
+            let report = self.run_step(s, &samples, Some(timer))?;
+            if i >= warmup {
+                reports.push(report);
+            }
+        }
+        Ok(reports)
+    }
+
+    /// Keeps only the log lines of steps before the current one (after a resume).
+    fn truncate_log(&self) -> Result<(), AvatarError> {
+        let path = self.run.log_path();
+        if !path.exists() {
+            return Ok(());
+        }
+        let text = std::fs::read_to_string(&path).map_err(|e| AvatarError::file(&path, e))?;
+        let kept: String = text
+            .lines()
+            .filter(|l| {
+                serde_json::from_str::<serde_json::Value>(l)
+                    .ok()
+                    .and_then(|v| v["step"].as_u64())
+                    .is_some_and(|st| st < self.state.step)
+            })
+            .map(|l| format!("{l}\n"))
+            .collect();
+        Ok(f3g_io::write_atomic(&path, kept.as_bytes())?)
+    }
+
+    /// Step `s` on one sample per replica: gradients on every replica, their mean, the same
+    /// update everywhere; then the discriminator the same way.
+    fn run_step(
+        &mut self,
+        s: u64,
+        samples: &[Sample],
+        timer: Option<&PhaseTimer>,
+    ) -> Result<StepReport, AvatarError> {
+        let stage = self.schedule.stage(s);
+        let lr = self.schedule.lr(s);
+        if self.schedule.resets_body_optimiser(s) {
+            for r in &mut self.replicas {
+                r.optimisers.body = adam(self.config.adam_epsilon);
+            }
+        }
+        if self.schedule.needs_face_model(s) && self.face_base.is_none() {
+            let r = &self.replicas[0];
+            let base = face_model::build(
+                &self.setup,
+                &self.config,
+                &r.nets.body,
+                &self.dataset,
+                &self.split,
+                &r.device,
+            )?;
+            for r in &mut self.replicas {
+                r.constants = Constants::new(&self.setup, &self.config, Some(&base), &r.device);
+            }
+            self.face_base = Some(base);
+        }
+        let per_rank = self.gradients(stage, s, samples, timer)?;
+        let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
+        let mut values: Vec<(String, f32)> = Vec::new();
+        let (mut body, mut face, mut fakes) = (Vec::new(), Vec::new(), Vec::new());
+        for g in per_rank {
+            add_values(&mut values, &g.values);
+            body.push(g.body);
+            face.push(g.face);
+            fakes.extend(g.fakes);
+        }
+        let nets = &self.replicas[0].nets;
+        let body = sum_gradients(&nets.body, body, &devices);
+        let face = match &nets.face {
+            Some(f) => sum_gradients(f, face, &devices),
+            None => face,
+        };
+        for ((r, b), f) in self.replicas.iter_mut().zip(body).zip(face) {
+            r.apply(stage, lr, b, f);
+        }
+        mark(timer, "optimiser")?;
+        let total = values.iter().map(|v| v.1).sum();
+        if let Some(d_loss) = self.discriminator_step(s, fakes, samples)? {
+            values.push(("discriminator".into(), d_loss));
+        }
+        mark(timer, "discriminator")?;
+        Ok(StepReport {
+            step: s,
+            stage,
+            lr,
+            frame: samples[0].frame,
+            camera: samples[0].camera,
+            losses: values,
+            total,
+            seconds: self.state.seconds,
+        })
+    }
+
+    /// Every replica's gradients for its `batch` samples (in parallel threads when there are
+    /// several replicas).
+    fn gradients(
+        &self,
+        stage: Stage,
+        s: u64,
+        samples: &[Sample],
+        timer: Option<&PhaseTimer>,
+    ) -> Result<Vec<SampleGradients>, AvatarError> {
+        let ctx = StepContext {
+            setup: &self.setup,
+            config: &self.config,
+            stage,
+            step: s,
+            timer,
+        };
+        let share = 1.0 / samples.len() as f32;
+        if let [replica] = self.replicas.as_slice() {
+            return Ok(vec![replica.gradients(&ctx, samples, share)?]);
+        }
+        std::thread::scope(|scope| {
+            let handles: Vec<_> = self
+                .replicas
+                .iter()
+                .zip(samples.chunks(self.config.batch))
+                .map(|(r, own)| scope.spawn(move || r.gradients(&ctx, own, share)))
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| {
+                    h.join()
+                        .map_err(|_| AvatarError::Invalid("a replica's thread panicked".into()))?
+                })
+                .collect()
+        })
+    }
+
+    /// The discriminator's step on every head render of the step (`fakes`, in sample order),
+    /// the mean over them as one update on every replica; its mean loss, or `None` when no
+    /// sample had a head render (or there is no discriminator).
+    fn discriminator_step(
+        &mut self,
+        s: u64,
+        fakes: Vec<Option<Tensor<4>>>,
+        samples: &[Sample],
+    ) -> Result<Option<f32>, AvatarError> {
+        if self.replicas[0].disc.is_none() {
+            return Ok(None);
+        }
+        let mut pairs: Vec<Vec<(Tensor<4>, &View)>> = vec![Vec::new(); self.replicas.len()];
+        for (i, (fake, sample)) in fakes.into_iter().zip(samples).enumerate() {
+            if let (Some(fake), Some(real)) = (fake, sample.face.as_ref()) {
+                pairs[i / self.config.batch].push((fake, real));
+            }
+        }
+        let count = pairs.iter().map(Vec::len).sum::<usize>();
+        if count == 0 {
+            return Ok(None);
+        }
+        let share = 1.0 / count as f32;
+        let interval = self.config.losses.r1_interval;
+        let r1 =
+            self.state.disc_steps.is_multiple_of(interval) && self.config.losses.r1_gamma > 0.0;
+        let mut grads = Vec::with_capacity(pairs.len());
+        let mut loss = 0.0;
+        for (r, own) in self.replicas.iter().zip(pairs) {
+            let g = r.discriminator_gradients(&self.config, s, r1, own, share)?;
+            grads.push(g.map(|(value, g)| {
+                loss += value;
+                g
+            }));
+        }
+        let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
+        if let Some(disc) = self.replicas[0].disc.as_ref() {
+            let grads = sum_gradients(disc, grads, &devices);
+            for (r, g) in self.replicas.iter_mut().zip(grads) {
+                if let Some(g) = g {
+                    r.apply_discriminator(self.config.lr_discriminator, g);
+                }
+            }
+        }
+        self.state.disc_steps += 1;
+        Ok(Some(loss))
+    }
+
+    /// Renders the validation view (a held-out camera) and writes GT | render | error grids.
+    fn validate(&self) -> Result<(), AvatarError> {
+        let Some((camera, frame)) = self.validation_view else {
+            return Ok(());
+        };
+        let r = &self.replicas[0];
+        let plain = r.device.clone().without_autodiff();
+        let nets = AvatarNets {
+            body: r.nets.body.valid(),
+            face: r.nets.face.as_ref().map(Module::valid),
+        };
+        let constants = Constants::new(&self.setup, &self.config, self.face_base.as_ref(), &plain);
+        let cache = std::sync::Mutex::new(f3g_data::loader::ImageCache::new(1 << 28));
+        let options = LoaderOptions {
+            body_scale: self.config.body_scale,
+            face_size: self.config.face_crop_size,
+            face_padding: self.config.face_padding,
+            ..Default::default()
+        };
+        let (body, face, _) =
+            f3g_data::loader::make_view(&self.dataset, &cache, camera, frame, &options, [1.0; 3])?;
+        let inputs = inputs_for(
+            &self.setup,
+            &constants,
+            &self.dataset.params[frame],
+            &body.camera,
+            None,
+            None,
+            &plain,
+        )?;
+        let c = canonical(&nets, &constants, &inputs)?;
+        let mut rows = Vec::new();
+        for view in std::iter::once(&body).chain(face.as_ref()) {
+            let out = render_posed(&c, &inputs.transforms, &view.camera, [1.0; 3], &plain)?;
+            let render = report::tensor_to_image(out.color);
+            rows.push(report::comparison_row(&view.image, &render));
+        }
+        let dir = self.run.dir.join("validation");
+        std::fs::create_dir_all(&dir).map_err(|e| AvatarError::file(&dir, e))?;
+        let grid = report::stack_rows(&rows);
+        f3g_io::write_png(&dir.join(format!("step-{:09}.png", self.state.step)), &grid)?;
+        f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
+        Ok(())
+    }
+}
+
+/// Adds a replica's loss values (already its share of the mean) to the step's, by name.
+fn add_values(values: &mut Vec<(String, f32)>, more: &[(String, f32)]) {
+    for (name, v) in more {
+        match values.iter_mut().find(|o| &o.0 == name) {
+            Some(o) => o.1 += v,
+            None => values.push((name.clone(), *v)),
+        }
+    }
+}
+
+/// `n` items spread evenly over `items` (all of them when there are fewer).
+fn evenly<T: Clone>(items: &[T], n: usize) -> Vec<T> {
+    if items.len() <= n {
+        return items.to_vec();
+    }
+    (0..n).map(|i| items[i * items.len() / n].clone()).collect()
+}

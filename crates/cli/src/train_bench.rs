@@ -1,0 +1,182 @@
+//! `f3g bench train`: milliseconds per training step, phase by phase, on a device.
+//!
+//! A run of the chosen preset is created on a capture (a small synthetic one unless `--data`
+//! names one) in a temporary folder; `--warmup` steps of the chosen stage compile kernels and
+//! build the face model, then `--steps` steps are timed with the device synchronised at every
+//! phase boundary (`f3g_avatar::train::profile`). Nothing of the run is kept.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use f3g_avatar::train::Stage;
+use f3g_avatar::train::profile::{PHASE_MEANINGS, PHASES, PhaseTimer, PhaseTimes};
+use f3g_avatar::{TrainConfig, Trainer};
+use f3g_data::synth::{SynthOptions, generate};
+use serde::Serialize;
+
+use crate::device::DeviceSpec;
+use crate::memory;
+
+/// The stage whose steps are timed.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum BenchStage {
+    Pretrain,
+    Body,
+    FacePretrain,
+    Joint,
+    FaceFinetune,
+}
+
+impl From<BenchStage> for Stage {
+    fn from(s: BenchStage) -> Self {
+        match s {
+            BenchStage::Pretrain => Stage::Pretrain,
+            BenchStage::Body => Stage::Body,
+            BenchStage::FacePretrain => Stage::FacePretrain,
+            BenchStage::Joint => Stage::Joint,
+            BenchStage::FaceFinetune => Stage::FaceFinetune,
+        }
+    }
+}
+
+/// Options of `f3g bench train`.
+#[derive(Args, Debug)]
+pub struct TrainBenchArgs {
+    /// Device to train on: cpu, wgpu[:N] or cuda[:N].
+    #[arg(long, default_value = "cpu")]
+    pub device: DeviceSpec,
+    /// Training preset: cpu, cpu-long or paper.
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Override a configuration key, e.g. `--set batch=2` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+    /// The stage to time (joint: every network, both renders, LPIPS and the discriminator).
+    #[arg(long, value_enum, default_value = "joint")]
+    pub stage: BenchStage,
+    /// Timed steps (1–100000).
+    #[arg(long, default_value_t = 5, value_parser = crate::bounds::size::<1, 100_000>)]
+    pub steps: usize,
+    /// Untimed steps first (kernel compilation, autotuning, the face model).
+    #[arg(long, default_value_t = 2, value_parser = crate::bounds::size::<0, 1000>)]
+    pub warmup: usize,
+    /// Capture to train on; default: a synthetic one (4 frames, the preset's image size:
+    /// 576×768 for cpu presets, 1536×2048 for paper), made in a temporary folder.
+    #[arg(long)]
+    pub data: Option<PathBuf>,
+    /// Write the numbers as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct TrainBench {
+    device: String,
+    preset: String,
+    stage: String,
+    steps: usize,
+    /// Milliseconds per step, wall clock, the phase synchronisations included.
+    step_ms: f64,
+    /// Milliseconds per step of each phase.
+    phases: PhaseTimes,
+    /// The most memory the device's allocator held (GPU), or the most the process allocated
+    /// on the heap during the timed steps (CPU), MiB.
+    peak_mib: Option<f64>,
+    body_gaussians: usize,
+    face_gaussians: usize,
+}
+
+pub fn run(a: &TrainBenchArgs) -> Result<()> {
+    let device = a.device.open()?;
+    let mut config = TrainConfig::preset(&a.preset)?.with_overrides(&a.set)?;
+    // Nothing is written during the bench; keep the run's own periodic outputs out of it too.
+    config.checkpoint_every = u64::MAX;
+    config.validate_every = u64::MAX;
+    let work = tempfile::tempdir().context("creating a temporary folder")?;
+    let data = match &a.data {
+        Some(d) => d.clone(),
+        None => {
+            let mut options = if a.preset == "paper" {
+                SynthOptions::paper()
+            } else {
+                SynthOptions::default()
+            };
+            options.frames = 4;
+            eprintln!(
+                "making a synthetic capture ({} cameras × {} frames, {}×{})",
+                options.cameras,
+                options.frames,
+                options.resolution * 3 / 4,
+                options.resolution
+            );
+            let dir = work.path().join("capture");
+            generate(&dir, &options, &|_| {})?;
+            dir
+        }
+    };
+    let mut trainer = Trainer::create(
+        &work.path().join("run"),
+        &data,
+        None,
+        config,
+        None,
+        None,
+        std::slice::from_ref(&device),
+    )?;
+    let timer = PhaseTimer::new(&device);
+    eprintln!(
+        "timing {} + {} warm-up steps of the {:?} stage on {} ({} body + {} face Gaussians)",
+        a.steps,
+        a.warmup,
+        Stage::from(a.stage),
+        a.device,
+        trainer.setup.body_count(),
+        trainer.setup.face_count()
+    );
+    let stage = Stage::from(a.stage);
+    trainer.bench(stage, a.warmup as u64, 0, &timer)?;
+    let before = memory::live_bytes();
+    memory::reset_peak();
+    let start = Instant::now();
+    trainer.bench(stage, 0, a.steps as u64, &timer)?;
+    let step_ms = start.elapsed().as_secs_f64() * 1e3 / a.steps as f64;
+    let phases = timer.take(a.steps as u64);
+    let peak_mib = match device.memory_pool_usage() {
+        Some(usage) => Some(usage.bytes_reserved as f64 / (1 << 20) as f64),
+        None if a.device == DeviceSpec::Cpu => {
+            Some(memory::peak_bytes().saturating_sub(before) as f64 / (1 << 20) as f64)
+        }
+        None => None,
+    };
+    let result = TrainBench {
+        device: a.device.to_string(),
+        preset: a.preset.clone(),
+        stage: format!("{stage:?}"),
+        steps: a.steps,
+        step_ms,
+        phases,
+        peak_mib,
+        body_gaussians: trainer.setup.body_count(),
+        face_gaussians: trainer.setup.face_count(),
+    };
+    println!("{:<14} {:>10}  what", "phase", "ms/step");
+    for ((name, ms), meaning) in result.phases.phases.iter().zip(PHASE_MEANINGS) {
+        println!("{name:<14} {ms:>10.1}  {meaning}");
+    }
+    let phase_sum: f64 = result.phases.phases.iter().map(|p| p.1).sum();
+    println!(
+        "{:<14} {:>10.1}  wall clock per step (phases sum to {phase_sum:.1})",
+        "step", result.step_ms
+    );
+    match result.peak_mib {
+        Some(m) => println!("peak memory {m:.0} MiB"),
+        None => println!("peak memory: not reported by this device"),
+    }
+    debug_assert_eq!(PHASES.len(), result.phases.phases.len());
+    if let Some(path) = &a.json {
+        f3g_io::write_atomic(path, serde_json::to_string_pretty(&result)?.as_bytes())?;
+    }
+    Ok(())
+}
