@@ -32,6 +32,8 @@ pub enum AvatarError {
     Nets(#[from] f3g_nets::NetsError),
     #[error(transparent)]
     Splat(#[from] f3g_splat::SplatError),
+    #[error(transparent)]
+    Memory(#[from] f3g_io::memory::NotEnoughMemory),
     #[error("{0}")]
     Invalid(String),
 }

@@ -150,6 +150,44 @@ fn scores(
 /// Padding (capture pixels) of the body's LPIPS box (Animatable Gaussians' `eval/score.py`).
 const LPIPS_PAD: f32 = 50.0;
 
+/// Host bytes evaluating one image holds, per capture pixel (the image, its mask and the
+/// whitened ground truth), per pixel at `--scale` (ground truth, render, the CPU renderer's
+/// state, and the eight comparison rows of the grid) and per Gaussian (its render state):
+/// upper estimates.
+const EVAL_BYTES_PER_CAPTURE_PIXEL: u64 = 32;
+const EVAL_BYTES_PER_SCALED_PIXEL: u64 = 420;
+const EVAL_BYTES_PER_GAUSSIAN: u64 = 400;
+
+/// Fails before anything is decoded when the largest image of `pairs` at `options.scale`
+/// cannot be evaluated in the memory the machine has.
+fn ensure_memory(
+    ds: &Dataset,
+    pairs: &[(usize, usize)],
+    gaussians: usize,
+    options: &EvalOptions,
+) -> Result<(), AvatarError> {
+    let Some(camera) = pairs
+        .iter()
+        .map(|&(c, _)| &ds.cameras[c])
+        .max_by_key(|c| c.camera.width as u64 * c.camera.height as u64)
+    else {
+        return Ok(());
+    };
+    let (w, h) = (camera.camera.width as usize, camera.camera.height as usize);
+    let (sw, sh) = scaled_size(w, h, options.scale);
+    let face = (options.face_size * options.face_size) as u64;
+    let bytes = (w * h) as u64 * EVAL_BYTES_PER_CAPTURE_PIXEL
+        + ((sw * sh) as u64 + face) * EVAL_BYTES_PER_SCALED_PIXEL
+        + gaussians as u64 * EVAL_BYTES_PER_GAUSSIAN;
+    Ok(f3g_io::memory::ensure_available(
+        bytes,
+        &format!(
+            "evaluating the {w}×{h} images of camera `{}` at --scale {} ({sw}×{sh})",
+            camera.name, options.scale
+        ),
+    )?)
+}
+
 /// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`), rendering
 /// and scoring LPIPS on `device`.
 pub fn evaluate(
@@ -205,6 +243,7 @@ pub fn evaluate(
             data.display()
         )));
     }
+    ensure_memory(&ds, &pairs, avatar.gaussian_count(), options)?;
     let lpips = Lpips::load(options.lpips_net, &device).ok();
     let out_dir = options
         .out

@@ -97,9 +97,6 @@ fn host<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
     t.into_data().try_into_vec::<f32>().expect("f32 tensor")
 }
 
-/// Memory the SH fit's colour matrix may take.
-const MAX_FIT_BYTES: u64 = 4 << 30;
-
 /// The posed Gaussians of `params` with SH colour fitted to the colour network, in the `up`
 /// convention; `use_pca` projects the pose onto the training poses first (unseen poses).
 pub fn export_cloud(
@@ -144,16 +141,16 @@ pub fn export_cloud(
         basis(k, [d.x, d.y, d.z], &mut row);
         row
     };
-    // The fit holds every direction's colours of every Gaussian in f64.
-    let fit_bytes = options.directions as u64 * 3 * n as u64 * 8;
-    if fit_bytes > MAX_FIT_BYTES {
-        return Err(AvatarError::Invalid(format!(
-            "an SH fit over {} view directions of {n} Gaussians needs {:.1} GiB (at most {} GiB): use fewer --directions",
-            options.directions,
-            fit_bytes as f64 / (1u64 << 30) as f64,
-            MAX_FIT_BYTES >> 30
-        )));
-    }
+    // The fit holds every direction's colours of every Gaussian in f64, and the least-squares
+    // solve a copy of them.
+    let fit_bytes = 2 * options.directions as u64 * 3 * n as u64 * 8;
+    f3g_io::memory::ensure_available(
+        fit_bytes,
+        &format!(
+            "an SH fit over {} view directions (--directions) of {n} Gaussians",
+            options.directions
+        ),
+    )?;
     let fit_dirs = fibonacci(options.directions, 0.0);
     let check_dirs = fibonacci(options.directions, 0.5);
     // Least squares A f = c − 0.5 for every Gaussian and channel at once (one QR of A).

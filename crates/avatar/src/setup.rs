@@ -313,6 +313,16 @@ impl Setup {
         components: usize,
         sigma: f32,
     ) -> Result<PosePca, AvatarError> {
+        // The posed maps in f32, their centred copy in f64, and the components.
+        let values = 3 * self.body_count() as u64;
+        f3g_io::memory::ensure_available(
+            values * 12 * (frames.len() as u64 + components as u64),
+            &format!(
+                "the pose PCA of {} frames × {} body Gaussians (training frames, map_resolution)",
+                frames.len(),
+                self.body_count()
+            ),
+        )?;
         let samples = frames
             .par_iter()
             .map(|p| {

@@ -69,9 +69,8 @@ pub struct LbsBenchArgs {
 pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
     ensure!(args.repeats > 0, "--repeats must be at least 1");
     // Per Gaussian: skin weights, the blended transform, its tensors and the posed outputs.
-    memory::ensure_fits(
+    f3g_io::memory::ensure_available(
         args.points as u64 * LBS_BYTES_PER_GAUSSIAN,
-        memory::available_bytes(),
         &format!("--points {}", args.points),
     )?;
     let device = args.device.open()?;
@@ -341,9 +340,8 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
         .unwrap_or(0);
     // The scene is made on the host on every device; the CPU render is counted on GPUs too
     // (it counts the evaluations).
-    memory::ensure_fits(
+    f3g_io::memory::ensure_available(
         largest_n * SPLAT_BYTES_PER_GAUSSIAN + largest_image * SPLAT_BYTES_PER_PIXEL,
-        memory::available_bytes(),
         &format!("--gaussians {largest_n} with an image of {largest_image} pixels (--resolutions)"),
     )?;
     if args.device == DeviceSpec::Cpu {

@@ -85,9 +85,8 @@ pub fn run(args: &RenderPlyArgs) -> Result<()> {
         alpha_max: args.alpha_max,
     };
     let pixels = camera.width as u64 * camera.height as u64;
-    crate::memory::ensure_fits(
+    f3g_io::memory::ensure_available(
         pixels * RENDER_BYTES_PER_PIXEL + cloud.len() as u64 * RENDER_BYTES_PER_GAUSSIAN,
-        crate::memory::available_bytes(),
         &format!(
             "rendering {} Gaussians at {}x{} ({})",
             cloud.len(),

@@ -250,3 +250,66 @@ fn data_parallel_training_and_the_training_step_bench() {
     assert!(!e.status.success());
     assert!(String::from_utf8_lossy(&e.stderr).contains("no Joint steps"));
 }
+
+/// `F3G_MAX_MEMORY` caps the memory budget: each large allocation of training, evaluation and
+/// export is refused before it happens, with the flag or key to change.
+#[test]
+fn a_memory_budget_too_small_is_an_error_naming_what_to_change() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(&f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "5",
+            "--resolution",
+            "128",
+        ],
+    ));
+    std::fs::write(
+        d.join("tiny.json"),
+        common::tiny_config([1, 0, 0, 0, 0], ""),
+    )
+    .unwrap();
+    let capped = |cap: &str, args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_f3g"))
+            .args(args)
+            .current_dir(d)
+            .env("F3G_MAX_MEMORY", cap)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?} ran under {cap}");
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let train = [
+        "train",
+        "--data",
+        "cap",
+        "--out",
+        "run",
+        "--config",
+        "tiny.json",
+    ];
+    let e = capped("1000", &train);
+    assert!(
+        e.contains("pose PCA") && e.contains("F3G_MAX_MEMORY=1000"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(d.join("run")).unwrap();
+    let e = capped("1M", &train);
+    assert!(e.contains("`cache_bytes`"), "{e}");
+    std::fs::remove_dir_all(d.join("run")).unwrap();
+    ok(&f3g(d, &train));
+    let e = capped("1M", &["eval", "run"]);
+    assert!(e.contains("--scale 1"), "{e}");
+    let e = capped("100K", &["export-ply", "run", "--out", "a.ply"]);
+    assert!(
+        e.contains("--directions") && !d.join("a.ply").exists(),
+        "{e}"
+    );
+    let e = capped("lots", &["export-ply", "run", "--out", "a.ply"]);
+    assert!(e.contains("is not a size"), "{e}");
+}

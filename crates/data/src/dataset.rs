@@ -117,27 +117,47 @@ impl Dataset {
     /// Reads the image of `(camera, frame)`, checking its size against the calibration.
     pub fn image(&self, camera: usize, frame: usize) -> Result<Image, DataError> {
         let path = self.image_path(camera, frame);
+        self.check_size(&path, camera)?;
         let img = f3g_io::read_rgb(&path)?;
-        self.check_size(&path, camera, &img)?;
+        self.check_decoded(&path, camera, &img)?;
         Ok(img)
     }
 
     /// Reads the alpha mask of `(camera, frame)` in [0, 1], checking its size.
     pub fn mask(&self, camera: usize, frame: usize) -> Result<Image, DataError> {
         let path = self.mask_path(camera, frame);
+        self.check_size(&path, camera)?;
         let img = f3g_io::read_gray(&path)?;
-        self.check_size(&path, camera, &img)?;
+        self.check_decoded(&path, camera, &img)?;
         Ok(img)
     }
 
-    fn check_size(&self, path: &Path, camera: usize, img: &Image) -> Result<(), DataError> {
+    /// Checks the size in the file's header before anything is decoded, so that a file
+    /// claiming a huge size is an error, not an allocation of that size.
+    fn check_size(&self, path: &Path, camera: usize) -> Result<(), DataError> {
+        let (width, height) = f3g_io::image_size(path)?;
+        self.size_matches(path, camera, width, height)
+    }
+
+    /// The decoded size (which a lying header could differ from).
+    fn check_decoded(&self, path: &Path, camera: usize, img: &Image) -> Result<(), DataError> {
+        self.size_matches(path, camera, img.width, img.height)
+    }
+
+    fn size_matches(
+        &self,
+        path: &Path,
+        camera: usize,
+        width: usize,
+        height: usize,
+    ) -> Result<(), DataError> {
         let cam = &self.cameras[camera].camera;
-        if (img.width, img.height) != (cam.width as usize, cam.height as usize) {
+        if (width, height) != (cam.width as usize, cam.height as usize) {
             return Err(DataError::file(
                 path,
                 format!(
-                    "is {}×{} but the calibration of `{}` says imgSize [{}, {}]",
-                    img.width, img.height, self.cameras[camera].name, cam.width, cam.height
+                    "is {width}×{height} but the calibration of `{}` says imgSize [{}, {}]",
+                    self.cameras[camera].name, cam.width, cam.height
                 ),
             ));
         }

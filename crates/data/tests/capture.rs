@@ -185,6 +185,18 @@ fn damaged_captures_are_reported_with_the_file() {
         e.contains("cam02/mask/pha/00000000.jpg") && e.contains("imgSize"),
         "{e}"
     );
+    // A JPEG whose header claims 60000×60000 (10 GB decoded): refused from the header alone.
+    let image = root.join("cam02/00000000.jpg");
+    let mut bytes = std::fs::read(&image).unwrap();
+    let sof = bytes
+        .windows(2)
+        .position(|w| w == [0xff, 0xc0])
+        .expect("a baseline JPEG");
+    bytes[sof + 5..sof + 9].copy_from_slice(&[0xea, 0x60, 0xea, 0x60]);
+    std::fs::write(&image, &bytes).unwrap();
+    assert_eq!(f3g_io::image_size(&image).unwrap(), (60000, 60000));
+    let e = ds.image(2, 0).expect_err("a lying header").to_string();
+    assert!(e.contains("is 60000×60000") && e.contains("imgSize"), "{e}");
     // Missing frames are skipped with a warning.
     std::fs::remove_file(root.join("cam03/00000002.jpg")).unwrap();
     let ds = Dataset::open(root, None).unwrap();

@@ -5,6 +5,8 @@
 //! - Images in memory are `[H, W, C]` row-major `f32` in `[0, 1]`, RGB (not BGR).
 //! - Errors name the file and say what was expected.
 
+pub mod memory;
+
 use std::io::{Cursor, Write};
 use std::path::{Path, PathBuf};
 

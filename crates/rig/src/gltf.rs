@@ -46,6 +46,34 @@ fn buffers(gltf: &gltf::Gltf, path: &Path) -> Result<Vec<gltf::buffer::Data>, Ri
         .map_err(|e| RigError::file(path, format!("cannot load buffers: {e}")))
 }
 
+/// The most elements f3g reads from one accessor: far above any body mesh (MHR's has 18 439
+/// vertices, a dense scan a few million), far below what a lying `count` can ask for.
+pub const MAX_ACCESSOR_COUNT: usize = 1 << 24;
+
+/// Refuses an accessor whose `count` — for a sparse accessor without a buffer view, a number
+/// the file can set freely, which the reader would turn into that many elements — is beyond
+/// [`MAX_ACCESSOR_COUNT`] or the memory budget, before anything is read from it.
+fn check_count(accessor: Option<gltf::Accessor>, what: &str, path: &Path) -> Result<(), RigError> {
+    let Some(a) = accessor else {
+        return Ok(());
+    };
+    let count = a.count();
+    if count > MAX_ACCESSOR_COUNT {
+        return Err(RigError::file(
+            path,
+            format!(
+                "{what} (accessor {}) has count {count}, more than the {MAX_ACCESSOR_COUNT} elements f3g reads",
+                a.index()
+            ),
+        ));
+    }
+    f3g_io::memory::ensure_available(
+        count as u64 * a.size() as u64 * 2,
+        &format!("{what} (accessor {}, count {count})", a.index()),
+    )
+    .map_err(|e| RigError::file(path, e))
+}
+
 /// Reads a `.gltf`/`.glb` file and its buffers (images are not decoded).
 pub fn import(path: &Path) -> Result<(gltf::Document, Vec<gltf::buffer::Data>), RigError> {
     let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
@@ -158,6 +186,11 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
     }
     let skeleton = Skeleton::new(joints).map_err(|e| RigError::file(path, e))?;
 
+    check_count(
+        skin.inverse_bind_matrices(),
+        "the skin's inverse bind matrices",
+        path,
+    )?;
     let reader = skin.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
     let inverse_bind: Vec<Affine3A> = match reader.read_inverse_bind_matrices() {
         Some(m) => {
@@ -192,6 +225,21 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
     for (pi, prim) in mesh.primitives().enumerate() {
         if prim.mode() != gltf::mesh::Mode::Triangles {
             continue;
+        }
+        use gltf::Semantic;
+        let name = |what: &str| format!("{what} of primitive {pi}");
+        check_count(prim.get(&Semantic::Positions), &name("POSITION"), path)?;
+        check_count(prim.indices(), &name("the indices"), path)?;
+        for set in 0..2 {
+            check_count(prim.get(&Semantic::Joints(set)), &name("JOINTS"), path)?;
+            check_count(prim.get(&Semantic::Weights(set)), &name("WEIGHTS"), path)?;
+        }
+        for (t, target) in prim.morph_targets().enumerate() {
+            check_count(
+                target.positions(),
+                &name(&format!("morph target {t}")),
+                path,
+            )?;
         }
         let r = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
         let start = vertices.len() as u32;

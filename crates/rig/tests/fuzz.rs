@@ -111,6 +111,55 @@ fn a_missing_position_accessor_is_an_error() {
     assert!(e.contains("c.glb") && e.contains("not a valid glTF"), "{e}");
 }
 
+/// `GLB` with its JSON chunk edited by `edit` (chunk and file lengths rewritten).
+fn edited_glb(edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+    let u32_at = |at: usize| u32::from_le_bytes(GLB[at..at + 4].try_into().unwrap()) as usize;
+    let json_len = u32_at(12);
+    let mut json: serde_json::Value = serde_json::from_slice(&GLB[20..20 + json_len]).unwrap();
+    edit(&mut json);
+    let mut text = serde_json::to_vec(&json).unwrap();
+    while !text.len().is_multiple_of(4) {
+        text.push(b' ');
+    }
+    let rest = &GLB[20 + json_len..];
+    let mut out = GLB[..12].to_vec();
+    out.extend((text.len() as u32).to_le_bytes());
+    out.extend(&GLB[16..20]);
+    out.extend(&text);
+    out.extend(rest);
+    let total = out.len() as u32;
+    out[8..12].copy_from_slice(&total.to_le_bytes());
+    out
+}
+
+/// A sparse accessor without a buffer view may set any `count`: the reader would produce that
+/// many elements. 4·10⁹ positions must be refused before reading, naming the accessor.
+#[test]
+fn an_absurd_accessor_count_is_refused_before_reading() {
+    let bytes = edited_glb(|json| {
+        let position = &mut json["accessors"][1];
+        position.as_object_mut().unwrap().remove("bufferView");
+        position["count"] = serde_json::json!(4_000_000_000u64);
+        position["sparse"] = serde_json::json!({
+            "count": 1,
+            "indices": {"bufferView": 0, "componentType": 5125},
+            "values": {"bufferView": 1}
+        });
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.glb");
+    std::fs::write(&path, &bytes).unwrap();
+    let e = gltf::load(&path, None).err().unwrap().to_string();
+    assert!(
+        e.contains("c.glb") && e.contains("POSITION of primitive 0") && e.contains("4000000000"),
+        "{e}"
+    );
+    // The same file with its real count loads: the edit is what is refused.
+    let bytes = edited_glb(|_| {});
+    std::fs::write(&path, &bytes).unwrap();
+    gltf::load(&path, None).unwrap();
+}
+
 #[test]
 fn the_valid_model_and_parameter_seeds_read() {
     let rig = glb_rig();

@@ -396,6 +396,27 @@ impl Trainer {
         }
     }
 
+    /// Fails when the loader's image cache would grow beyond the memory the machine has: it
+    /// holds up to `cache_bytes` of decoded images and masks (16 bytes per pixel), or every
+    /// training image when they take less.
+    fn ensure_cache_fits(&self) -> Result<(), AvatarError> {
+        let images: u64 = f3g_data::loader::available(&self.dataset, &self.split)
+            .iter()
+            .map(|&(c, _)| {
+                let cam = &self.dataset.cameras[c].camera;
+                16 * cam.width as u64 * cam.height as u64
+            })
+            .sum();
+        let bytes = images.min(self.config.cache_bytes as u64);
+        Ok(f3g_io::memory::ensure_available(
+            bytes,
+            &format!(
+                "the loader's image cache (configuration `cache_bytes` = {})",
+                self.config.cache_bytes
+            ),
+        )?)
+    }
+
     /// Trains until the last step or until `stop` is raised, calling `on_step` after each step.
     pub fn train(
         &mut self,
@@ -407,6 +428,7 @@ impl Trainer {
         if self.state.step >= total {
             return Ok(Outcome::Finished);
         }
+        self.ensure_cache_fits()?;
         let per_step = (self.replicas.len() * self.config.batch) as u64;
         let mut loader = Loader::new(
             self.dataset.clone(),
