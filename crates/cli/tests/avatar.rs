@@ -5,10 +5,9 @@ mod common;
 
 use common::{f3g_in as f3g, ok};
 
-#[test]
-fn train_resume_evaluate_animate_and_export() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
+/// A 5-frame synthetic capture `cap` in `d` and `tiny.json`, the tiny configuration with
+/// `steps` for the five stages.
+fn tiny_capture(d: &std::path::Path, steps: [u64; 5]) {
     ok(&f3g(
         d,
         &[
@@ -21,11 +20,14 @@ fn train_resume_evaluate_animate_and_export() {
             "128",
         ],
     ));
-    std::fs::write(
-        d.join("tiny.json"),
-        common::tiny_config([2, 2, 1, 2, 1], ""),
-    )
-    .unwrap();
+    std::fs::write(d.join("tiny.json"), common::tiny_config(steps, "")).unwrap();
+}
+
+#[test]
+fn train_resume_evaluate_animate_and_export() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    tiny_capture(d, [2, 2, 1, 2, 1]);
     let out = f3g(
         d,
         &[
@@ -168,23 +170,7 @@ fn train_resume_evaluate_animate_and_export() {
 fn data_parallel_training_and_the_training_step_bench() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    ok(&f3g(
-        d,
-        &[
-            "synth",
-            "--out",
-            "cap",
-            "--frames",
-            "5",
-            "--resolution",
-            "128",
-        ],
-    ));
-    std::fs::write(
-        d.join("tiny.json"),
-        common::tiny_config([1, 1, 0, 0, 0], ""),
-    )
-    .unwrap();
+    tiny_capture(d, [1, 1, 0, 0, 0]);
     let train = |devices: &str, out: &str| {
         f3g(
             d,
@@ -257,23 +243,7 @@ fn data_parallel_training_and_the_training_step_bench() {
 fn a_memory_budget_too_small_is_an_error_naming_what_to_change() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    ok(&f3g(
-        d,
-        &[
-            "synth",
-            "--out",
-            "cap",
-            "--frames",
-            "5",
-            "--resolution",
-            "128",
-        ],
-    ));
-    std::fs::write(
-        d.join("tiny.json"),
-        common::tiny_config([1, 0, 0, 0, 0], ""),
-    )
-    .unwrap();
+    tiny_capture(d, [1, 0, 0, 0, 0]);
     let capped = |cap: &str, args: &[&str]| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_f3g"))
             .args(args)

@@ -55,7 +55,9 @@ use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_rig::ModelSpec;
 use profile::{PhaseTimer, mark};
 pub use schedule::{Schedule, Stage};
-use step::{Optimisers, Replica, SampleGradients, StepContext, adam, adam_disc, sum_gradients};
+use step::{
+    Optimisers, Replica, SampleGradients, StepContext, adam, adam_disc, add_values, sum_gradients,
+};
 
 /// What one step did.
 #[derive(Clone, Debug, Serialize)]
@@ -756,16 +758,6 @@ impl Trainer {
         f3g_io::write_png(&dir.join(format!("step-{:09}.png", self.state.step)), &grid)?;
         f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
         Ok(())
-    }
-}
-
-/// Adds a replica's loss values (already its share of the mean) to the step's, by name.
-fn add_values(values: &mut Vec<(String, f32)>, more: &[(String, f32)]) {
-    for (name, v) in more {
-        match values.iter_mut().find(|o| &o.0 == name) {
-            Some(o) => o.1 += v,
-            None => values.push((name.clone(), *v)),
-        }
     }
 }
 

@@ -278,12 +278,19 @@ fn read_values(step: u64, terms: &Terms) -> Result<Vec<(String, f32)>, AvatarErr
             return Err(non_finite(step, name, v));
         }
         // Several samples give the same terms: their shares add up to the mean.
-        match values.iter_mut().find(|o| &o.0 == name) {
-            Some(o) => o.1 += v,
-            None => values.push((name.clone(), v)),
-        }
+        add_values(&mut values, &[(name.clone(), v)]);
     }
     Ok(values)
+}
+
+/// Adds loss values (each already its share of the step's mean) to `values`, by name.
+pub fn add_values(values: &mut Vec<(String, f32)>, more: &[(String, f32)]) {
+    for (name, v) in more {
+        match values.iter_mut().find(|o| &o.0 == name) {
+            Some(o) => o.1 += v,
+            None => values.push((name.clone(), *v)),
+        }
+    }
 }
 
 fn non_finite(step: u64, name: &str, value: f32) -> AvatarError {
