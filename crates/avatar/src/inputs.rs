@@ -1,14 +1,291 @@
-//! The networks' inputs for one frame seen from one camera: posed position maps, view maps,
-//! the template displacement and the skinning transforms of every Gaussian. Training,
-//! evaluation and animation all build them here from the [`Setup`], on the device they are
-//! given.
+//! The networks' inputs for one frame seen from one camera — posed position maps, view maps,
+//! the template displacement and the skinning of every Gaussian — computed on the device from
+//! what the host prepares per frame ([`crate::setup::FramePose`]: joint transforms and the
+//! template's vertex displacements). Training, evaluation and animation all build them here.
+//!
+//! Per frame the host uploads `2·J` joint transforms and `V` vertex displacements; everything
+//! per Gaussian or per texel — barycentric interpolation of the displacements, densification
+//! into the face Gaussians, skin blending, nearest rotations, posed maps, `n · v` maps, their
+//! reduction to the networks' sizes and the pose PCA — is tensor work on the device
+//! ([`GaussianTables`] holds the constant tables for it). Nothing is read back.
 
 use burn::tensor::{Device, Tensor, TensorData};
+use glam::Vec3;
 
 use crate::AvatarError;
 use crate::model::Constants;
-use crate::setup::Setup;
-use f3g_rig::PointTransform;
+use crate::posing::{
+    Skinning, Taps, affine_tensor, blend, columns, normalize, split_affine, transform_points,
+};
+use crate::setup::{FramePose, Setup};
+use f3g_template::PosePca;
+
+/// A frame's pose on the device.
+#[derive(Clone, Debug)]
+pub struct PoseTensors {
+    /// `[J, 3, 4]` canonical-to-posed joint transforms with the root motion.
+    pub joints: Tensor<3>,
+    /// `[J, 3, 4]` the networks' input pose: no root motion, fingers at rest.
+    pub input_joints: Tensor<3>,
+    /// `[V, 3]` canonical displacement of every template vertex.
+    pub displacement: Tensor<2>,
+}
+
+impl FramePose {
+    /// Uploads the frame's pose (three small tensors).
+    pub fn upload(&self, device: &Device) -> PoseTensors {
+        let v: Vec<f32> = self
+            .displacement
+            .iter()
+            .flat_map(|d| d.to_array())
+            .collect();
+        PoseTensors {
+            joints: affine_tensor(&self.joints, device),
+            input_joints: affine_tensor(&self.input_joints, device),
+            displacement: Tensor::from_data(
+                TensorData::new(v, [self.displacement.len(), 3]),
+                device,
+            ),
+        }
+    }
+}
+
+/// One set of Gaussians laid out on a two-sided map (the body's, or the face's head map).
+#[derive(Clone, Debug)]
+struct Part {
+    /// `[N, 3]` canonical template positions.
+    positions: Tensor<2>,
+    /// Canonical normals as three `[N, 1]` columns.
+    normals: [Tensor<2>; 3],
+    /// One row per Gaussian, one tap per influencing joint.
+    skin: Taps,
+    /// The masked box filter of the map to the network's input: one row per input pixel
+    /// (side, row, column), the mean of the Gaussians whose texels it covers.
+    reduce: Taps,
+    /// Side of the network input.
+    size: usize,
+}
+
+impl Part {
+    fn new(
+        positions: &[Vec3],
+        normals: &[Vec3],
+        skin: &f3g_rig::SkinWeights,
+        pixels: &[usize],
+        map: usize,
+        size: usize,
+        device: &Device,
+    ) -> Self {
+        let vec3 = |v: &[Vec3]| {
+            Tensor::<2>::from_data(
+                TensorData::new(v.iter().flat_map(|p| p.to_array()).collect(), [v.len(), 3]),
+                device,
+            )
+        };
+        let skin_rows: Vec<Vec<(usize, f32)>> = (0..skin.len())
+            .map(|i| skin.influences(i).collect())
+            .collect();
+        let reduce_rows = reduction(pixels, map, size);
+        let n = normals.len();
+        Self {
+            positions: vec3(positions),
+            normals: std::array::from_fn(|k| {
+                Tensor::from_data(
+                    TensorData::new(normals.iter().map(|v| v[k]).collect(), [n, 1]),
+                    device,
+                )
+            }),
+            skin: Taps::new(skin_rows.iter().map(Vec::as_slice), device),
+            reduce: Taps::new(reduce_rows.iter().map(Vec::as_slice), device),
+            size,
+        }
+    }
+
+    /// Per-Gaussian values `[N, C]` as the network input `[1, 2C, S, S]` (front channels, then
+    /// back).
+    fn input(&self, values: Tensor<2>) -> Tensor<4> {
+        let (s, c) = (self.size, values.dims()[1]);
+        self.reduce
+            .apply(values)
+            .reshape([2, s, s, c])
+            .permute([0, 3, 1, 2])
+            .reshape([1, 2 * c, s, s])
+    }
+
+    /// `n · v` maps `[1, 1, S, S]` (front, back): canonical normals turned by the skinning
+    /// rotation, `v` the unit direction from the posed Gaussian to the camera centre, moved by
+    /// `noise` (`[N, 3]`, already scaled) and renormalised when given.
+    fn view(
+        &self,
+        canonical: &Tensor<2>,
+        skinning: &Skinning,
+        centre: &Tensor<2>,
+        noise: Option<Tensor<2>>,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let posed = transform_points(&skinning.linear, &skinning.translation, canonical.clone());
+        let mut to_camera = normalize(centre.clone() - posed);
+        if let Some(noise) = noise {
+            to_camera = normalize(to_camera + noise);
+        }
+        let [vx, vy, vz] = columns(&to_camera);
+        let [nx, ny, nz] = skinning.rotate(&self.normals);
+        let length = (nx.clone() * nx.clone() + ny.clone() * ny.clone() + nz.clone() * nz.clone())
+            .sqrt()
+            .clamp_min(1e-12);
+        let both = self.input((nx * vx + ny * vy + nz * vz) / length);
+        let s = self.size;
+        (
+            both.clone().slice([0..1, 0..1, 0..s, 0..s]),
+            both.slice([0..1, 1..2, 0..s, 0..s]),
+        )
+    }
+}
+
+/// For every pixel `(side, y, x)` of a `[size, size]` input per side, the Gaussians (by the
+/// index of their texel in `pixels`, a `[map, 2·map]` layout) inside its footprint, each with
+/// weight `1 / count`: the mean of the covered texels (box filter; when up-sampling, the texel
+/// under the pixel centre). Pixels that cover none get no taps (zero).
+fn reduction(pixels: &[usize], map: usize, size: usize) -> Vec<Vec<(usize, f32)>> {
+    let mut gaussian = vec![usize::MAX; map * 2 * map];
+    for (g, &p) in pixels.iter().enumerate() {
+        gaussian[p] = g;
+    }
+    let ratio = map as f32 / size as f32;
+    let mut rows = Vec::with_capacity(2 * size * size);
+    for side in 0..2 {
+        for y in 0..size {
+            for x in 0..size {
+                let (y0, y1) = footprint(y, ratio, map);
+                let (x0, x1) = footprint(x, ratio, map);
+                let covered: Vec<usize> = (y0..y1)
+                    .flat_map(|sy| (x0..x1).map(move |sx| sy * 2 * map + side * map + sx))
+                    .map(|p| gaussian[p])
+                    .filter(|&g| g != usize::MAX)
+                    .collect();
+                let w = 1.0 / covered.len().max(1) as f32;
+                rows.push(covered.into_iter().map(|g| (g, w)).collect());
+            }
+        }
+    }
+    rows
+}
+
+/// Source rows/columns `[a, b)` covered by output pixel `i` at `ratio` source texels per pixel.
+fn footprint(i: usize, ratio: f32, n: usize) -> (usize, usize) {
+    if ratio <= 1.0 {
+        let s = (((i as f32 + 0.5) * ratio) as usize).min(n - 1);
+        (s, s + 1)
+    } else {
+        let a = (i as f32 * ratio).floor() as usize;
+        let b = (((i + 1) as f32 * ratio).ceil() as usize).min(n);
+        (a.min(n - 1), b.max(a + 1))
+    }
+}
+
+/// The setup's constant per-Gaussian tables on one device.
+#[derive(Clone, Debug)]
+pub struct GaussianTables {
+    /// Barycentric interpolation of template-vertex values at the body Gaussians.
+    body_from_vertices: Taps,
+    body: Part,
+    /// The face Gaussians (with the face branch): their densification taps into the body
+    /// Gaussians and their head map.
+    face: Option<(Taps, Part)>,
+}
+
+impl GaussianTables {
+    /// The tables of `setup` for network inputs of `body_size`² and `face_size`² per side.
+    pub fn new(setup: &Setup, body_size: usize, face_size: usize, device: &Device) -> Self {
+        let maps = &setup.maps;
+        let bary: Vec<Vec<(usize, f32)>> = maps
+            .corners
+            .iter()
+            .zip(&maps.bary)
+            .map(|(c, b)| (0..3).map(|k| (c[k] as usize, b[k])).collect())
+            .collect();
+        let body = Part::new(
+            &maps.positions,
+            &maps.normals,
+            &maps.skin,
+            &maps.pixels,
+            maps.resolution,
+            body_size,
+            device,
+        );
+        let face = setup.head.as_ref().map(|h| {
+            (
+                Taps::new(h.sources.iter().map(Vec::as_slice), device),
+                Part::new(
+                    &h.positions,
+                    &h.normals,
+                    &h.skin,
+                    &h.pixels,
+                    h.size,
+                    face_size,
+                    device,
+                ),
+            )
+        });
+        Self {
+            body_from_vertices: Taps::new(bary.iter().map(Vec::as_slice), device),
+            body,
+            face,
+        }
+    }
+
+    /// Number of Gaussians with skin (body, and face when the setup has the face branch).
+    pub fn count(&self) -> usize {
+        self.body.skin.rows() + self.face.as_ref().map_or(0, |f| f.1.skin.rows())
+    }
+
+    /// The body Gaussians' canonical displacement `[N_b, 3]` and root-relative posed positions
+    /// `[N_b, 3]` in the networks' input pose (what the body network and the pose PCA see).
+    fn posed_body(&self, pose: &PoseTensors) -> (Tensor<2>, Tensor<2>) {
+        let displacement = self.body_from_vertices.apply(pose.displacement.clone());
+        let canonical = self.body.positions.clone() + displacement.clone();
+        let (linear, translation) = split_affine(blend(&pose.input_joints, &self.body.skin));
+        (
+            displacement,
+            transform_points(&linear, &translation, canonical),
+        )
+    }
+}
+
+/// The pose PCA on the device: posed maps are projected onto the training poses' principal
+/// components with coefficients clamped to `±σ·stddev` (Animatable Gaussians' treatment of
+/// unseen poses).
+#[derive(Clone, Debug)]
+pub struct PcaTensors {
+    /// `[1, D]`.
+    mean: Tensor<2>,
+    /// `[K, D]`.
+    components: Tensor<2>,
+    /// `[1, K]`.
+    limit: Tensor<2>,
+}
+
+impl PcaTensors {
+    pub fn new(pca: &PosePca, device: &Device) -> Self {
+        let (d, k) = (pca.mean.len(), pca.len());
+        let limit: Vec<f32> = pca.stddev.iter().map(|s| pca.sigma * s).collect();
+        Self {
+            mean: Tensor::from_data(TensorData::new(pca.mean.clone(), [1, d]), device),
+            components: Tensor::from_data(TensorData::new(pca.components.clone(), [k, d]), device),
+            limit: Tensor::from_data(TensorData::new(limit, [1, k]), device),
+        }
+    }
+
+    /// Projects `[N, 3]` positions (flattened row-major, as the PCA was fitted).
+    pub fn project(&self, x: Tensor<2>) -> Tensor<2> {
+        let [n, c] = x.dims();
+        let centred = x.reshape([1, n * c]) - self.mean.clone();
+        let coefficients = centred
+            .matmul(self.components.clone().transpose())
+            .max_pair(self.limit.clone().neg())
+            .min_pair(self.limit.clone());
+        (self.mean.clone() + coefficients.matmul(self.components.clone())).reshape([n, c])
+    }
+}
 
 /// Everything the networks need for one (frame, camera), as tensors.
 pub struct NetInputs {
@@ -19,61 +296,172 @@ pub struct NetInputs {
     /// `[N, 3]` canonical displacement of every Gaussian by the frame's blend shapes and
     /// correctives (body then face).
     pub displacement: Tensor<2>,
-    /// Skinning transforms of every Gaussian (body then face).
-    pub transforms: Vec<PointTransform>,
+    /// Skinning of every Gaussian (body then face).
+    pub skinning: Skinning,
 }
 
-/// The network inputs for body parameters seen from `camera`. With `pca`, the body's posed map
-/// is first projected onto the training poses' principal components (Animatable Gaussians'
-/// treatment of unseen poses; the head maps are used as they are).
+/// The network inputs for a frame's `pose` seen from `camera`, on the device of `constants`.
+/// `noise` (`[N, 3]` for every Gaussian with skin, already scaled; training only) jitters the
+/// view directions. With `pca`, the body's posed map is first projected onto the training
+/// poses' principal components (the head maps are used as they are).
 pub fn inputs_for(
-    setup: &Setup,
     constants: &Constants,
-    params: &f3g_rig::RigParams,
+    pose: &PoseTensors,
     camera: &f3g_splat::Camera,
-    noise: Option<(f32, u64)>,
-    pca: Option<&f3g_template::PosePca>,
-    device: &Device,
+    noise: Option<&Tensor<2>>,
+    pca: Option<&PcaTensors>,
 ) -> Result<NetInputs, AvatarError> {
-    let frame = setup.frame(params)?;
-    let mut posed_body = frame.posed_body.clone();
-    if let Some(pca) = pca {
-        let flat: Vec<f32> = posed_body.iter().flat_map(|v| v.to_array()).collect();
-        posed_body = pca
-            .project(&flat)?
-            .chunks_exact(3)
-            .map(glam::Vec3::from_slice)
-            .collect();
+    let tables = &constants.tables;
+    let nb = tables.body.skin.rows();
+    if let Some(noise) = noise
+        && noise.dims() != [tables.count(), 3]
+    {
+        return Err(AvatarError::Invalid(format!(
+            "view noise of shape {:?} for {} Gaussians",
+            noise.dims(),
+            tables.count()
+        )));
     }
-    let s = constants.net_input_size;
-    let body_map = setup.body_input(&posed_body, s, device);
-    let body_view = setup.body_view_maps(&frame, camera, s, noise, device);
-    let (face_map, face_view) = match (&frame.posed_face, constants.has_face()) {
-        (Some(pf), true) => {
-            let f = constants.face_input_size;
-            (
-                Some(setup.face_input(pf, f, device)),
-                Some(setup.face_view_maps(&frame, camera, f, noise, device)),
-            )
-        }
-        _ => (None, None),
-    };
-    let count = setup.body_count()
-        + if constants.has_face() {
-            setup.face_count()
-        } else {
-            0
-        };
-    let displacement: Vec<f32> = frame.displacement[..count]
-        .iter()
-        .flat_map(|v| v.to_array())
-        .collect();
-    Ok(NetInputs {
-        body_map,
+    let noise_rows = |a: usize, b: usize| noise.map(|t| t.clone().slice([a..b, 0..3]));
+    let c = camera.center();
+    let centre = Tensor::<2>::from_data(
+        TensorData::new(vec![c[0] as f32, c[1] as f32, c[2] as f32], [1, 3]),
+        &pose.displacement.device(),
+    );
+    let (body_displacement, mut posed_body) = tables.posed_body(pose);
+    if let Some(pca) = pca {
+        posed_body = pca.project(posed_body);
+    }
+    let body_canonical = tables.body.positions.clone() + body_displacement.clone();
+    let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
+    let body_view = tables
+        .body
+        .view(&body_canonical, &body_skinning, &centre, noise_rows(0, nb));
+    let mut inputs = NetInputs {
+        body_map: tables.body.input(posed_body),
         body_view,
-        face_map,
-        face_view,
-        displacement: Tensor::from_data(TensorData::new(displacement, [count, 3]), device),
-        transforms: frame.transforms[..count].to_vec(),
-    })
+        face_map: None,
+        face_view: None,
+        displacement: body_displacement.clone(),
+        skinning: body_skinning,
+    };
+    if let (Some((from_body, face)), true) = (&tables.face, constants.has_face()) {
+        let displacement = from_body.apply(body_displacement);
+        let canonical = face.positions.clone() + displacement.clone();
+        let (linear, translation) = split_affine(blend(&pose.input_joints, &face.skin));
+        let posed = transform_points(&linear, &translation, canonical.clone());
+        let skinning = Skinning::new(&pose.joints, &face.skin);
+        let total = tables.count();
+        inputs.face_view = Some(face.view(&canonical, &skinning, &centre, noise_rows(nb, total)));
+        inputs.face_map = Some(face.input(posed));
+        inputs.displacement = Tensor::cat(vec![inputs.displacement, displacement], 0);
+        inputs.skinning = inputs.skinning.cat(skinning);
+    }
+    Ok(inputs)
+}
+
+/// Fits the pose PCA on the networks' posed body maps of `frames` (root-relative, computed on
+/// `device` as in training).
+pub fn fit_pose_pca(
+    setup: &Setup,
+    frames: &[f3g_rig::RigParams],
+    components: usize,
+    sigma: f32,
+    device: &Device,
+) -> Result<PosePca, AvatarError> {
+    // The posed maps in f32, their centred copy in f64, and the components.
+    let values = 3 * setup.body_count() as u64;
+    f3g_io::memory::ensure_available(
+        values * 12 * (frames.len() as u64 + components as u64),
+        &format!(
+            "the pose PCA of {} frames × {} body Gaussians (training frames, map_resolution)",
+            frames.len(),
+            setup.body_count()
+        ),
+    )?;
+    let tables = GaussianTables::new(setup, 1, 1, device);
+    let samples = frames
+        .iter()
+        .map(|p| {
+            let pose = setup.pose(p)?.upload(device);
+            let (_, posed) = tables.posed_body(&pose);
+            posed
+                .into_data()
+                .convert::<f32>()
+                .try_into_vec::<f32>()
+                .map_err(|e| AvatarError::Invalid(format!("posed map: {e:?}")))
+        })
+        .collect::<Result<Vec<_>, AvatarError>>()?;
+    Ok(PosePca::fit(&samples, components, sigma)?)
+}
+
+/// The view-direction noise of a training sample: `σ · N(0, 1)` per component for each of
+/// `count` Gaussians, from a counter-based hash of `(seed, Gaussian)` (order-independent, so
+/// it is the same however it is computed), `[count, 3]` row-major.
+pub fn view_noise(seed: u64, count: usize, sigma: f32) -> Vec<f32> {
+    (0..count as u64)
+        .flat_map(|i| gaussian3(seed, i).map(|g| sigma * g))
+        .collect()
+}
+
+/// Three standard normal values from a counter-based hash.
+fn gaussian3(seed: u64, i: u64) -> [f32; 3] {
+    let mut state = seed ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    let mut uniform = || {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^= z >> 31;
+        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    let pair = |u1: f64, u2: f64| {
+        let r = (-2.0 * u1.ln()).sqrt();
+        let a = std::f64::consts::TAU * u2;
+        (r * a.cos(), r * a.sin())
+    };
+    let (a, b) = pair(uniform(), uniform());
+    let (c, _) = pair(uniform(), uniform());
+    [a as f32, b as f32, c as f32]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn masked_reduction_averages_valid_texels_only() {
+        // A [4, 8] two-sided map reduced to 2×2 per side: Gaussians at texels (0,0), (0,1),
+        // (1,0) of the front and (3,3) of the back, with values 1, 3, 0 and 5.
+        let n = 4;
+        let pixels = [0, 1, 2 * n, 3 * 2 * n + n + 3];
+        let device = Device::flex();
+        let taps = Taps::new(reduction(&pixels, n, 2).iter().map(Vec::as_slice), &device);
+        let values =
+            Tensor::<2>::from_data(TensorData::new(vec![1.0, 3.0, 0.0, 5.0], [4, 1]), &device);
+        let v = taps
+            .apply(values)
+            .into_data()
+            .try_into_vec::<f32>()
+            .unwrap();
+        assert_eq!(v, vec![4.0 / 3.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 5.0]);
+    }
+
+    #[test]
+    fn up_sampling_takes_the_texel_under_the_pixel_centre() {
+        // A 2-texel-wide map read at 4 pixels per side: each texel twice.
+        let rows = reduction(&[0, 1, 4, 5], 2, 4);
+        let first: Vec<usize> = rows[..4].iter().map(|r| r[0].0).collect();
+        assert_eq!(first, vec![0, 0, 1, 1]);
+        assert!(rows.iter().all(|r| r.len() <= 1));
+    }
+
+    #[test]
+    fn counter_noise_is_deterministic_and_standard() {
+        let a = view_noise(7, 2000, 1.0);
+        assert_eq!(a, view_noise(7, 2000, 1.0));
+        let var = a.iter().map(|v| v * v).sum::<f32>() / a.len() as f32;
+        assert!((var - 1.0).abs() < 0.1, "{var}");
+        assert_ne!(a, view_noise(8, 2000, 1.0));
+    }
 }

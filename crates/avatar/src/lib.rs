@@ -2,7 +2,8 @@
 //!
 //! - [`config`]: the training configuration (presets `cpu` and `paper`, JSON files, overrides).
 //! - [`setup`]: what a run derives from the body model: template, position and head maps,
-//!   initial attributes; [`inputs`]: the networks' inputs for a frame and a camera.
+//!   initial attributes, a frame's joint transforms; [`inputs`]: the networks' inputs for a
+//!   frame and a camera, on the device; [`posing`]: linear blend skinning as tensor ops.
 //! - [`model`]: body and face networks, canonical face model, fusion, LBS, rendering.
 //! - [`train`]: region-aware training with stages, checkpoints and exact resume.
 //! - [`run`]: the run folder (config, checkpoints, PCA, logs).
@@ -11,8 +12,9 @@
 //!   views or poses; [`animate`]: pose sequences to frames, GIF and `.ply`; [`export`]: a
 //!   posed avatar as a 3DGS `.ply` with SH fitted to its view-dependent colour.
 //!
-//! Data flow per step: body parameters → posed maps (`setup`) → networks (`model`) →
-//! canonical Gaussians (body ++ face) → LBS → splatting → losses against the capture.
+//! Data flow per step: body parameters → joint transforms (`setup`, on the host) → posed maps
+//! and skinning (`inputs`, `posing`, on the device) → networks (`model`) → canonical Gaussians
+//! (body ++ face) → LBS → splatting → losses against the capture.
 
 pub mod animate;
 pub mod config;
@@ -21,6 +23,7 @@ pub mod eval;
 pub mod export;
 pub mod inputs;
 pub mod model;
+pub mod posing;
 pub mod report;
 pub mod run;
 pub mod setup;

@@ -35,11 +35,11 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::AvatarError;
 use crate::config::{ColourActivation, TrainConfig};
-use crate::inputs::NetInputs;
+use crate::inputs::{GaussianTables, NetInputs};
+use crate::posing::{Skinning, pose_gaussians};
 use crate::setup::{Setup, logit};
 use f3g_nets::DualStyleUNet;
 use f3g_nets::layers::resize;
-use f3g_rig::PointTransform;
 use f3g_splat::{Camera, Gaussians, RenderOptions, Rendered, render};
 
 /// Scale of the position outputs (metres per unit of network output).
@@ -210,6 +210,8 @@ pub struct Constants {
     pub net_input_size: usize,
     pub face_input_size: usize,
     map_resolution: usize,
+    /// What turns a frame's pose into the networks' inputs and the Gaussians' skinning.
+    pub tables: GaussianTables,
     initial_opacity_logit: f32,
     sigmoid_colours: bool,
     canonical_scale: f32,
@@ -284,6 +286,12 @@ impl Constants {
             net_input_size: config.body_net.input_size,
             face_input_size: config.face_net.input_size,
             map_resolution: config.map_resolution,
+            tables: GaussianTables::new(
+                setup,
+                config.body_net.input_size,
+                config.face_net.input_size,
+                device,
+            ),
             initial_opacity_logit: logit(config.initial_opacity),
             sigmoid_colours: config.colour_activation == ColourActivation::Sigmoid,
             canonical_scale: config.canonical_lr_scale,
@@ -483,82 +491,20 @@ pub fn canonical(
     Ok(out)
 }
 
-/// Skinning transforms as tensors: `A [N, 3, 3]`, `t [N, 3]`, rotation `q [N, 4]` (w, x, y, z).
-pub fn transform_tensors(
-    transforms: &[PointTransform],
-    count: usize,
-    device: &Device,
-) -> (Tensor<3>, Tensor<2>, Tensor<2>) {
-    let t = &transforms[..count];
-    let mut a = Vec::with_capacity(9 * count);
-    let mut b = Vec::with_capacity(3 * count);
-    let mut q = Vec::with_capacity(4 * count);
-    for p in t {
-        let m = glam::Mat3::from(p.affine.matrix3);
-        // Row-major: a[n, i, j] = M_ij.
-        for i in 0..3 {
-            for j in 0..3 {
-                a.push(m.col(j)[i]);
-            }
-        }
-        b.extend(glam::Vec3::from(p.affine.translation).to_array());
-        q.extend([p.rotation.w, p.rotation.x, p.rotation.y, p.rotation.z]);
-    }
-    (
-        Tensor::from_data(TensorData::new(a, [count, 3, 3]), device),
-        t2(b, 3, device),
-        t2(q, 4, device),
-    )
-}
-
-/// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
-pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
-    let c = |t: &Tensor<2>, k: usize| cols(t, k, k + 1);
-    let (w1, x1, y1, z1) = (c(&a, 0), c(&a, 1), c(&a, 2), c(&a, 3));
-    let (w2, x2, y2, z2) = (c(&b, 0), c(&b, 1), c(&b, 2), c(&b, 3));
-    let w = w1.clone() * w2.clone()
-        - x1.clone() * x2.clone()
-        - y1.clone() * y2.clone()
-        - z1.clone() * z2.clone();
-    let x = w1.clone() * x2.clone() + x1.clone() * w2.clone() + y1.clone() * z2.clone()
-        - z1.clone() * y2.clone();
-    let y = w1.clone() * y2.clone() - x1.clone() * z2.clone()
-        + y1.clone() * w2.clone()
-        + z1.clone() * x2.clone();
-    let z = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
-    Tensor::cat(vec![w, x, y, z], 1)
-}
-
-/// Poses canonical Gaussians with their skinning transforms: `(means, quats)`.
-pub fn pose(canonical: &Canonical, transforms: &[PointTransform]) -> (Tensor<2>, Tensor<2>) {
-    pose_gaussians(canonical.means.clone(), canonical.quats.clone(), transforms)
-}
-
-/// Linear blend skinning of Gaussians, the one training, inference and `f3g bench lbs` use:
-/// means `[N, 3]` by their blended transforms, rotations `[N, 4]` (w, x, y, z) by the nearest
-/// rotation of each blend; on the device of `means`.
-pub fn pose_gaussians(
-    means: Tensor<2>,
-    quats: Tensor<2>,
-    transforms: &[PointTransform],
-) -> (Tensor<2>, Tensor<2>) {
-    let n = means.dims()[0];
-    let device = means.device();
-    let (a, t, q) = transform_tensors(transforms, n, &device);
-    let x = means.reshape([n, 1, 3]);
-    let posed = (a * x).sum_dim(2).reshape([n, 3]) + t;
-    (posed, quat_mul(q, quats))
+/// Poses canonical Gaussians with their skinning: `(means, quats)`.
+pub fn pose(canonical: &Canonical, skinning: &Skinning) -> (Tensor<2>, Tensor<2>) {
+    pose_gaussians(canonical.means.clone(), canonical.quats.clone(), skinning)
 }
 
 /// Poses and renders the canonical Gaussians from `camera` over `background`.
 pub fn render_posed(
     canonical: &Canonical,
-    transforms: &[PointTransform],
+    skinning: &Skinning,
     camera: &Camera,
     background: [f32; 3],
     device: &Device,
 ) -> Result<Rendered, AvatarError> {
-    let (means, quats) = pose(canonical, transforms);
+    let (means, quats) = pose(canonical, skinning);
     let n = means.dims()[0];
     let gaussians = Gaussians {
         means,
@@ -574,48 +520,4 @@ pub fn render_posed(
 /// A rendered `[H, W, 3]` colour as `[1, 3, H, W]`.
 pub fn nchw(color: Tensor<3>) -> Tensor<4> {
     color.permute([2, 0, 1]).unsqueeze()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use glam::{Affine3A, Mat3, Quat, Vec3};
-
-    #[test]
-    fn tensor_posing_equals_the_rig_s_gaussian_skinning() {
-        let device = Device::flex();
-        let rot = Quat::from_euler(glam::EulerRot::XYZ, 0.3, -0.5, 0.9);
-        let affine =
-            Affine3A::from_mat3_translation(Mat3::from_quat(rot) * 1.2, Vec3::new(0.1, -0.2, 0.3));
-        let transforms = vec![
-            PointTransform {
-                affine,
-                rotation: rot,
-            };
-            2
-        ];
-        let means = vec![0.5, 0.1, -0.2, -1.0, 0.4, 0.7];
-        let quat = Quat::from_euler(glam::EulerRot::XYZ, -0.2, 0.1, 0.4);
-        let canonical = Canonical {
-            means: t2(means.clone(), 3, &device),
-            log_scales: t2(vec![0.0; 6], 3, &device),
-            quats: t2([quat.w, quat.x, quat.y, quat.z].repeat(2), 4, &device),
-            opacity_logits: t1(vec![0.0; 2], &device),
-            colours: t2(vec![0.5; 6], 3, &device),
-            body_offsets: t2(vec![0.0; 6], 3, &device),
-            face_offsets: None,
-            face_residuals: None,
-        };
-        let (m, q) = pose(&canonical, &transforms);
-        let m = m.into_data().try_into_vec::<f32>().unwrap();
-        let q = q.into_data().try_into_vec::<f32>().unwrap();
-        for g in 0..2 {
-            let x = Vec3::from_slice(&means[3 * g..3 * g + 3]);
-            let e = affine.transform_point3(x);
-            assert!((Vec3::from_slice(&m[3 * g..3 * g + 3]) - e).length() < 1e-5);
-            let eq = rot * quat;
-            let got = Quat::from_xyzw(q[4 * g + 1], q[4 * g + 2], q[4 * g + 3], q[4 * g]);
-            assert!(got.dot(eq).abs() > 1.0 - 1e-6);
-        }
-    }
 }

@@ -7,15 +7,15 @@ use burn::tensor::Device;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::inputs_for;
+use crate::inputs::{PcaTensors, inputs_for};
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
+use crate::posing::Skinning;
 use crate::report::tensor_to_image;
 use crate::run::{Run, RunInfo, load_face_base};
 use crate::setup::Setup;
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
-use f3g_template::PosePca;
 
 /// The networks, canonical face model and setup of a run, on the device it was loaded onto
 /// (without autodiff).
@@ -25,7 +25,8 @@ pub struct TrainedAvatar {
     pub setup: Setup,
     pub nets: AvatarNets,
     pub face_base: Option<FaceBase>,
-    pub pca: Option<PosePca>,
+    /// The training poses' PCA, for unseen poses.
+    pca: Option<PcaTensors>,
     constants: Constants,
     device: Device,
     /// The training step of the loaded checkpoint.
@@ -67,7 +68,7 @@ impl TrainedAvatar {
                     ),
                 ));
             }
-            Some(p)
+            Some(PcaTensors::new(&p, &device))
         } else {
             None
         };
@@ -105,20 +106,13 @@ impl TrainedAvatar {
         params: &RigParams,
         camera: &Camera,
         use_pca: bool,
-    ) -> Result<(crate::model::Canonical, Vec<f3g_rig::PointTransform>), AvatarError> {
+    ) -> Result<(crate::model::Canonical, Skinning), AvatarError> {
         self.setup.check_params(params, "pose")?;
         let pca = if use_pca { self.pca.as_ref() } else { None };
-        let inputs = inputs_for(
-            &self.setup,
-            &self.constants,
-            params,
-            camera,
-            None,
-            pca,
-            &self.device,
-        )?;
+        let pose = self.setup.pose(params)?.upload(&self.device);
+        let inputs = inputs_for(&self.constants, &pose, camera, None, pca)?;
         let c = canonical(&self.nets, &self.constants, &inputs)?;
-        Ok((c, inputs.transforms))
+        Ok((c, inputs.skinning))
     }
 
     /// Renders body parameters from `camera` over `background`. With `use_pca`, the posed map
@@ -130,8 +124,8 @@ impl TrainedAvatar {
         background: [f32; 3],
         use_pca: bool,
     ) -> Result<Image, AvatarError> {
-        let (c, transforms) = self.canonical_for(params, camera, use_pca)?;
-        let out = render_posed(&c, &transforms, camera, background, &self.device)?;
+        let (c, skinning) = self.canonical_for(params, camera, use_pca)?;
+        let out = render_posed(&c, &skinning, camera, background, &self.device)?;
         Ok(tensor_to_image(out.color))
     }
 
@@ -144,8 +138,8 @@ impl TrainedAvatar {
         camera: &Camera,
         use_pca: bool,
     ) -> Result<GaussianCloud, AvatarError> {
-        let (c, transforms) = self.canonical_for(params, camera, use_pca)?;
-        let (means, quats) = pose(&c, &transforms);
+        let (c, skinning) = self.canonical_for(params, camera, use_pca)?;
+        let (means, quats) = pose(&c, &skinning);
         let v = |t: burn::tensor::Tensor<2>| t.into_data().try_into_vec::<f32>().expect("f32");
         let colours = v(c.colours);
         Ok(GaussianCloud {

@@ -1,6 +1,8 @@
-//! The avatar model on the built-in human, untrained: the camera reaches colours only (with the
-//! split and three-network layouts, not with the single network kept for comparison), and the
-//! networks do not see finger articulation.
+//! The avatar model on the built-in human, untrained: the networks' inputs computed on the
+//! device equal the host's reading of the method (skinning with `f3g_rig`, maps reduced texel
+//! by texel), the camera reaches colours only (with the split and three-network layouts, not
+//! with the single network kept for comparison), and the networks do not see finger
+//! articulation.
 
 use burn::tensor::{Device, Tensor};
 use f3g_avatar::TrainConfig;
@@ -44,7 +46,8 @@ fn gaussians(config: &TrainConfig, params: &RigParams, camera: &Camera) -> Canon
     let setup = Setup::new("builtin", &rig.zero_params().identity, config).unwrap();
     let nets = AvatarNets::new(config, &setup, &device).unwrap();
     let constants = Constants::new(&setup, config, None, &device);
-    let inputs = inputs_for(&setup, &constants, params, camera, None, None, &device).unwrap();
+    let pose = setup.pose(params).unwrap().upload(&device);
+    let inputs = inputs_for(&constants, &pose, camera, None, None).unwrap();
     canonical(&nets, &constants, &inputs).unwrap()
 }
 
@@ -114,8 +117,9 @@ fn the_networks_do_not_see_the_fingers() {
     wrist.pose[w] = 0.8;
     let cam = camera(0.0);
     let input = |p: &RigParams| {
-        let i = inputs_for(&setup, &constants, p, &cam, None, None, &device).unwrap();
-        (host(i.body_map), i.transforms)
+        let pose = setup.pose(p).unwrap().upload(&device);
+        let i = inputs_for(&constants, &pose, &cam, None, None).unwrap();
+        (host(i.body_map), host(i.skinning.translation))
     };
     let (rest_map, rest_skin) = input(&rest);
     let (curled_map, curled_skin) = input(&curled);
@@ -124,4 +128,201 @@ fn the_networks_do_not_see_the_fingers() {
     assert_ne!(rest_skin, curled_skin);
     // The wrist is not a finger: it reaches the networks.
     assert_ne!(input(&wrist).0, rest_map);
+}
+
+/// The host's reading of a two-sided map input: per-Gaussian `values` at their texels of a
+/// `[n, 2n]` map, each input pixel the mean of the covered texels of its footprint (`[2, C, S,
+/// S]` as a flat vector: the network input's layout, front channels first).
+fn host_input(values: &[Vec<f32>], pixels: &[usize], n: usize, size: usize) -> Vec<f32> {
+    let c = values[0].len();
+    let mut at = vec![None; 2 * n * n];
+    for (g, &p) in pixels.iter().enumerate() {
+        at[p] = Some(g);
+    }
+    // Source rows/columns of output pixel `i`: its box when down-sampling, else the texel under
+    // its centre.
+    let ratio = n as f32 / size as f32;
+    let span = |i: usize| {
+        if ratio <= 1.0 {
+            let s = (((i as f32 + 0.5) * ratio) as usize).min(n - 1);
+            s..s + 1
+        } else {
+            let a = (i as f32 * ratio).floor() as usize;
+            a..(((i + 1) as f32 * ratio).ceil() as usize).min(n)
+        }
+    };
+    let mut out = vec![0.0; 2 * c * size * size];
+    for side in 0..2 {
+        for y in 0..size {
+            for x in 0..size {
+                let at = &at;
+                let covered: Vec<usize> = span(y)
+                    .flat_map(|sy| span(x).filter_map(move |sx| at[sy * 2 * n + side * n + sx]))
+                    .collect();
+                let mut sum = vec![0.0f32; c];
+                for &g in &covered {
+                    for (s, v) in sum.iter_mut().zip(&values[g]) {
+                        *s += v;
+                    }
+                }
+                for (ch, s) in sum.into_iter().enumerate() {
+                    out[((side * c + ch) * size + y) * size + x] = s / covered.len().max(1) as f32;
+                }
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn device_inputs_equal_the_host_reference() {
+    let mut config = small(BodyLayout::Split);
+    config.face_branch = true;
+    config.face_net.input_size = 16;
+    let device = Device::flex();
+    let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
+    let setup = Setup::new("builtin", &rig.zero_params().identity, &config).unwrap();
+    // A pose with root motion, a turned head, an open jaw and expressions.
+    let mut params = rig.zero_params();
+    for (i, p) in params.pose.iter_mut().enumerate() {
+        *p = 0.3 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
+    }
+    for (i, e) in params.expression.iter_mut().enumerate() {
+        *e = if i % 2 == 0 { 0.6 } else { -0.3 };
+    }
+    let cam = camera(0.7);
+    let pose = setup.pose(&params).unwrap();
+    // With a face model: the face inputs too.
+    let n_face = setup.face_count();
+    let base = f3g_avatar::model::FaceBase {
+        positions: vec![0.0; 3 * n_face],
+        colours: vec![0.5; 3 * n_face],
+        opacity_logits: vec![0.0; n_face],
+        log_scales: vec![-4.0; 3 * n_face],
+        quats: [1.0, 0.0, 0.0, 0.0].repeat(n_face),
+    };
+    let constants = Constants::new(&setup, &config, Some(&base), &device);
+    let inputs = inputs_for(&constants, &pose.upload(&device), &cam, None, None).unwrap();
+
+    // The host's reading: displacements interpolated at the texels and densified into the face,
+    // skinning by `f3g_rig`, view cosines per Gaussian, maps reduced texel by texel.
+    let maps = &setup.maps;
+    let head = setup.head.as_ref().unwrap();
+    let body_disp = maps.interpolate(&pose.displacement);
+    let face_disp = head.from_body(&body_disp);
+    let canon = |p: &[glam::Vec3], d: &[glam::Vec3]| -> Vec<glam::Vec3> {
+        p.iter().zip(d).map(|(p, d)| *p + *d).collect()
+    };
+    let (body_canon, face_canon) = (
+        canon(&maps.positions, &body_disp),
+        canon(&head.positions, &face_disp),
+    );
+    let as_rows =
+        |v: &[glam::Vec3]| -> Vec<Vec<f32>> { v.iter().map(|p| p.to_array().to_vec()).collect() };
+    let close = |got: Vec<f32>, want: Vec<f32>, tol: f32, what: &str| {
+        assert_eq!(got.len(), want.len(), "{what}");
+        let worst = max_difference(got, want);
+        assert!(worst < tol, "{what}: {worst}");
+    };
+    let posed_body = f3g_rig::skin_points(&pose.input_joints, &maps.skin, &body_canon);
+    close(
+        host(inputs.body_map.clone()),
+        host_input(&as_rows(&posed_body), &maps.pixels, maps.resolution, 16),
+        1e-5,
+        "body map",
+    );
+    let posed_face = f3g_rig::skin_points(&pose.input_joints, &head.skin, &face_canon);
+    close(
+        host(inputs.face_map.clone().unwrap()),
+        host_input(&as_rows(&posed_face), &head.pixels, head.size, 16),
+        1e-5,
+        "face map",
+    );
+    let skinning: Vec<_> = f3g_rig::point_transforms(&pose.joints, &maps.skin)
+        .into_iter()
+        .chain(f3g_rig::point_transforms(&pose.joints, &head.skin))
+        .collect();
+    let all_canon: Vec<glam::Vec3> = body_canon.iter().chain(&face_canon).copied().collect();
+    let posed: Vec<f32> = skinning
+        .iter()
+        .zip(&all_canon)
+        .flat_map(|(t, p)| t.affine.transform_point3(*p).to_array())
+        .collect();
+    close(
+        host(f3g_avatar::posing::transform_points(
+            &inputs.skinning.linear,
+            &inputs.skinning.translation,
+            Tensor::from_data(
+                burn::tensor::TensorData::new(
+                    all_canon
+                        .iter()
+                        .flat_map(|p| p.to_array())
+                        .collect::<Vec<f32>>(),
+                    [all_canon.len(), 3],
+                ),
+                &device,
+            ),
+        )),
+        posed,
+        1e-5,
+        "posed Gaussians",
+    );
+    let q = host(inputs.skinning.quaternion.clone());
+    for (i, t) in skinning.iter().enumerate() {
+        let got = glam::Quat::from_xyzw(q[4 * i + 1], q[4 * i + 2], q[4 * i + 3], q[4 * i]);
+        assert!(
+            got.dot(t.rotation).abs() > 1.0 - 1e-5,
+            "rotation of Gaussian {i}"
+        );
+    }
+    close(
+        host(inputs.displacement.clone()),
+        body_disp
+            .iter()
+            .chain(&face_disp)
+            .flat_map(|d| d.to_array())
+            .collect(),
+        1e-6,
+        "displacement",
+    );
+    let c = cam.center();
+    let centre = glam::Vec3::new(c[0] as f32, c[1] as f32, c[2] as f32);
+    let cosines = |normals: &[glam::Vec3],
+                   canon: &[glam::Vec3],
+                   transforms: &[f3g_rig::PointTransform]|
+     -> Vec<Vec<f32>> {
+        normals
+            .iter()
+            .zip(canon)
+            .zip(transforms)
+            .map(|((n, p), t)| {
+                let v = (centre - t.affine.transform_point3(*p)).normalize_or_zero();
+                vec![(t.rotation * *n).normalize_or_zero().dot(v)]
+            })
+            .collect()
+    };
+    let nb = maps.len();
+    let view = |(f, b): (Tensor<4>, Tensor<4>)| [host(f), host(b)].concat();
+    close(
+        view(inputs.body_view.clone()),
+        host_input(
+            &cosines(&maps.normals, &body_canon, &skinning[..nb]),
+            &maps.pixels,
+            maps.resolution,
+            16,
+        ),
+        1e-5,
+        "body view",
+    );
+    close(
+        view(inputs.face_view.clone().unwrap()),
+        host_input(
+            &cosines(&head.normals, &face_canon, &skinning[nb..]),
+            &head.pixels,
+            head.size,
+            16,
+        ),
+        1e-5,
+        "face view",
+    );
 }

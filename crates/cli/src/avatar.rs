@@ -12,6 +12,7 @@ use f3g_avatar::eval::EvalOptions;
 
 use crate::device::DeviceSpec;
 use f3g_avatar::export::{ExportOptions, Up, export_cloud};
+use f3g_avatar::train::AllReduce;
 use f3g_avatar::trained::TrainedAvatar;
 use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
@@ -181,6 +182,18 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
             )?
         }
     };
+    if a.devices.len() > 1 {
+        let how = crate::device::all_reduce_for(&a.devices);
+        trainer.set_all_reduce(how);
+        println!(
+            "{} replicas; gradients summed {}",
+            a.devices.len(),
+            match how {
+                AllReduce::Collective => "with NCCL",
+                AllReduce::Host => "through the first device",
+            }
+        );
+    }
     let run_dir = trainer.run.dir.clone();
     let total = trainer.total_steps();
     println!(

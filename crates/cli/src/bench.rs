@@ -38,9 +38,11 @@ pub enum BenchCommand {
     Quality(crate::quality::QualityArgs),
 }
 
-/// Bytes `bench lbs` holds per Gaussian, an upper estimate: 8 skin influences (64 B), the
-/// blended transform (64 B), its tensors (64 B), inputs and posed outputs (56 B), slack.
-const LBS_BYTES_PER_GAUSSIAN: u64 = 400;
+/// Bytes `bench lbs` holds per Gaussian, an upper estimate: the skin lists and taps (~250 B),
+/// the gathered joint transforms of 8 influences (384 B), the blend and the polar iteration's
+/// temporaries (~300 B), the quaternion candidates (~100 B), inputs and posed outputs (56 B),
+/// slack.
+const LBS_BYTES_PER_GAUSSIAN: u64 = 1500;
 
 /// Bytes a CPU render holds per pixel (forward state, the backward's gradients and state) and
 /// per Gaussian with its intersections: upper estimates, above the peaks `bench splat`
@@ -62,18 +64,24 @@ pub struct LbsBenchArgs {
     pub device: DeviceSpec,
 }
 
-/// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms), the
-/// per-Gaussian blended transforms and their nearest rotations (host), and
-/// [`f3g_avatar::model::pose_gaussians`] (upload and tensor LBS on `--device`, until the device
-/// is done).
+/// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms, host),
+/// the per-Gaussian blended transforms with their nearest rotations and quaternions
+/// ([`f3g_avatar::posing::Skinning`], on `--device`, from the uploaded joint transforms) and
+/// [`f3g_avatar::posing::pose_gaussians`] (the tensor LBS of means and rotations), each until the
+/// device is done.
 pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
+    use f3g_avatar::posing::{Skinning, Taps, affine_tensor, pose_gaussians};
     ensure!(args.repeats > 0, "--repeats must be at least 1");
-    // Per Gaussian: skin weights, the blended transform, its tensors and the posed outputs.
     f3g_io::memory::ensure_available(
         args.points as u64 * LBS_BYTES_PER_GAUSSIAN,
         &format!("--points {}", args.points),
     )?;
     let device = args.device.open()?;
+    let sync = |what: &str| {
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("{what} on {}: {e:?}", args.device))
+    };
     let human = f3g_rig::builtin::load()?;
     let rig = &human.rig;
     let mut params = rig.zero_params();
@@ -83,7 +91,11 @@ pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
     // Gaussians: copies of the mesh vertices with their skin weights.
     let n = rig.mesh.vertices.len();
     let index: Vec<usize> = (0..args.points).map(|i| i % n).collect();
-    let skin = rig.skin.select(&index);
+    let skin: Vec<Vec<(usize, f32)>> = index
+        .iter()
+        .map(|&i| rig.skin.influences(i).collect())
+        .collect();
+    let skin = Taps::new(skin.iter().map(Vec::as_slice), &device);
     let means: Vec<f32> = index
         .iter()
         .flat_map(|&i| rig.mesh.vertices[i].to_array())
@@ -96,42 +108,41 @@ pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
         ),
         &device,
     );
-    let (mut pose_ms, mut blend_ms, mut lbs_ms) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut pose_ms, mut skin_ms, mut lbs_ms) = (Vec::new(), Vec::new(), Vec::new());
     for rep in 0..=args.repeats {
         let start = Instant::now();
         let posed = rig.pose(&params)?;
         let t_pose = millis(start);
         let start = Instant::now();
-        let transforms = f3g_rig::point_transforms(&posed.skinning, &skin);
-        let t_blend = millis(start);
+        let skinning = Skinning::new(&affine_tensor(&posed.skinning, &device), &skin);
+        sync("skinning")?;
+        let t_skin = millis(start);
         let start = Instant::now();
-        let (m, q) = f3g_avatar::model::pose_gaussians(means.clone(), quats.clone(), &transforms);
+        let (m, q) = pose_gaussians(means.clone(), quats.clone(), &skinning);
         std::hint::black_box((m, q));
-        device
-            .sync()
-            .map_err(|e| anyhow::anyhow!("posing on {}: {e:?}", args.device))?;
+        sync("posing")?;
         let t_lbs = millis(start);
         if rep > 0 {
             pose_ms.push(t_pose);
-            blend_ms.push(t_blend);
+            skin_ms.push(t_skin);
             lbs_ms.push(t_lbs);
         }
     }
     let per = |ms: f64| ms * 1e6 / args.points as f64;
-    let (blend, lbs) = (median(blend_ms), median(lbs_ms));
+    let (skinning, lbs) = (median(skin_ms), median(lbs_ms));
     println!(
-        "built-in human ({} vertices, {} joints), {} Gaussians, {} host threads, LBS on {}:\n  \
-         pose (joint transforms) {:.2} ms\n  \
-         blended transforms + nearest rotations (host) {:.1} ms ({:.0} ns per Gaussian)\n  \
-         upload + tensor LBS of means and rotations {:.1} ms ({:.0} ns per Gaussian)",
+        "built-in human ({} vertices, {} joints), {} Gaussians, {} host threads, on {}:\n  \
+         pose (joint transforms, host) {:.2} ms\n  \
+         upload of the joint transforms + blended transforms + nearest rotations {:.1} ms ({:.0} ns per Gaussian)\n  \
+         tensor LBS of means and rotations {:.1} ms ({:.0} ns per Gaussian)",
         n,
         rig.skeleton.len(),
         args.points,
         rayon::current_num_threads(),
         args.device,
         median(pose_ms),
-        blend,
-        per(blend),
+        skinning,
+        per(skinning),
         lbs,
         per(lbs),
     );

@@ -18,6 +18,7 @@ use anyhow::Result;
 #[cfg(not(all(feature = "gpu", feature = "cuda")))]
 use anyhow::bail;
 use burn::tensor::Device;
+use f3g_avatar::train::AllReduce;
 
 /// A device as named on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -63,6 +64,36 @@ impl fmt::Display for DeviceSpec {
             Self::Cuda(i) => write!(f, "cuda:{i}"),
         }
     }
+}
+
+/// How data-parallel replicas on `devices` sum their gradients: with NCCL when they are
+/// distinct CUDA devices and `libnccl` loads, otherwise on the host's terms (which every device
+/// has).
+pub fn all_reduce_for(devices: &[DeviceSpec]) -> AllReduce {
+    let cuda = devices.iter().all(|d| matches!(d, DeviceSpec::Cuda(_)));
+    if devices.len() > 1 && cuda && distinct(devices) && nccl_present() {
+        AllReduce::Collective
+    } else {
+        AllReduce::Host
+    }
+}
+
+fn distinct(devices: &[DeviceSpec]) -> bool {
+    devices
+        .iter()
+        .enumerate()
+        .all(|(i, d)| !devices[..i].contains(d))
+}
+
+#[cfg(feature = "cuda")]
+fn nccl_present() -> bool {
+    // SAFETY: only tries to load the library.
+    unsafe { cudarc::nccl::sys::is_culib_present() }
+}
+
+#[cfg(not(feature = "cuda"))]
+fn nccl_present() -> bool {
+    false
 }
 
 impl DeviceSpec {
@@ -240,6 +271,21 @@ mod tests {
     fn the_cpu_device_always_opens() {
         let device = DeviceSpec::Cpu.open().unwrap();
         assert!(!device.is_autodiff());
+    }
+
+    #[test]
+    fn replicas_use_nccl_only_on_distinct_cuda_devices() {
+        let specs =
+            |s: &str| -> Vec<DeviceSpec> { s.split(',').map(|d| d.parse().unwrap()).collect() };
+        for host in ["cpu,cpu", "cuda:0,cuda:0", "cuda:0,wgpu", "cuda:1"] {
+            assert_eq!(all_reduce_for(&specs(host)), AllReduce::Host, "{host}");
+        }
+        let expected = if nccl_present() {
+            AllReduce::Collective
+        } else {
+            AllReduce::Host
+        };
+        assert_eq!(all_reduce_for(&specs("cuda:0,cuda:1")), expected);
     }
 
     #[cfg(not(feature = "cuda"))]

@@ -247,18 +247,33 @@ pub fn make_sample(
     })
 }
 
-/// Samples prepared on a worker thread, in index order from `start`.
-pub struct Loader {
-    receiver: Receiver<Result<Sample, DataError>>,
+/// Samples prepared on a worker thread, in index order from `start`; with
+/// [`Loader::with_preparation`], each one also goes through a function of the caller's on that
+/// thread (the trainer uploads it to its device there, so a step never waits for host work).
+pub struct Loader<T = Sample> {
+    receiver: Receiver<Result<T, DataError>>,
     _worker: std::thread::JoinHandle<()>,
 }
 
-impl Loader {
+impl Loader<Sample> {
     pub fn new(
         ds: Arc<Dataset>,
         split: &Split,
         options: LoaderOptions,
         start: u64,
+    ) -> Result<Self, DataError> {
+        Self::with_preparation(ds, split, options, start, |s| s)
+    }
+}
+
+impl<T: Send + 'static> Loader<T> {
+    /// A loader whose worker also applies `prepare` to every sample.
+    pub fn with_preparation(
+        ds: Arc<Dataset>,
+        split: &Split,
+        options: LoaderOptions,
+        start: u64,
+        mut prepare: impl FnMut(Sample) -> T + Send + 'static,
     ) -> Result<Self, DataError> {
         let pairs = available(&ds, split);
         if pairs.is_empty() {
@@ -268,7 +283,7 @@ impl Loader {
         let cache = Mutex::new(ImageCache::new(options.cache_bytes));
         let worker = std::thread::spawn(move || {
             for index in start.. {
-                let sample = make_sample(&ds, &pairs, &cache, &options, index);
+                let sample = make_sample(&ds, &pairs, &cache, &options, index).map(&mut prepare);
                 if sender.send(sample).is_err() {
                     return;
                 }
@@ -281,7 +296,7 @@ impl Loader {
     }
 
     /// The next sample.
-    pub fn next_sample(&mut self) -> Result<Sample, DataError> {
+    pub fn next_sample(&mut self) -> Result<T, DataError> {
         self.receiver
             .recv()
             .map_err(|_| DataError::Invalid("the loader's worker stopped".into()))?

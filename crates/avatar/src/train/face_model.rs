@@ -44,14 +44,13 @@ pub fn build(
     for i in 0..k {
         let frame = split.frames[i * split.frames.len() / k];
         let camera = split.cameras[i % split.cameras.len()];
+        let pose = setup.pose(&dataset.params[frame])?.upload(&plain);
         let inputs = inputs_for(
-            setup,
             &constants,
-            &dataset.params[frame],
+            &pose,
             &dataset.cameras[camera].camera,
             None,
             None,
-            &plain,
         )?;
         let raw = body_outputs(&nets, &constants, &inputs)?;
         let a = body_attributes_host(&raw, &constants);

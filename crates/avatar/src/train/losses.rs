@@ -15,15 +15,15 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use super::profile::{PhaseTimer, mark};
+use super::sample::{DeviceSample, DeviceView};
 use crate::AvatarError;
 use crate::config::TrainConfig;
 use crate::inputs::NetInputs;
 use crate::model::{Canonical, Constants, nchw, render_posed};
 use f3g_data::imgops::CentredSquare;
-use f3g_data::loader::{Sample, View};
 use f3g_nets::discriminator::generator_loss;
 use f3g_nets::layers::resize;
-use f3g_nets::metrics::{image_tensor, l1_loss};
+use f3g_nets::metrics::l1_loss;
 use f3g_nets::{Discriminator, Lpips};
 
 /// Named, weighted loss terms of one sample.
@@ -71,21 +71,21 @@ impl Losses<'_> {
         &self,
         c: &Canonical,
         inputs: &NetInputs,
-        sample: &Sample,
+        sample: &DeviceSample,
         terms: &mut Terms,
     ) -> Result<(), AvatarError> {
         let w = &self.config.losses;
         let view = &sample.body;
         let pred = self.render_view(c, inputs, view, sample.background)?;
         mark(self.timer, "render")?;
-        let gt = image_tensor(&view.image, self.device);
+        let gt = view.image.clone();
         terms.push(("l1".into(), l1_loss(pred.clone(), gt.clone()) * w.l1));
         if w.lpips > 0.0
-            && let Some(square) = CentredSquare::around_mask(&view.mask, 0)
+            && let Some(square) = &view.square
         {
             let size = self.config.lpips_size;
             let bg = sample.background;
-            let crop = |t: Tensor<4>| resize(square_crop(t, &square, bg), size, size);
+            let crop = |t: Tensor<4>| resize(square_crop(t, square, bg), size, size);
             let d = self.lpips.forward(crop(pred), crop(gt))?.mean();
             terms.push(("lpips".into(), d * w.lpips));
             mark(self.timer, "lpips")?;
@@ -104,7 +104,7 @@ impl Losses<'_> {
         &self,
         c: &Canonical,
         inputs: &NetInputs,
-        sample: &Sample,
+        sample: &DeviceSample,
         terms: &mut Terms,
     ) -> Result<Option<Tensor<4>>, AvatarError> {
         let Some(view) = &sample.face else {
@@ -113,7 +113,7 @@ impl Losses<'_> {
         let w = &self.config.losses;
         let pred = self.render_view(c, inputs, view, sample.background)?;
         mark(self.timer, "render")?;
-        let gt = image_tensor(&view.image, self.device);
+        let gt = view.image.clone();
         terms.push((
             "face_l1".into(),
             l1_loss(pred.clone(), gt.clone()) * w.face_l1,
@@ -138,10 +138,10 @@ impl Losses<'_> {
         &self,
         c: &Canonical,
         inputs: &NetInputs,
-        view: &View,
+        view: &DeviceView,
         background: [f32; 3],
     ) -> Result<Tensor<4>, AvatarError> {
-        let out = render_posed(c, &inputs.transforms, &view.camera, background, self.device)
+        let out = render_posed(c, &inputs.skinning, &view.camera, background, self.device)
             .map_err(|e| match e {
                 // Diverged networks produce non-finite Gaussians before any loss sees them.
                 AvatarError::Splat(f3g_splat::SplatError::NonFinite { name, value, .. }) => {
@@ -155,9 +155,7 @@ impl Losses<'_> {
                 other => other,
             })?;
         let pred = nchw(out.color);
-        let (h, w) = (view.image.height, view.image.width);
-        let band: Vec<f32> = view.band.iter().map(|&b| b as u8 as f32).collect();
-        let band = Tensor::<4>::from_data(TensorData::new(band, [1, 1, h, w]), self.device);
+        let band = view.band.clone();
         let bg = Tensor::<4>::from_data(
             TensorData::new(background.to_vec(), [1, 3, 1, 1]),
             self.device,

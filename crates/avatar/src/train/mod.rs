@@ -29,6 +29,7 @@
 pub mod face_model;
 pub mod losses;
 pub mod profile;
+pub mod sample;
 pub mod schedule;
 pub mod step;
 
@@ -44,17 +45,19 @@ use serde::Serialize;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::inputs_for;
+use crate::inputs::{fit_pose_pca, inputs_for};
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, render_posed};
 use crate::report;
 use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
 use crate::setup::Setup;
 use f3g_data::Dataset;
-use f3g_data::loader::{Loader, LoaderOptions, Sample, View};
+use f3g_data::loader::{Loader, LoaderOptions};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_rig::ModelSpec;
 use profile::{PhaseTimer, mark};
+use sample::DeviceSample;
 pub use schedule::{Schedule, Stage};
+pub use step::AllReduce;
 use step::{
     Optimisers, Replica, SampleGradients, StepContext, adam, adam_disc, add_values, sum_gradients,
 };
@@ -104,13 +107,16 @@ pub fn training_split(
 pub struct Trainer {
     pub config: TrainConfig,
     pub run: Run,
-    pub setup: Setup,
+    /// Shared with the loader's worker, which poses each sample's frame.
+    pub setup: Arc<Setup>,
     pub dataset: Arc<Dataset>,
     pub split: Split,
     schedule: Schedule,
     /// One per device; the first one's state is what checkpoints, validation and the
     /// accessors show (every replica holds the same weights).
     replicas: Vec<Replica>,
+    /// How the replicas sum their gradients.
+    all_reduce: AllReduce,
     face_base: Option<FaceBase>,
     state: TrainState,
     last_checkpoint: Option<PathBuf>,
@@ -161,7 +167,13 @@ impl Trainer {
         })?;
         let pca_frames: Vec<_> = evenly(&train_params, 300);
         if pca_frames.len() >= 2 {
-            run.write_pca(&setup.fit_pca(&pca_frames, config.pca_components, config.pca_sigma)?)?;
+            run.write_pca(&fit_pose_pca(
+                &setup,
+                &pca_frames,
+                config.pca_components,
+                config.pca_sigma,
+                &first_device(devices)?.without_autodiff(),
+            )?)?;
         }
         let state = TrainState {
             step: 0,
@@ -237,12 +249,7 @@ impl Trainer {
         face_base: Option<FaceBase>,
         devices: &[Device],
     ) -> Result<Self, AvatarError> {
-        let Some(first) = devices.first() else {
-            return Err(AvatarError::Invalid(
-                "training needs at least one device".into(),
-            ));
-        };
-        let device = first.clone().without_autodiff().autodiff();
+        let device = first_device(devices)?.without_autodiff().autodiff();
         let mut nets = AvatarNets::new(&config, &setup, &device)?;
         let mut optimisers = Optimisers {
             body: adam(config.adam_epsilon),
@@ -338,15 +345,22 @@ impl Trainer {
             schedule: Schedule::new(&config),
             config,
             run,
-            setup,
+            setup: Arc::new(setup),
             dataset,
             split,
             replicas,
+            all_reduce: AllReduce::Host,
             face_base,
             state,
             last_checkpoint: checkpoint,
             validation_view,
         })
+    }
+
+    /// Chooses how the replicas sum their gradients (the host's way unless told; the caller
+    /// knows whether the devices can run a collective).
+    pub fn set_all_reduce(&mut self, how: AllReduce) {
+        self.all_reduce = how;
     }
 
     /// The next step to run.
@@ -398,6 +412,25 @@ impl Trainer {
         }
     }
 
+    /// The loader of this run from sample `start`: its worker thread also poses each sample's
+    /// frame and uploads the sample to the device of the replica that takes it (replica `r` of
+    /// `R` takes samples `(s·R + r)·batch …` of step `s`).
+    fn loader(&self, start: u64) -> Result<Loader<Result<DeviceSample, AvatarError>>, AvatarError> {
+        let setup = self.setup.clone();
+        let config = self.config.clone();
+        let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
+        Ok(Loader::with_preparation(
+            self.dataset.clone(),
+            &self.split,
+            self.loader_options(),
+            start,
+            move |sample| {
+                let replica = (sample.index / config.batch as u64) as usize % devices.len();
+                DeviceSample::prepare(&setup, &config, sample, &devices[replica])
+            },
+        )?)
+    }
+
     /// Fails when the loader's image cache would grow beyond the memory the machine has: it
     /// holds up to `cache_bytes` of decoded images and masks (16 bytes per pixel), or every
     /// training image when they take less.
@@ -432,12 +465,7 @@ impl Trainer {
         }
         self.ensure_cache_fits()?;
         let per_step = (self.replicas.len() * self.config.batch) as u64;
-        let mut loader = Loader::new(
-            self.dataset.clone(),
-            &self.split,
-            self.loader_options(),
-            self.state.step * per_step,
-        )?;
+        let mut loader = self.loader(self.state.step * per_step)?;
         let mut log = std::fs::OpenOptions::new()
             .create(true)
             .append(true)
@@ -446,9 +474,7 @@ impl Trainer {
         while self.state.step < total {
             let s = self.state.step;
             let start = Instant::now();
-            let samples = (0..per_step)
-                .map(|_| loader.next_sample())
-                .collect::<Result<Vec<_>, _>>()?;
+            let samples = next_samples(&mut loader, per_step)?;
             debug_assert_eq!(samples[0].index, s * per_step);
             let mut report = self.run_step(s, &samples, None).map_err(|e| match e {
                 AvatarError::NonFinite {
@@ -518,12 +544,7 @@ impl Trainer {
             ));
         };
         let per_step = (self.replicas.len() * self.config.batch) as u64;
-        let mut loader = Loader::new(
-            self.dataset.clone(),
-            &self.split,
-            self.loader_options(),
-            first * per_step,
-        )?;
+        let mut loader = self.loader(first * per_step)?;
         let mut reports = Vec::new();
         for i in 0..warmup + steps {
             if i == warmup {
@@ -531,9 +552,7 @@ impl Trainer {
             }
             timer.restart()?;
             let s = first + i % len;
-            let samples = (0..per_step)
-                .map(|_| loader.next_sample())
-                .collect::<Result<Vec<_>, _>>()?;
+            let samples = next_samples(&mut loader, per_step)?;
             timer.mark("data")?;
             let report = self.run_step(s, &samples, Some(timer))?;
             if i >= warmup {
@@ -568,7 +587,7 @@ impl Trainer {
     fn run_step(
         &mut self,
         s: u64,
-        samples: &[Sample],
+        samples: &[DeviceSample],
         timer: Option<&PhaseTimer>,
     ) -> Result<StepReport, AvatarError> {
         let stage = self.schedule.stage(s);
@@ -604,9 +623,9 @@ impl Trainer {
             fakes.extend(g.fakes);
         }
         let nets = &self.replicas[0].nets;
-        let body = sum_gradients(&nets.body, body, &devices);
+        let body = sum_gradients(&nets.body, body, &devices, self.all_reduce);
         let face = match &nets.face {
-            Some(f) => sum_gradients(f, face, &devices),
+            Some(f) => sum_gradients(f, face, &devices, self.all_reduce),
             None => face,
         };
         for ((r, b), f) in self.replicas.iter_mut().zip(body).zip(face) {
@@ -636,11 +655,10 @@ impl Trainer {
         &self,
         stage: Stage,
         s: u64,
-        samples: &[Sample],
+        samples: &[DeviceSample],
         timer: Option<&PhaseTimer>,
     ) -> Result<Vec<SampleGradients>, AvatarError> {
         let ctx = StepContext {
-            setup: &self.setup,
             config: &self.config,
             stage,
             step: s,
@@ -674,15 +692,15 @@ impl Trainer {
         &mut self,
         s: u64,
         fakes: Vec<Option<Tensor<4>>>,
-        samples: &[Sample],
+        samples: &[DeviceSample],
     ) -> Result<Option<f32>, AvatarError> {
         if self.replicas[0].disc.is_none() {
             return Ok(None);
         }
-        let mut pairs: Vec<Vec<(Tensor<4>, &View)>> = vec![Vec::new(); self.replicas.len()];
+        let mut pairs: Vec<Vec<(Tensor<4>, Tensor<4>)>> = vec![Vec::new(); self.replicas.len()];
         for (i, (fake, sample)) in fakes.into_iter().zip(samples).enumerate() {
             if let (Some(fake), Some(real)) = (fake, sample.face.as_ref()) {
-                pairs[i / self.config.batch].push((fake, real));
+                pairs[i / self.config.batch].push((fake, real.image.clone()));
             }
         }
         let count = pairs.iter().map(Vec::len).sum::<usize>();
@@ -704,7 +722,7 @@ impl Trainer {
         }
         let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
         if let Some(disc) = self.replicas[0].disc.as_ref() {
-            let grads = sum_gradients(disc, grads, &devices);
+            let grads = sum_gradients(disc, grads, &devices, self.all_reduce);
             for (r, g) in self.replicas.iter_mut().zip(grads) {
                 if let Some(g) = g {
                     r.apply_discriminator(self.config.lr_discriminator, g);
@@ -728,27 +746,24 @@ impl Trainer {
         };
         let constants = Constants::new(&self.setup, &self.config, self.face_base.as_ref(), &plain);
         let cache = std::sync::Mutex::new(f3g_data::loader::ImageCache::new(1 << 28));
+        // The whole ground truth: training blanks a boundary band in it (and in the render),
+        // but the grid shows the render as it is, so a blanked band would show up as an
+        // outline of error around every silhouette.
         let options = LoaderOptions {
             body_scale: self.config.body_scale,
             face_size: self.config.face_crop_size,
             face_padding: self.config.face_padding,
+            band_radius: 0.0,
             ..Default::default()
         };
         let (body, face, _) =
             f3g_data::loader::make_view(&self.dataset, &cache, camera, frame, &options, [1.0; 3])?;
-        let inputs = inputs_for(
-            &self.setup,
-            &constants,
-            &self.dataset.params[frame],
-            &body.camera,
-            None,
-            None,
-            &plain,
-        )?;
+        let pose = self.setup.pose(&self.dataset.params[frame])?.upload(&plain);
+        let inputs = inputs_for(&constants, &pose, &body.camera, None, None)?;
         let c = canonical(&nets, &constants, &inputs)?;
         let mut rows = Vec::new();
         for view in std::iter::once(&body).chain(face.as_ref()) {
-            let out = render_posed(&c, &inputs.transforms, &view.camera, [1.0; 3], &plain)?;
+            let out = render_posed(&c, &inputs.skinning, &view.camera, [1.0; 3], &plain)?;
             let render = report::tensor_to_image(out.color);
             rows.push(report::comparison_row(&view.image, &render));
         }
@@ -759,6 +774,22 @@ impl Trainer {
         f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
         Ok(())
     }
+}
+
+/// The next `count` samples of `loader`.
+fn next_samples(
+    loader: &mut Loader<Result<DeviceSample, AvatarError>>,
+    count: u64,
+) -> Result<Vec<DeviceSample>, AvatarError> {
+    (0..count).map(|_| loader.next_sample()?).collect()
+}
+
+/// The first of the training devices (the one that checkpoints and validates).
+fn first_device(devices: &[Device]) -> Result<Device, AvatarError> {
+    devices
+        .first()
+        .cloned()
+        .ok_or_else(|| AvatarError::Invalid("training needs at least one device".into()))
 }
 
 /// `n` items spread evenly over `items` (all of them when there are fewer).

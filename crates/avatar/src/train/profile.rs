@@ -30,8 +30,8 @@ pub const PHASES: [&str; 10] = [
 
 /// What each phase means, for the bench's legend.
 pub const PHASE_MEANINGS: [&str; 10] = [
-    "waiting for the loader's worker thread",
-    "posing, position and view maps, skinning transforms (host) and their upload",
+    "waiting for the loader's worker thread (decoding, crops, the frame's joint transforms, upload)",
+    "posed and view maps, skinning and nearest rotations of every Gaussian, on the device",
     "body and face networks forward, fusion into canonical Gaussians",
     "LBS and the splatting op forward (its intersection-count readback included)",
     "LPIPS forward on the body square and the head crop",

@@ -1,28 +1,31 @@
 //! One training step on one device, in two halves: [`Replica::gradients`] computes the losses of
 //! a sample and their gradients and changes nothing; [`Replica::apply`] runs the optimisers.
-//! Between the two, data-parallel training averages the gradients of every replica
-//! ([`sum_gradients`]), so every replica applies the same update and the replicas stay equal.
+//! Between the two, data-parallel training sums the gradients of every replica (each already
+//! weighted by its share of the mean; [`sum_gradients`], on the host or with NCCL, see
+//! [`AllReduce`]), so every replica applies the same update and the replicas stay equal.
 //! The discriminator step follows the same pattern on the detached head renders.
 //!
-//! Host readbacks in a step: the splat op's intersection count (one per render, inside the op)
-//! and the loss values, read together as one `[terms]` tensor (for the log and the non-finite
-//! check, which must stop a diverged run before its update is applied).
+//! Host readbacks in a step: the splat op's intersection count (one per render, inside the op),
+//! the loss values, read together as one `[terms]` tensor, and the discriminator's loss (both
+//! for the log and the non-finite check, which must stop a diverged run before its update is
+//! applied). Uploads in a step are a few scalars (background colours, column scales) and, on
+//! R1 steps, the R1 estimate's random directions; a sample's images and pose were uploaded by
+//! the loader's worker thread ([`super::sample`]).
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::distributed::{ReduceOperation, all_reduce};
 use burn::tensor::{Device, Tensor};
 
 use super::losses::{Losses, Terms};
 use super::profile::{PhaseTimer, mark};
+use super::sample::DeviceSample;
 use super::schedule::Stage;
 use crate::AvatarError;
 use crate::config::TrainConfig;
 use crate::inputs::inputs_for;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
-use crate::setup::Setup;
-use f3g_data::loader::{Sample, View};
 use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
-use f3g_nets::metrics::image_tensor;
 use f3g_nets::{Discriminator, Lpips};
 
 /// Adam of the avatar's networks.
@@ -55,11 +58,10 @@ pub struct Replica {
     pub optimisers: Optimisers,
 }
 
-/// What every replica's step reads: the setup, the configuration, the step and its stage, and
-/// the phase timer when `f3g bench train` asks.
+/// What every replica's step reads: the configuration, the step and its stage, and the phase
+/// timer when `f3g bench train` asks.
 #[derive(Clone, Copy)]
 pub struct StepContext<'a> {
-    pub setup: &'a Setup,
     pub config: &'a TrainConfig,
     pub stage: Stage,
     pub step: u64,
@@ -84,7 +86,7 @@ impl Replica {
     pub fn gradients(
         &self,
         ctx: &StepContext,
-        samples: &[Sample],
+        samples: &[DeviceSample],
         share: f32,
     ) -> Result<SampleGradients, AvatarError> {
         let (config, step, timer) = (ctx.config, ctx.step, ctx.timer);
@@ -135,19 +137,15 @@ impl Replica {
         &self,
         ctx: &StepContext,
         losses: &Losses,
-        sample: &Sample,
+        sample: &DeviceSample,
     ) -> Result<(Terms, Option<Tensor<4>>), AvatarError> {
-        let (setup, config, stage) = (ctx.setup, ctx.config, ctx.stage);
-        // View noise is a pure function of the seed and the sample, like the sample itself.
-        let noise_seed = config.seed ^ sample.index.wrapping_mul(0x2545_f491_4f6c_dd1d);
+        let (config, stage) = (ctx.config, ctx.stage);
         let inputs = inputs_for(
-            setup,
             &self.constants,
-            &sample.params,
+            &sample.pose,
             &sample.body.camera,
-            Some((config.view_noise, noise_seed)),
+            sample.noise.as_ref(),
             None,
-            &self.device,
         )?;
         mark(losses.timer, "inputs")?;
         let mut terms = Terms::new();
@@ -203,15 +201,15 @@ impl Replica {
         self.nets = AvatarNets { body: b, face: f };
     }
 
-    /// The discriminator's loss on real head crops and detached renders (each pair weighted by
-    /// `share`, its part of the step's mean), with the lazy R1 penalty when `r1`, and its
+    /// The discriminator's loss on (detached render, real head crop) pairs (each pair weighted
+    /// by `share`, its part of the step's mean), with the lazy R1 penalty when `r1`, and its
     /// gradients; `None` without a discriminator or without pairs.
     pub fn discriminator_gradients(
         &self,
         config: &TrainConfig,
         step: u64,
         r1: bool,
-        pairs: Vec<(Tensor<4>, &View)>,
+        pairs: Vec<(Tensor<4>, Tensor<4>)>,
         share: f32,
     ) -> Result<Option<(f32, GradientsParams)>, AvatarError> {
         let Some(d) = &self.disc else {
@@ -219,7 +217,6 @@ impl Replica {
         };
         let mut total: Option<Tensor<1>> = None;
         for (fake, real) in pairs {
-            let real = image_tensor(&real.image, &self.device);
             let mut loss = discriminator_loss(d.forward(real.clone())?, d.forward(fake)?);
             if r1 {
                 let interval = config.losses.r1_interval;
@@ -302,19 +299,29 @@ fn non_finite(step: u64, name: &str, value: f32) -> AvatarError {
     }
 }
 
+/// How data-parallel replicas sum their gradients.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum AllReduce {
+    /// On the host's terms: every gradient moves to the first device with
+    /// `Tensor::to_device`, is summed there in rank order and moves back. Every backend has it,
+    /// and the sum does not depend on timing (what the CPU equivalence test runs).
+    #[default]
+    Host,
+    /// Burn's collective `all_reduce` (NCCL through cubecl-cuda): device to device, in NCCL's
+    /// order. Only for ranks that are distinct CUDA devices of a machine with `libnccl`; the
+    /// caller, which knows the devices, chooses it.
+    Collective,
+}
+
 /// The data-parallel all-reduce: sums the gradients of `module`'s parameters over the ranks
 /// (each rank's loss is already its share of the step's mean, so the sum is the gradient of the
 /// mean; a parameter missing on a rank counts as zero there) and gives every rank the result on
-/// its own device. The sum runs on the first rank's device in rank order, so the result does
-/// not depend on timing. One rank is returned untouched.
-///
-/// This is the host-side all-reduce: every backend has it (tensors move through
-/// `Tensor::to_device`), which is what the CPU equivalence test runs. Burn's NCCL
-/// `all_reduce` (cubecl-cuda only) is the drop-in replacement for CUDA ranks.
+/// its own device. One rank is returned untouched.
 pub fn sum_gradients<M: Module>(
     module: &M,
     ranks: Vec<Option<GradientsParams>>,
     devices: &[Device],
+    how: AllReduce,
 ) -> Vec<Option<GradientsParams>> {
     if ranks.len() <= 1 || ranks.iter().all(Option::is_none) {
         return ranks;
@@ -326,6 +333,7 @@ pub fn sum_gradients<M: Module>(
             .iter()
             .map(|d| d.clone().without_autodiff())
             .collect(),
+        how,
     };
     module.visit(&mut sum);
     sum.out.into_iter().map(Some).collect()
@@ -335,24 +343,49 @@ struct Sum {
     ranks: Vec<GradientsParams>,
     out: Vec<GradientsParams>,
     devices: Vec<Device>,
+    how: AllReduce,
 }
 
 impl ModuleVisitor for Sum {
     fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        let mut sum: Option<Tensor<D>> = None;
-        for grads in &mut self.ranks {
-            if let Some(g) = grads.remove::<D>(param.id) {
-                let g = g.to_device(&self.devices[0]);
-                sum = Some(match sum {
-                    Some(s) => s + g,
-                    None => g,
-                });
+        let grads: Vec<Option<Tensor<D>>> = self
+            .ranks
+            .iter_mut()
+            .map(|g| g.remove::<D>(param.id))
+            .collect();
+        // Every rank takes part or none does (a collective needs all of them).
+        let Some(shape) = grads.iter().flatten().next().map(Tensor::shape) else {
+            return;
+        };
+        let sums: Vec<Tensor<D>> = match self.how {
+            AllReduce::Host => {
+                let first = &self.devices[0];
+                let sum = grads
+                    .into_iter()
+                    .flatten()
+                    .map(|g| g.to_device(first))
+                    .reduce(|a, b| a + b)
+                    .expect("one gradient at least");
+                self.devices
+                    .iter()
+                    .map(|d| sum.clone().to_device(d))
+                    .collect()
             }
-        }
-        if let Some(sum) = sum {
-            for (out, device) in self.out.iter_mut().zip(&self.devices) {
-                out.register::<D>(param.id, sum.clone().to_device(device));
+            AllReduce::Collective => {
+                // Issue every rank's reduction before waiting for any.
+                let pending: Vec<_> = grads
+                    .into_iter()
+                    .zip(&self.devices)
+                    .map(|(g, d)| {
+                        let g = g.unwrap_or_else(|| Tensor::zeros(shape.clone(), d));
+                        all_reduce(g, ReduceOperation::Sum, self.devices.clone())
+                    })
+                    .collect();
+                pending.into_iter().map(|p| p.resolve()).collect()
             }
+        };
+        for (out, s) in self.out.iter_mut().zip(sums) {
+            out.register::<D>(param.id, s);
         }
     }
 }

@@ -1,0 +1,414 @@
+//! Linear blend skinning on the device: what a frame's joint transforms make of every Gaussian,
+//! as tensor operations, so that a training step uploads a few hundred joint transforms and the
+//! template's vertex displacements instead of a transform per Gaussian.
+//!
+//! Conventions: an affine transform is `x' = A x + t`, stored row-major as `[.., 3, 4]`
+//! (`[A | t]`); linear parts `[N, 3, 3]` are row-major (`a[n, i, j] = A_ij`); quaternions are
+//! `(w, x, y, z)`. LBS blends the joints' transforms with each point's skin weights; Gaussians
+//! take the blend's nearest rotation (its orthogonal polar factor), as `f3g_rig::skin` does on
+//! the host, which stays the reference these tensors are tested against.
+
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use glam::Affine3A;
+
+/// Newton iterations of the polar decomposition. With determinant scaling the iteration
+/// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
+/// body are) match the host reference's `f32` result after 5 (tested with 5 while choosing), so
+/// 8 leave a margin; a fixed count needs no data-dependent stop (which would be a readback).
+pub const POLAR_ITERATIONS: usize = 8;
+
+/// A weighted gather of fixed width: output row `i` is `Σ_k w[i, k] · x[j[i, k]]`. Rows with
+/// fewer taps than the widest are padded with weight 0 on row 0. One type serves barycentric
+/// interpolation (3 taps into template vertices), skinning (up to 8 joints), densification
+/// (4 body Gaussians per face Gaussian) and the reduction of maps to network inputs. Taps are
+/// stored tap-major (`[width, rows]`), so the sum runs over the outermost dimension, over
+/// contiguous slabs.
+#[derive(Clone, Debug)]
+pub struct Taps {
+    index: Tensor<1, Int>,
+    weight: Tensor<3>,
+    rows: usize,
+    width: usize,
+}
+
+impl Taps {
+    /// From each output row's `(source row, weight)` pairs.
+    pub fn new<'a>(
+        rows: impl ExactSizeIterator<Item = &'a [(usize, f32)]>,
+        device: &Device,
+    ) -> Self {
+        let count = rows.len();
+        let rows: Vec<&[(usize, f32)]> = rows.collect();
+        let width = rows.iter().map(|r| r.len()).max().unwrap_or(0).max(1);
+        let mut index = vec![0i64; count * width];
+        let mut weight = vec![0f32; count * width];
+        for (i, taps) in rows.iter().enumerate() {
+            for (k, &(j, w)) in taps.iter().enumerate() {
+                index[k * count + i] = j as i64;
+                weight[k * count + i] = w;
+            }
+        }
+        Self {
+            index: Tensor::from_data(TensorData::new(index, [count * width]), device),
+            weight: Tensor::from_data(TensorData::new(weight, [width, count, 1]), device),
+            rows: count,
+            width,
+        }
+    }
+
+    /// Number of output rows.
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// `[rows, C]` from `x` `[M, C]`.
+    pub fn apply(&self, x: Tensor<2>) -> Tensor<2> {
+        let c = x.dims()[1];
+        let picked = x
+            .select(0, self.index.clone())
+            .reshape([self.width, self.rows, c]);
+        (picked * self.weight.clone())
+            .sum_dim(0)
+            .reshape([self.rows, c])
+    }
+}
+
+/// Affine transforms as a `[N, 3, 4]` tensor.
+pub fn affine_tensor(transforms: &[Affine3A], device: &Device) -> Tensor<3> {
+    let mut values = Vec::with_capacity(12 * transforms.len());
+    for a in transforms {
+        for i in 0..3 {
+            values.extend([
+                a.matrix3.x_axis[i],
+                a.matrix3.y_axis[i],
+                a.matrix3.z_axis[i],
+                a.translation[i],
+            ]);
+        }
+    }
+    Tensor::from_data(TensorData::new(values, [transforms.len(), 3, 4]), device)
+}
+
+/// Per-point blended transforms `[N, 3, 4]` of joint transforms `[J, 3, 4]` with skin `taps`
+/// (one row per point, one tap per influencing joint).
+pub fn blend(joints: &Tensor<3>, skin: &Taps) -> Tensor<3> {
+    let j = joints.dims()[0];
+    skin.apply(joints.clone().reshape([j, 12]))
+        .reshape([skin.rows(), 3, 4])
+}
+
+/// The linear part `[N, 3, 3]` and translation `[N, 3]` of `[N, 3, 4]` transforms.
+pub fn split_affine(m: Tensor<3>) -> (Tensor<3>, Tensor<2>) {
+    let n = m.dims()[0];
+    let t = m.clone().slice([0..n, 0..3, 3..4]).reshape([n, 3]);
+    (m.slice([0..n, 0..3, 0..3]), t)
+}
+
+/// `A x + t` for points `[N, 3]`.
+pub fn transform_points(linear: &Tensor<3>, translation: &Tensor<2>, x: Tensor<2>) -> Tensor<2> {
+    let n = x.dims()[0];
+    (linear.clone() * x.reshape([n, 1, 3]))
+        .sum_dim(2)
+        .reshape([n, 3])
+        + translation.clone()
+}
+
+/// The `[N, 1]` columns of a `[N, K]` tensor.
+pub fn columns<const K: usize>(t: &Tensor<2>) -> [Tensor<2>; K] {
+    let n = t.dims()[0];
+    std::array::from_fn(|k| t.clone().slice([0..n, k..k + 1]))
+}
+
+/// The nearest rotation of each matrix `[N, 3, 3]` (its orthogonal polar factor), for matrices
+/// with positive determinant such as blends of rotations, as nine `[N, 1]` columns (row-major:
+/// `r[3i + j] = R_ij`). Newton's iteration `X ← ½(γX + X⁻ᵀ/γ)` with `γ = |det X|^(-1/3)`,
+/// where `X⁻ᵀ` is the cofactor matrix over the determinant, for a fixed number of iterations
+/// ([`POLAR_ITERATIONS`]), so that nothing is read back. Per component, the iteration is
+/// elementwise arithmetic on `[N, 1]` columns, which every backend does fast (no gathers or
+/// strided reductions over tiny dimensions).
+pub fn nearest_rotation(a: Tensor<3>) -> [Tensor<2>; 9] {
+    let n = a.dims()[0];
+    let mut x: [Tensor<2>; 9] = columns(&a.reshape([n, 9]));
+    for _ in 0..POLAR_ITERATIONS {
+        let m = |i: usize, j: usize| x[3 * i + j].clone();
+        // Cofactor (i, j): the 2×2 minor of the other rows and columns, cyclically signed.
+        let cof = |i: usize, j: usize| {
+            let (i1, i2, j1, j2) = ((i + 1) % 3, (i + 2) % 3, (j + 1) % 3, (j + 2) % 3);
+            m(i1, j1) * m(i2, j2) - m(i1, j2) * m(i2, j1)
+        };
+        let c: [Tensor<2>; 9] = std::array::from_fn(|k| cof(k / 3, k % 3));
+        let det = m(0, 0) * c[0].clone() + m(0, 1) * c[1].clone() + m(0, 2) * c[2].clone();
+        // A degenerate blend (opposite rotations averaged) has no nearest rotation; keep it
+        // finite rather than dividing by zero.
+        let det = det.clone().mask_fill(det.abs().lower_elem(1e-20), 1e-20);
+        let gamma = det.clone().abs().powf_scalar(-1.0 / 3.0);
+        let (g, h) = (gamma.clone() * 0.5, (gamma * det).recip() * 0.5);
+        x = std::array::from_fn(|k| x[k].clone() * g.clone() + c[k].clone() * h.clone());
+    }
+    x
+}
+
+/// Unit quaternions `[N, 4]` (w, x, y, z) of rotations given as nine `[N, 1]` columns
+/// (row-major). Shepperd's method: of the four formulas, each row uses the one whose pivot
+/// `1 ± r00 ± r11 ± r22` is largest, so no division is ill-conditioned; the sign of the result
+/// is arbitrary.
+pub fn quaternions(r: &[Tensor<2>; 9]) -> Tensor<2> {
+    let e = |i: usize, j: usize| r[3 * i + j].clone();
+    let (s01, s02, s12) = (e(0, 1) + e(1, 0), e(0, 2) + e(2, 0), e(1, 2) + e(2, 1));
+    let (d10, d02, d21) = (e(1, 0) - e(0, 1), e(0, 2) - e(2, 0), e(2, 1) - e(1, 2));
+    let pivot = |a: f32, b: f32, c: f32| (e(0, 0) * a + e(1, 1) * b + e(2, 2) * c) + 1.0;
+    let t = [
+        pivot(1.0, 1.0, 1.0),
+        pivot(1.0, -1.0, -1.0),
+        pivot(-1.0, 1.0, -1.0),
+        pivot(-1.0, -1.0, 1.0),
+    ];
+    // Each candidate is the quaternion times 4·(its pivot component).
+    let candidates = [
+        [t[0].clone(), d21.clone(), d02.clone(), d10.clone()],
+        [d21, t[1].clone(), s01.clone(), s02.clone()],
+        [d02, s01, t[2].clone(), s12.clone()],
+        [d10, s02, s12, t[3].clone()],
+    ];
+    let [first, rest @ ..] = candidates;
+    let mut q = first;
+    let mut best = t[0].clone();
+    for (candidate, pivot) in rest.into_iter().zip(t.into_iter().skip(1)) {
+        let better = pivot.clone().greater(best.clone());
+        q = std::array::from_fn(|k| {
+            q[k].clone()
+                .mask_where(better.clone(), candidate[k].clone())
+        });
+        best = best.max_pair(pivot);
+    }
+    normalize(Tensor::cat(q.to_vec(), 1))
+}
+
+/// Unit vectors (zero vectors stay zero).
+pub fn normalize(v: Tensor<2>) -> Tensor<2> {
+    let norm = (v.clone() * v.clone()).sum_dim(1).sqrt().clamp_min(1e-12);
+    v / norm
+}
+
+/// The posing transforms of a set of Gaussians on the device: the blended affine transform and
+/// its nearest rotation, as columns (for normals) and as a quaternion (for the Gaussians'
+/// orientations).
+#[derive(Clone, Debug)]
+pub struct Skinning {
+    /// `[N, 3, 3]`.
+    pub linear: Tensor<3>,
+    /// `[N, 3]`.
+    pub translation: Tensor<2>,
+    /// Nine `[N, 1]` columns, row-major (see [`nearest_rotation`]).
+    pub rotation: [Tensor<2>; 9],
+    /// `[N, 4]` (w, x, y, z).
+    pub quaternion: Tensor<2>,
+}
+
+impl Skinning {
+    /// The skinning of points with `skin` under joint transforms `[J, 3, 4]`.
+    pub fn new(joints: &Tensor<3>, skin: &Taps) -> Self {
+        let (linear, translation) = split_affine(blend(joints, skin));
+        let rotation = nearest_rotation(linear.clone());
+        Self {
+            quaternion: quaternions(&rotation),
+            linear,
+            translation,
+            rotation,
+        }
+    }
+
+    /// `R v` for vectors given as three `[N, 1]` columns.
+    pub fn rotate(&self, v: &[Tensor<2>; 3]) -> [Tensor<2>; 3] {
+        let r = |i: usize, j: usize| self.rotation[3 * i + j].clone();
+        std::array::from_fn(|i| {
+            r(i, 0) * v[0].clone() + r(i, 1) * v[1].clone() + r(i, 2) * v[2].clone()
+        })
+    }
+
+    /// Two sets of Gaussians' transforms, one after the other.
+    pub fn cat(self, other: Self) -> Self {
+        let mut rest = other.rotation.into_iter();
+        Self {
+            linear: Tensor::cat(vec![self.linear, other.linear], 0),
+            translation: Tensor::cat(vec![self.translation, other.translation], 0),
+            rotation: self
+                .rotation
+                .map(|a| Tensor::cat(vec![a, rest.next().expect("nine columns")], 0)),
+            quaternion: Tensor::cat(vec![self.quaternion, other.quaternion], 0),
+        }
+    }
+}
+
+/// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
+pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
+    let n = a.dims()[0];
+    let c = |t: &Tensor<2>, k: usize| t.clone().slice([0..n, k..k + 1]);
+    let (w1, x1, y1, z1) = (c(&a, 0), c(&a, 1), c(&a, 2), c(&a, 3));
+    let (w2, x2, y2, z2) = (c(&b, 0), c(&b, 1), c(&b, 2), c(&b, 3));
+    let w = w1.clone() * w2.clone()
+        - x1.clone() * x2.clone()
+        - y1.clone() * y2.clone()
+        - z1.clone() * z2.clone();
+    let x = w1.clone() * x2.clone() + x1.clone() * w2.clone() + y1.clone() * z2.clone()
+        - z1.clone() * y2.clone();
+    let y = w1.clone() * y2.clone() - x1.clone() * z2.clone()
+        + y1.clone() * w2.clone()
+        + z1.clone() * x2.clone();
+    let z = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
+    Tensor::cat(vec![w, x, y, z], 1)
+}
+
+/// Linear blend skinning of Gaussians, the one training, inference and `f3g bench lbs` use:
+/// means `[N, 3]` by their blended transforms, rotations `[N, 4]` (w, x, y, z) by the nearest
+/// rotation of each blend; scales are unchanged.
+pub fn pose_gaussians(
+    means: Tensor<2>,
+    quats: Tensor<2>,
+    skinning: &Skinning,
+) -> (Tensor<2>, Tensor<2>) {
+    (
+        transform_points(&skinning.linear, &skinning.translation, means),
+        quat_mul(skinning.quaternion.clone(), quats),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use f3g_rig::SkinWeights;
+    use glam::{Mat3, Quat, Vec3};
+    use proptest::prelude::*;
+
+    fn host(t: Tensor<2>) -> Vec<f32> {
+        t.into_data().try_into_vec::<f32>().unwrap()
+    }
+
+    fn skin_taps(skin: &SkinWeights, device: &Device) -> Taps {
+        let lists: Vec<Vec<(usize, f32)>> = (0..skin.len())
+            .map(|i| skin.influences(i).collect())
+            .collect();
+        Taps::new(lists.iter().map(Vec::as_slice), device)
+    }
+
+    #[test]
+    fn taps_gather_weighted_rows_and_pad_with_nothing() {
+        let device = Device::flex();
+        let x = Tensor::<2>::from_data(
+            TensorData::new(vec![1.0, 10.0, 2.0, 20.0, 3.0, 30.0], [3, 2]),
+            &device,
+        );
+        let rows: Vec<Vec<(usize, f32)>> = vec![vec![(2, 1.0)], vec![(0, 0.5), (1, 0.25)], vec![]];
+        let taps = Taps::new(rows.iter().map(Vec::as_slice), &device);
+        assert_eq!(host(taps.apply(x)), vec![3.0, 30.0, 1.0, 10.0, 0.0, 0.0]);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+
+        /// Blends of up to four rotations (up to ±0.78 rad about random axes, so less than 90°
+        /// apart, as LBS blends neighbouring joints; one scaled), with translations: the
+        /// device's blended transforms, nearest rotations and quaternions equal
+        /// `f3g_rig::point_transforms` (Newton to 1e-7 on the host, in f32). Rotations further
+        /// apart can blend to a singular matrix, which has no nearest rotation.
+        #[test]
+        fn device_skinning_equals_the_host_reference(
+            angles in proptest::collection::vec((-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -0.78f32..0.78, 0.7f32..1.4), 4),
+            weights in proptest::collection::vec(proptest::collection::vec(0.0f32..1.0, 4), 1..6),
+            point in (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0),
+        ) {
+            let device = Device::flex();
+            let joints: Vec<Affine3A> = angles
+                .iter()
+                .enumerate()
+                .map(|(j, &(x, y, z, angle, s))| {
+                    let axis = Vec3::new(x, y, z + 1.5).normalize();
+                    let scale = if j == 3 { s } else { 1.0 };
+                    Affine3A::from_mat3_translation(
+                        Mat3::from_quat(Quat::from_axis_angle(axis, angle)) * scale,
+                        Vec3::new(x, -y, 0.1 * j as f32),
+                    )
+                })
+                .collect();
+            // Each point: the first two joints always, the others as drawn.
+            let lists: Vec<Vec<(usize, f32)>> = weights
+                .iter()
+                .map(|w| {
+                    let mut l = vec![(0, 0.3 + w[0]), (1, 0.3 + w[1])];
+                    l.extend((2..4).filter(|&j| w[j] > 0.5).map(|j| (j, w[j])));
+                    l
+                })
+                .collect();
+            let skin = SkinWeights::from_lists(&lists, 4).unwrap();
+            let expected = f3g_rig::point_transforms(&joints, &skin);
+            let skinning = Skinning::new(&affine_tensor(&joints, &device), &skin_taps(&skin, &device));
+            let n = skin.len();
+            let p = Vec3::new(point.0, point.1, point.2);
+            let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
+            let got = host(transform_points(&skinning.linear, &skinning.translation, points));
+            let q = host(skinning.quaternion.clone());
+            let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host(c.clone())).collect();
+            for (i, e) in expected.iter().enumerate() {
+                let want = e.affine.transform_point3(p);
+                prop_assert!((Vec3::from_slice(&got[3 * i..3 * i + 3]) - want).length() < 1e-5);
+                let quat = Quat::from_xyzw(q[4 * i + 1], q[4 * i + 2], q[4 * i + 3], q[4 * i]);
+                prop_assert!(quat.dot(e.rotation).abs() > 1.0 - 1e-5, "{quat:?} vs {:?}", e.rotation);
+                let m = Mat3::from_quat(e.rotation);
+                for a in 0..3 {
+                    for b in 0..3 {
+                        prop_assert!((r[3 * a + b][i] - m.col(b)[a]).abs() < 1e-4);
+                    }
+                }
+            }
+        }
+
+        /// Shepperd's four branches: every rotation, including half turns (w = 0), comes back.
+        #[test]
+        fn quaternions_of_rotation_matrices_round_trip(
+            x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0,
+            angle in prop_oneof![Just(std::f32::consts::PI), -3.1f32..3.1],
+        ) {
+            let device = Device::flex();
+            let axis = Vec3::new(x, y, z);
+            prop_assume!(axis.length() > 0.1);
+            let q = Quat::from_axis_angle(axis.normalize(), angle);
+            let m = Mat3::from_quat(q);
+            let r: [Tensor<2>; 9] = std::array::from_fn(|k| {
+                Tensor::from_data(TensorData::new(vec![m.col(k % 3)[k / 3]], [1, 1]), &device)
+            });
+            let got = host(quaternions(&r));
+            let got = Quat::from_xyzw(got[1], got[2], got[3], got[0]);
+            prop_assert!(got.dot(q).abs() > 1.0 - 1e-6, "{got:?} vs {q:?}");
+        }
+    }
+
+    #[test]
+    fn posing_gaussians_moves_means_and_turns_orientations() {
+        let device = Device::flex();
+        let rot = Quat::from_euler(glam::EulerRot::XYZ, 0.3, -0.5, 0.9);
+        let joint =
+            Affine3A::from_mat3_translation(Mat3::from_quat(rot) * 1.2, Vec3::new(0.1, -0.2, 0.3));
+        let skin = SkinWeights::from_lists(&[vec![(0, 1.0)], vec![(0, 1.0)]], 1).unwrap();
+        let skinning = Skinning::new(
+            &affine_tensor(&[joint], &device),
+            &skin_taps(&skin, &device),
+        );
+        let means = vec![0.5, 0.1, -0.2, -1.0, 0.4, 0.7];
+        let quat = Quat::from_euler(glam::EulerRot::XYZ, -0.2, 0.1, 0.4);
+        let (m, q) = pose_gaussians(
+            Tensor::from_data(TensorData::new(means.clone(), [2, 3]), &device),
+            Tensor::from_data(
+                TensorData::new([quat.w, quat.x, quat.y, quat.z].repeat(2), [2, 4]),
+                &device,
+            ),
+            &skinning,
+        );
+        let (m, q) = (host(m), host(q));
+        for g in 0..2 {
+            let e = joint.transform_point3(Vec3::from_slice(&means[3 * g..3 * g + 3]));
+            assert!((Vec3::from_slice(&m[3 * g..3 * g + 3]) - e).length() < 1e-5);
+            let got = Quat::from_xyzw(q[4 * g + 1], q[4 * g + 2], q[4 * g + 3], q[4 * g]);
+            assert!(got.dot(rot * quat).abs() > 1.0 - 1e-6);
+        }
+    }
+}
