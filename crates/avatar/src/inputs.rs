@@ -82,9 +82,6 @@ impl Part {
                 device,
             )
         };
-        let skin_rows: Vec<Vec<(usize, f32)>> = (0..skin.len())
-            .map(|i| skin.influences(i).collect())
-            .collect();
         let reduce_rows = reduction(pixels, map, size);
         let n = normals.len();
         Self {
@@ -95,10 +92,16 @@ impl Part {
                     device,
                 )
             }),
-            skin: Taps::new(skin_rows.iter().map(Vec::as_slice), device),
+            skin: Taps::skin(skin, device),
             reduce: Taps::new(reduce_rows.iter().map(Vec::as_slice), device),
             size,
         }
+    }
+
+    /// Root-relative positions `[N, 3]` of canonical points in the networks' input pose.
+    fn input_pose(&self, canonical: Tensor<2>, pose: &PoseTensors) -> Tensor<2> {
+        let (linear, translation) = split_affine(blend(&pose.input_joints, &self.skin));
+        transform_points(&linear, &translation, canonical)
     }
 
     /// Per-Gaussian values `[N, C]` as the network input `[1, 2C, S, S]` (front channels, then
@@ -238,16 +241,14 @@ impl GaussianTables {
         self.body.skin.rows() + self.face.as_ref().map_or(0, |f| f.1.skin.rows())
     }
 
-    /// The body Gaussians' canonical displacement `[N_b, 3]` and root-relative posed positions
-    /// `[N_b, 3]` in the networks' input pose (what the body network and the pose PCA see).
-    fn posed_body(&self, pose: &PoseTensors) -> (Tensor<2>, Tensor<2>) {
+    /// The body Gaussians' canonical displacement and displaced canonical positions, and their
+    /// root-relative posed positions in the networks' input pose (what the body network and the
+    /// pose PCA see), each `[N_b, 3]`.
+    fn posed_body(&self, pose: &PoseTensors) -> (Tensor<2>, Tensor<2>, Tensor<2>) {
         let displacement = self.body_from_vertices.apply(pose.displacement.clone());
         let canonical = self.body.positions.clone() + displacement.clone();
-        let (linear, translation) = split_affine(blend(&pose.input_joints, &self.body.skin));
-        (
-            displacement,
-            transform_points(&linear, &translation, canonical),
-        )
+        let posed = self.body.input_pose(canonical.clone(), pose);
+        (displacement, canonical, posed)
     }
 }
 
@@ -328,11 +329,10 @@ pub fn inputs_for(
         TensorData::new(vec![c[0] as f32, c[1] as f32, c[2] as f32], [1, 3]),
         &pose.displacement.device(),
     );
-    let (body_displacement, mut posed_body) = tables.posed_body(pose);
+    let (body_displacement, body_canonical, mut posed_body) = tables.posed_body(pose);
     if let Some(pca) = pca {
         posed_body = pca.project(posed_body);
     }
-    let body_canonical = tables.body.positions.clone() + body_displacement.clone();
     let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
     let body_view = tables
         .body
@@ -348,8 +348,7 @@ pub fn inputs_for(
     if let (Some((from_body, face)), true) = (&tables.face, constants.has_face()) {
         let displacement = from_body.apply(body_displacement);
         let canonical = face.positions.clone() + displacement.clone();
-        let (linear, translation) = split_affine(blend(&pose.input_joints, &face.skin));
-        let posed = transform_points(&linear, &translation, canonical.clone());
+        let posed = face.input_pose(canonical.clone(), pose);
         let skinning = Skinning::new(&pose.joints, &face.skin);
         let total = tables.count();
         inputs.face_view = Some(face.view(&canonical, &skinning, &centre, noise_rows(nb, total)));
@@ -384,7 +383,7 @@ pub fn fit_pose_pca(
         .iter()
         .map(|p| {
             let pose = setup.pose(p)?.upload(device);
-            let (_, posed) = tables.posed_body(&pose);
+            let (_, _, posed) = tables.posed_body(&pose);
             posed
                 .into_data()
                 .convert::<f32>()

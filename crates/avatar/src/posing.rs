@@ -9,6 +9,7 @@
 //! the host, which stays the reference these tensors are tested against.
 
 use burn::tensor::{Device, Int, Tensor, TensorData};
+use f3g_rig::SkinWeights;
 use glam::Affine3A;
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
@@ -54,6 +55,14 @@ impl Taps {
             rows: count,
             width,
         }
+    }
+
+    /// Skinning taps: one row per point, one tap per joint that influences it.
+    pub fn skin(weights: &SkinWeights, device: &Device) -> Self {
+        let lists: Vec<Vec<(usize, f32)>> = (0..weights.len())
+            .map(|i| weights.influences(i).collect())
+            .collect();
+        Self::new(lists.iter().map(Vec::as_slice), device)
     }
 
     /// Number of output rows.
@@ -276,19 +285,11 @@ pub fn pose_gaussians(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use f3g_rig::SkinWeights;
     use glam::{Mat3, Quat, Vec3};
     use proptest::prelude::*;
 
     fn host(t: Tensor<2>) -> Vec<f32> {
         t.into_data().try_into_vec::<f32>().unwrap()
-    }
-
-    fn skin_taps(skin: &SkinWeights, device: &Device) -> Taps {
-        let lists: Vec<Vec<(usize, f32)>> = (0..skin.len())
-            .map(|i| skin.influences(i).collect())
-            .collect();
-        Taps::new(lists.iter().map(Vec::as_slice), device)
     }
 
     #[test]
@@ -341,7 +342,7 @@ mod tests {
                 .collect();
             let skin = SkinWeights::from_lists(&lists, 4).unwrap();
             let expected = f3g_rig::point_transforms(&joints, &skin);
-            let skinning = Skinning::new(&affine_tensor(&joints, &device), &skin_taps(&skin, &device));
+            let skinning = Skinning::new(&affine_tensor(&joints, &device), &Taps::skin(&skin, &device));
             let n = skin.len();
             let p = Vec3::new(point.0, point.1, point.2);
             let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
@@ -391,7 +392,7 @@ mod tests {
         let skin = SkinWeights::from_lists(&[vec![(0, 1.0)], vec![(0, 1.0)]], 1).unwrap();
         let skinning = Skinning::new(
             &affine_tensor(&[joint], &device),
-            &skin_taps(&skin, &device),
+            &Taps::skin(&skin, &device),
         );
         let means = vec![0.5, 0.1, -0.2, -1.0, 0.4, 0.7];
         let quat = Quat::from_euler(glam::EulerRot::XYZ, -0.2, 0.1, 0.4);

@@ -91,11 +91,7 @@ pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
     // Gaussians: copies of the mesh vertices with their skin weights.
     let n = rig.mesh.vertices.len();
     let index: Vec<usize> = (0..args.points).map(|i| i % n).collect();
-    let skin: Vec<Vec<(usize, f32)>> = index
-        .iter()
-        .map(|&i| rig.skin.influences(i).collect())
-        .collect();
-    let skin = Taps::new(skin.iter().map(Vec::as_slice), &device);
+    let skin = Taps::skin(&rig.skin.select(&index), &device);
     let means: Vec<f32> = index
         .iter()
         .flat_map(|&i| rig.mesh.vertices[i].to_array())
