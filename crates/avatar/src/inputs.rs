@@ -34,20 +34,18 @@ pub struct PoseTensors {
 impl FramePose {
     /// Uploads the frame's pose (three small tensors).
     pub fn upload(&self, device: &Device) -> PoseTensors {
-        let v: Vec<f32> = self
-            .displacement
-            .iter()
-            .flat_map(|d| d.to_array())
-            .collect();
         PoseTensors {
             joints: affine_tensor(&self.joints, device),
             input_joints: affine_tensor(&self.input_joints, device),
-            displacement: Tensor::from_data(
-                TensorData::new(v, [self.displacement.len(), 3]),
-                device,
-            ),
+            displacement: points_tensor(&self.displacement, device),
         }
     }
+}
+
+/// Points or vectors as a `[N, 3]` tensor.
+fn points_tensor(points: &[Vec3], device: &Device) -> Tensor<2> {
+    let values: Vec<f32> = points.iter().flat_map(|p| p.to_array()).collect();
+    Tensor::from_data(TensorData::new(values, [points.len(), 3]), device)
 }
 
 /// One set of Gaussians laid out on a two-sided map (the body's, or the face's head map).
@@ -76,16 +74,10 @@ impl Part {
         size: usize,
         device: &Device,
     ) -> Self {
-        let vec3 = |v: &[Vec3]| {
-            Tensor::<2>::from_data(
-                TensorData::new(v.iter().flat_map(|p| p.to_array()).collect(), [v.len(), 3]),
-                device,
-            )
-        };
         let reduce_rows = reduction(pixels, map, size);
         let n = normals.len();
         Self {
-            positions: vec3(positions),
+            positions: points_tensor(positions, device),
             normals: std::array::from_fn(|k| {
                 Tensor::from_data(
                     TensorData::new(normals.iter().map(|v| v[k]).collect(), [n, 1]),
@@ -234,6 +226,11 @@ impl GaussianTables {
             body,
             face,
         }
+    }
+
+    /// `[N_b, 3]` canonical template positions of the body Gaussians.
+    pub fn body_positions(&self) -> &Tensor<2> {
+        &self.body.positions
     }
 
     /// Number of Gaussians with skin (body, and face when the setup has the face branch).

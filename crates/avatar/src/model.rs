@@ -203,7 +203,6 @@ pub struct Canonical {
 /// Constant tensors of the avatar on one device.
 pub struct Constants {
     body_pixels: Tensor<1, Int>,
-    body_positions: Tensor<2>,
     body_log_scales: Tensor<2>,
     body_quats: Tensor<2>,
     face: Option<FaceConstants>,
@@ -271,11 +270,6 @@ impl Constants {
         };
         Self {
             body_pixels: index(&maps.pixels, device),
-            body_positions: t2(
-                maps.positions.iter().flat_map(|p| p.to_array()).collect(),
-                3,
-                device,
-            ),
             body_log_scales: t2(
                 setup.initial_log_scales(config.initial_thickness),
                 3,
@@ -378,7 +372,7 @@ fn body_attributes(
 ) {
     let n = raw.dims()[0];
     let offsets = cols(raw, 0, 3) * OFFSET_SCALE;
-    let means = constants.body_positions.clone() + offsets.clone();
+    let means = constants.tables.body_positions().clone() + offsets.clone();
     let colours = if constants.sigmoid_colours {
         cols(raw, 3, 6)
     } else {

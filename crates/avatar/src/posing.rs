@@ -251,10 +251,8 @@ impl Skinning {
 
 /// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
 pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
-    let n = a.dims()[0];
-    let c = |t: &Tensor<2>, k: usize| t.clone().slice([0..n, k..k + 1]);
-    let (w1, x1, y1, z1) = (c(&a, 0), c(&a, 1), c(&a, 2), c(&a, 3));
-    let (w2, x2, y2, z2) = (c(&b, 0), c(&b, 1), c(&b, 2), c(&b, 3));
+    let [w1, x1, y1, z1] = columns(&a);
+    let [w2, x2, y2, z2] = columns(&b);
     let w = w1.clone() * w2.clone()
         - x1.clone() * x2.clone()
         - y1.clone() * y2.clone()
