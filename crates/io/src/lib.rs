@@ -236,13 +236,49 @@ pub fn read_npy_f32(path: &Path) -> Result<(Vec<usize>, Vec<f32>), IoError> {
     let bytes = std::fs::read(path).map_err(|e| IoError::new(path, e))?;
     let npy = npyz::NpyFile::new(&bytes[..])
         .map_err(|e| IoError::new(path, format!("not a valid .npy file: {e}")))?;
-    npy_to_f32(npy).map_err(|e| IoError::new(path, e))
+    npy_values(npy).map_err(|e| IoError::new(path, e))
 }
 
-/// Converts any numeric `.npy` stream to `f32` values and its shape (C order required).
-pub fn npy_to_f32<R: std::io::Read>(
+/// A type `.npy` values are read as: every numeric dtype converts to `f32`; `i64` takes the
+/// integer and boolean dtypes and refuses floats.
+pub trait NpyScalar: Sized {
+    /// What the type is called in errors.
+    const NAME: &'static str;
+    fn from_f64(v: f64) -> Option<Self>;
+    fn from_i64(v: i64) -> Self;
+    fn from_u64(v: u64) -> Self;
+}
+
+impl NpyScalar for f32 {
+    const NAME: &'static str = "a numeric type";
+    fn from_f64(v: f64) -> Option<Self> {
+        Some(v as f32)
+    }
+    fn from_i64(v: i64) -> Self {
+        v as f32
+    }
+    fn from_u64(v: u64) -> Self {
+        v as f32
+    }
+}
+
+impl NpyScalar for i64 {
+    const NAME: &'static str = "an integer type";
+    fn from_f64(_: f64) -> Option<Self> {
+        None
+    }
+    fn from_i64(v: i64) -> Self {
+        v
+    }
+    fn from_u64(v: u64) -> Self {
+        v as i64
+    }
+}
+
+/// Reads any plain numeric `.npy` stream as `T` values with its shape (C order required).
+pub fn npy_values<T: NpyScalar, R: std::io::Read>(
     npy: npyz::NpyFile<R>,
-) -> Result<(Vec<usize>, Vec<f32>), String> {
+) -> Result<(Vec<usize>, Vec<T>), String> {
     use npyz::{DType, TypeChar};
     if npy.order() != npyz::Order::C {
         return Err("Fortran-ordered arrays are not supported; save with C order".into());
@@ -254,46 +290,44 @@ pub fn npy_to_f32<R: std::io::Read>(
             npy.dtype()
         ));
     };
+    let (kind, size) = (ts.type_char(), ts.size_field());
+    let not_t = || format!("dtype {kind:?} of {size} bytes is not {}", T::NAME);
     let read_err = |e: std::io::Error| e.to_string();
-    let values: Vec<f32> = match (ts.type_char(), ts.size_field()) {
-        (TypeChar::Float, 4) => npy.into_vec::<f32>().map_err(read_err)?,
-        (TypeChar::Float, 8) => npy
-            .into_vec::<f64>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
-        (TypeChar::Int, 4) => npy
-            .into_vec::<i32>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
-        (TypeChar::Int, 8) => npy
-            .into_vec::<i64>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
-        (TypeChar::Uint, 1) => npy
-            .into_vec::<u8>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(f32::from)
-            .collect(),
-        (TypeChar::Uint, 4) => npy
-            .into_vec::<u32>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|v| v as f32)
-            .collect(),
-        (TypeChar::Bool, 1) => npy
-            .into_vec::<bool>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|b| b as u8 as f32)
-            .collect(),
-        (c, s) => return Err(format!("unsupported dtype {c:?} of {s} bytes")),
+    fn all<A, T>(values: Vec<A>, f: impl Fn(A) -> T) -> Vec<T> {
+        values.into_iter().map(f).collect()
+    }
+    let floats = |values: Vec<f64>| -> Result<Vec<T>, String> {
+        values.into_iter().map(|v| T::from_f64(v).ok_or_else(not_t)).collect()
+    };
+    let values: Vec<T> = match (kind, size) {
+        (TypeChar::Float, 4) => {
+            floats(all(npy.into_vec::<f32>().map_err(read_err)?, f64::from))?
+        }
+        (TypeChar::Float, 8) => floats(npy.into_vec::<f64>().map_err(read_err)?)?,
+        (TypeChar::Int, 1) => all(npy.into_vec::<i8>().map_err(read_err)?, |v| {
+            T::from_i64(v.into())
+        }),
+        (TypeChar::Int, 2) => all(npy.into_vec::<i16>().map_err(read_err)?, |v| {
+            T::from_i64(v.into())
+        }),
+        (TypeChar::Int, 4) => all(npy.into_vec::<i32>().map_err(read_err)?, |v| {
+            T::from_i64(v.into())
+        }),
+        (TypeChar::Int, 8) => all(npy.into_vec::<i64>().map_err(read_err)?, T::from_i64),
+        (TypeChar::Uint, 1) => all(npy.into_vec::<u8>().map_err(read_err)?, |v| {
+            T::from_u64(v.into())
+        }),
+        (TypeChar::Uint, 2) => all(npy.into_vec::<u16>().map_err(read_err)?, |v| {
+            T::from_u64(v.into())
+        }),
+        (TypeChar::Uint, 4) => all(npy.into_vec::<u32>().map_err(read_err)?, |v| {
+            T::from_u64(v.into())
+        }),
+        (TypeChar::Uint, 8) => all(npy.into_vec::<u64>().map_err(read_err)?, T::from_u64),
+        (TypeChar::Bool, 1) => all(npy.into_vec::<bool>().map_err(read_err)?, |v| {
+            T::from_u64(v.into())
+        }),
+        _ => return Err(not_t()),
     };
     Ok((shape, values))
 }
@@ -311,77 +345,6 @@ fn checked_shape(shape: &[u64]) -> Result<Vec<usize>, String> {
             "shape {shape:?} holds more values than memory can address"
         )),
     }
-}
-
-/// Converts any integer or boolean `.npy` stream to `i64` values and its shape (C order).
-pub fn npy_to_i64<R: std::io::Read>(
-    npy: npyz::NpyFile<R>,
-) -> Result<(Vec<usize>, Vec<i64>), String> {
-    use npyz::{DType, TypeChar};
-    if npy.order() != npyz::Order::C {
-        return Err("Fortran-ordered arrays are not supported; save with C order".into());
-    }
-    let shape = checked_shape(npy.shape())?;
-    let DType::Plain(ts) = npy.dtype() else {
-        return Err(format!(
-            "dtype {:?} is not a plain numeric type",
-            npy.dtype()
-        ));
-    };
-    let read_err = |e: std::io::Error| e.to_string();
-    let values: Vec<i64> = match (ts.type_char(), ts.size_field()) {
-        (TypeChar::Int, 1) => npy
-            .into_vec::<i8>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Int, 2) => npy
-            .into_vec::<i16>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Int, 4) => npy
-            .into_vec::<i32>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Int, 8) => npy.into_vec::<i64>().map_err(read_err)?,
-        (TypeChar::Uint, 1) => npy
-            .into_vec::<u8>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Uint, 2) => npy
-            .into_vec::<u16>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Uint, 4) => npy
-            .into_vec::<u32>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (TypeChar::Uint, 8) => npy
-            .into_vec::<u64>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(|v| v as i64)
-            .collect(),
-        (TypeChar::Bool, 1) => npy
-            .into_vec::<bool>()
-            .map_err(read_err)?
-            .into_iter()
-            .map(i64::from)
-            .collect(),
-        (c, s) => return Err(format!("dtype {c:?} of {s} bytes is not an integer type")),
-    };
-    Ok((shape, values))
 }
 
 /// An `.npz` archive (as numpy's `savez`/`savez_compressed` write), with typed accessors whose
@@ -438,13 +401,13 @@ impl<R: std::io::Read + std::io::Seek> Npz<R> {
     /// Array `name` as `f32` with its shape.
     pub fn f32(&mut self, name: &str) -> Result<(Vec<usize>, Vec<f32>), IoError> {
         let path = self.path.clone();
-        npy_to_f32(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
+        npy_values(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
     }
 
     /// Integer array `name` as `i64` with its shape.
     pub fn i64(&mut self, name: &str) -> Result<(Vec<usize>, Vec<i64>), IoError> {
         let path = self.path.clone();
-        npy_to_i64(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
+        npy_values(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
     }
 
     /// The file this archive came from (or its label).
