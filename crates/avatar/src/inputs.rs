@@ -13,7 +13,6 @@ use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
 use crate::AvatarError;
-use crate::model::Constants;
 use crate::posing::{
     Skinning, Taps, affine_tensor, blend, columns, normalize, split_affine, transform_points,
 };
@@ -241,7 +240,7 @@ impl GaussianTables {
     /// The body Gaussians' canonical displacement and displaced canonical positions, and their
     /// root-relative posed positions in the networks' input pose (what the body network and the
     /// pose PCA see), each `[N_b, 3]`.
-    fn posed_body(&self, pose: &PoseTensors) -> (Tensor<2>, Tensor<2>, Tensor<2>) {
+    pub(crate) fn posed_body(&self, pose: &PoseTensors) -> (Tensor<2>, Tensor<2>, Tensor<2>) {
         let displacement = self.body_from_vertices.apply(pose.displacement.clone());
         let canonical = self.body.positions.clone() + displacement.clone();
         let posed = self.body.input_pose(canonical.clone(), pose);
@@ -298,127 +297,68 @@ pub struct NetInputs {
     pub skinning: Skinning,
 }
 
-/// The network inputs for a frame's `pose` seen from `camera`, on the device of `constants`.
-/// `noise` (`[N, 3]` for every Gaussian with skin, already scaled; training only) jitters the
-/// view directions. With `pca`, the body's posed map is first projected onto the training
-/// poses' principal components (the head maps are used as they are).
-pub fn inputs_for(
-    constants: &Constants,
-    pose: &PoseTensors,
-    camera: &f3g_splat::Camera,
-    noise: Option<&Tensor<2>>,
-    pca: Option<&PcaTensors>,
-) -> Result<NetInputs, AvatarError> {
-    let tables = &constants.tables;
-    let nb = tables.body.skin.rows();
-    if let Some(noise) = noise
-        && noise.dims() != [tables.count(), 3]
-    {
-        return Err(AvatarError::Invalid(format!(
-            "view noise of shape {:?} for {} Gaussians",
-            noise.dims(),
-            tables.count()
-        )));
+impl GaussianTables {
+    /// The network inputs for a frame's `pose` seen from `camera`, on the tables' device, for
+    /// the body Gaussians and, `with_face`, the face Gaussians. `noise` (`[N, 3]` for every
+    /// Gaussian with skin, already scaled; training only) jitters the view directions. With
+    /// `pca`, the body's posed map is first projected onto the training poses' principal
+    /// components (the head maps are used as they are).
+    pub fn inputs(
+        &self,
+        pose: &PoseTensors,
+        camera: &f3g_splat::Camera,
+        noise: Option<&Tensor<2>>,
+        pca: Option<&PcaTensors>,
+        with_face: bool,
+    ) -> Result<NetInputs, AvatarError> {
+        let tables = self;
+        let nb = tables.body.skin.rows();
+        if let Some(noise) = noise
+            && noise.dims() != [tables.count(), 3]
+        {
+            return Err(AvatarError::Invalid(format!(
+                "view noise of shape {:?} for {} Gaussians",
+                noise.dims(),
+                tables.count()
+            )));
+        }
+        let noise_rows = |a: usize, b: usize| noise.map(|t| t.clone().slice([a..b, 0..3]));
+        let c = camera.center();
+        let centre = Tensor::<2>::from_data(
+            TensorData::new(vec![c[0] as f32, c[1] as f32, c[2] as f32], [1, 3]),
+            &pose.displacement.device(),
+        );
+        let (body_displacement, body_canonical, mut posed_body) = tables.posed_body(pose);
+        if let Some(pca) = pca {
+            posed_body = pca.project(posed_body);
+        }
+        let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
+        let body_view =
+            tables
+                .body
+                .view(&body_canonical, &body_skinning, &centre, noise_rows(0, nb));
+        let mut inputs = NetInputs {
+            body_map: tables.body.input(posed_body),
+            body_view,
+            face_map: None,
+            face_view: None,
+            displacement: body_displacement.clone(),
+            skinning: body_skinning,
+        };
+        if let (Some((from_body, face)), true) = (&tables.face, with_face) {
+            let displacement = from_body.apply(body_displacement);
+            let canonical = face.positions.clone() + displacement.clone();
+            let posed = face.input_pose(canonical.clone(), pose);
+            let skinning = Skinning::new(&pose.joints, &face.skin);
+            let total = tables.count();
+            inputs.face_view =
+                Some(face.view(&canonical, &skinning, &centre, noise_rows(nb, total)));
+            inputs.face_map = Some(face.input(posed));
+            inputs.displacement = Tensor::cat(vec![inputs.displacement, displacement], 0);
+            inputs.skinning = inputs.skinning.cat(skinning);
+        }
+        Ok(inputs)
     }
-    let noise_rows = |a: usize, b: usize| noise.map(|t| t.clone().slice([a..b, 0..3]));
-    let c = camera.center();
-    let centre = Tensor::<2>::from_data(
-        TensorData::new(vec![c[0] as f32, c[1] as f32, c[2] as f32], [1, 3]),
-        &pose.displacement.device(),
-    );
-    let (body_displacement, body_canonical, mut posed_body) = tables.posed_body(pose);
-    if let Some(pca) = pca {
-        posed_body = pca.project(posed_body);
-    }
-    let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
-    let body_view = tables
-        .body
-        .view(&body_canonical, &body_skinning, &centre, noise_rows(0, nb));
-    let mut inputs = NetInputs {
-        body_map: tables.body.input(posed_body),
-        body_view,
-        face_map: None,
-        face_view: None,
-        displacement: body_displacement.clone(),
-        skinning: body_skinning,
-    };
-    if let (Some((from_body, face)), true) = (&tables.face, constants.has_face()) {
-        let displacement = from_body.apply(body_displacement);
-        let canonical = face.positions.clone() + displacement.clone();
-        let posed = face.input_pose(canonical.clone(), pose);
-        let skinning = Skinning::new(&pose.joints, &face.skin);
-        let total = tables.count();
-        inputs.face_view = Some(face.view(&canonical, &skinning, &centre, noise_rows(nb, total)));
-        inputs.face_map = Some(face.input(posed));
-        inputs.displacement = Tensor::cat(vec![inputs.displacement, displacement], 0);
-        inputs.skinning = inputs.skinning.cat(skinning);
-    }
-    Ok(inputs)
-}
-
-/// Fits the pose PCA on the networks' posed body maps of `frames` (root-relative, computed on
-/// `device` as in training).
-pub fn fit_pose_pca(
-    setup: &Setup,
-    frames: &[f3g_rig::RigParams],
-    components: usize,
-    sigma: f32,
-    device: &Device,
-) -> Result<PosePca, AvatarError> {
-    // The posed maps in f32, their centred copy in f64, and the components.
-    let values = 3 * setup.body_count() as u64;
-    f3g_io::memory::ensure_available(
-        values * 12 * (frames.len() as u64 + components as u64),
-        &format!(
-            "the pose PCA of {} frames × {} body Gaussians (training frames, map_resolution)",
-            frames.len(),
-            setup.body_count()
-        ),
-    )?;
-    let tables = GaussianTables::new(setup, 1, 1, device);
-    let samples = frames
-        .iter()
-        .map(|p| {
-            let pose = setup.pose(p)?.upload(device);
-            let (_, _, posed) = tables.posed_body(&pose);
-            posed
-                .into_data()
-                .convert::<f32>()
-                .try_into_vec::<f32>()
-                .map_err(|e| AvatarError::Invalid(format!("posed map: {e:?}")))
-        })
-        .collect::<Result<Vec<_>, AvatarError>>()?;
-    Ok(PosePca::fit(&samples, components, sigma)?)
-}
-
-/// The view-direction noise of a training sample: `σ · N(0, 1)` per component for each of
-/// `count` Gaussians, from a counter-based hash of `(seed, Gaussian)` (order-independent, so
-/// it is the same however it is computed), `[count, 3]` row-major.
-pub fn view_noise(seed: u64, count: usize, sigma: f32) -> Vec<f32> {
-    (0..count as u64)
-        .flat_map(|i| gaussian3(seed, i).map(|g| sigma * g))
-        .collect()
-}
-
-/// Three standard normal values from a counter-based hash.
-fn gaussian3(seed: u64, i: u64) -> [f32; 3] {
-    let mut state = seed ^ i.wrapping_mul(0x9e37_79b9_7f4a_7c15);
-    let mut uniform = || {
-        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^= z >> 31;
-        ((z >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-    };
-    let pair = |u1: f64, u2: f64| {
-        let r = (-2.0 * u1.ln()).sqrt();
-        let a = std::f64::consts::TAU * u2;
-        (r * a.cos(), r * a.sin())
-    };
-    let (a, b) = pair(uniform(), uniform());
-    let (c, _) = pair(uniform(), uniform());
-    [a as f32, b as f32, c as f32]
 }
 
 #[cfg(test)]
@@ -450,14 +390,5 @@ mod tests {
         let first: Vec<usize> = rows[..4].iter().map(|r| r[0].0).collect();
         assert_eq!(first, vec![0, 0, 1, 1]);
         assert!(rows.iter().all(|r| r.len() <= 1));
-    }
-
-    #[test]
-    fn counter_noise_is_deterministic_and_standard() {
-        let a = view_noise(7, 2000, 1.0);
-        assert_eq!(a, view_noise(7, 2000, 1.0));
-        let var = a.iter().map(|v| v * v).sum::<f32>() / a.len() as f32;
-        assert!((var - 1.0).abs() < 0.1, "{var}");
-        assert_ne!(a, view_noise(8, 2000, 1.0));
     }
 }

@@ -35,7 +35,7 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::AvatarError;
 use crate::config::{ColourActivation, TrainConfig};
-use crate::inputs::{GaussianTables, NetInputs};
+use crate::inputs::{GaussianTables, NetInputs, PcaTensors, PoseTensors};
 use crate::posing::{Skinning, pose_gaussians};
 use crate::setup::{Setup, logit};
 use f3g_nets::DualStyleUNet;
@@ -295,6 +295,20 @@ impl Constants {
     /// Whether the face Gaussians are part of the model.
     pub fn has_face(&self) -> bool {
         self.face.is_some()
+    }
+
+    /// The networks' inputs for a frame's `pose` seen from `camera`
+    /// ([`GaussianTables::inputs`]), with the face Gaussians once the canonical face model
+    /// exists.
+    pub fn inputs(
+        &self,
+        pose: &PoseTensors,
+        camera: &Camera,
+        noise: Option<&Tensor<2>>,
+        pca: Option<&PcaTensors>,
+    ) -> Result<NetInputs, AvatarError> {
+        self.tables
+            .inputs(pose, camera, noise, pca, self.has_face())
     }
 }
 

@@ -7,7 +7,7 @@ use burn::tensor::Device;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::{PcaTensors, inputs_for};
+use crate::inputs::PcaTensors;
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
 use crate::posing::Skinning;
 use crate::report::tensor_to_image;
@@ -110,7 +110,7 @@ impl TrainedAvatar {
         self.setup.check_params(params, "pose")?;
         let pca = if use_pca { self.pca.as_ref() } else { None };
         let pose = self.setup.pose(params)?.upload(&self.device);
-        let inputs = inputs_for(&self.constants, &pose, camera, None, pca)?;
+        let inputs = self.constants.inputs(&pose, camera, None, pca)?;
         let c = canonical(&self.nets, &self.constants, &inputs)?;
         Ok((c, inputs.skinning))
     }

@@ -7,7 +7,6 @@
 use burn::tensor::{Device, Tensor};
 use f3g_avatar::TrainConfig;
 use f3g_avatar::config::BodyLayout;
-use f3g_avatar::inputs::inputs_for;
 use f3g_avatar::model::{AvatarNets, Canonical, Constants, canonical};
 use f3g_avatar::setup::Setup;
 use f3g_rig::RigParams;
@@ -47,7 +46,7 @@ fn gaussians(config: &TrainConfig, params: &RigParams, camera: &Camera) -> Canon
     let nets = AvatarNets::new(config, &setup, &device).unwrap();
     let constants = Constants::new(&setup, config, None, &device);
     let pose = setup.pose(params).unwrap().upload(&device);
-    let inputs = inputs_for(&constants, &pose, camera, None, None).unwrap();
+    let inputs = constants.inputs(&pose, camera, None, None).unwrap();
     canonical(&nets, &constants, &inputs).unwrap()
 }
 
@@ -118,7 +117,7 @@ fn the_networks_do_not_see_the_fingers() {
     let cam = camera(0.0);
     let input = |p: &RigParams| {
         let pose = setup.pose(p).unwrap().upload(&device);
-        let i = inputs_for(&constants, &pose, &cam, None, None).unwrap();
+        let i = constants.inputs(&pose, &cam, None, None).unwrap();
         (host(i.body_map), host(i.skinning.translation))
     };
     let (rest_map, rest_skin) = input(&rest);
@@ -202,7 +201,9 @@ fn device_inputs_equal_the_host_reference() {
         quats: [1.0, 0.0, 0.0, 0.0].repeat(n_face),
     };
     let constants = Constants::new(&setup, &config, Some(&base), &device);
-    let inputs = inputs_for(&constants, &pose.upload(&device), &cam, None, None).unwrap();
+    let inputs = constants
+        .inputs(&pose.upload(&device), &cam, None, None)
+        .unwrap();
 
     // The host's reading: displacements interpolated at the texels and densified into the face,
     // skinning by `f3g_rig`, view cosines per Gaussian, maps reduced texel by texel.

@@ -297,12 +297,13 @@ pub fn npy_values<T: NpyScalar, R: std::io::Read>(
         values.into_iter().map(f).collect()
     }
     let floats = |values: Vec<f64>| -> Result<Vec<T>, String> {
-        values.into_iter().map(|v| T::from_f64(v).ok_or_else(not_t)).collect()
+        values
+            .into_iter()
+            .map(|v| T::from_f64(v).ok_or_else(not_t))
+            .collect()
     };
     let values: Vec<T> = match (kind, size) {
-        (TypeChar::Float, 4) => {
-            floats(all(npy.into_vec::<f32>().map_err(read_err)?, f64::from))?
-        }
+        (TypeChar::Float, 4) => floats(all(npy.into_vec::<f32>().map_err(read_err)?, f64::from))?,
         (TypeChar::Float, 8) => floats(npy.into_vec::<f64>().map_err(read_err)?)?,
         (TypeChar::Int, 1) => all(npy.into_vec::<i8>().map_err(read_err)?, |v| {
             T::from_i64(v.into())

@@ -8,7 +8,6 @@ use burn::tensor::Device;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::inputs_for;
 use crate::model::{AvatarNets, BodyNets, Constants, FaceBase, body_attributes_host, body_outputs};
 use crate::setup::Setup;
 use f3g_data::Dataset;
@@ -45,13 +44,7 @@ pub fn build(
         let frame = split.frames[i * split.frames.len() / k];
         let camera = split.cameras[i % split.cameras.len()];
         let pose = setup.pose(&dataset.params[frame])?.upload(&plain);
-        let inputs = inputs_for(
-            &constants,
-            &pose,
-            &dataset.cameras[camera].camera,
-            None,
-            None,
-        )?;
+        let inputs = constants.inputs(&pose, &dataset.cameras[camera].camera, None, None)?;
         let raw = body_outputs(&nets, &constants, &inputs)?;
         let a = body_attributes_host(&raw, &constants);
         for (acc, v) in sum.iter_mut().zip([

@@ -28,6 +28,7 @@
 
 pub mod face_model;
 pub mod losses;
+pub mod pca;
 pub mod profile;
 pub mod sample;
 pub mod schedule;
@@ -45,7 +46,6 @@ use serde::Serialize;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::{fit_pose_pca, inputs_for};
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, render_posed};
 use crate::report;
 use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
@@ -167,7 +167,7 @@ impl Trainer {
         })?;
         let pca_frames: Vec<_> = evenly(&train_params, 300);
         if pca_frames.len() >= 2 {
-            run.write_pca(&fit_pose_pca(
+            run.write_pca(&pca::fit_pose_pca(
                 &setup,
                 &pca_frames,
                 config.pca_components,
@@ -759,7 +759,7 @@ impl Trainer {
         let (body, face, _) =
             f3g_data::loader::make_view(&self.dataset, &cache, camera, frame, &options, [1.0; 3])?;
         let pose = self.setup.pose(&self.dataset.params[frame])?.upload(&plain);
-        let inputs = inputs_for(&constants, &pose, &body.camera, None, None)?;
+        let inputs = constants.inputs(&pose, &body.camera, None, None)?;
         let c = canonical(&nets, &constants, &inputs)?;
         let mut rows = Vec::new();
         for view in std::iter::once(&body).chain(face.as_ref()) {

@@ -23,7 +23,6 @@ use super::sample::DeviceSample;
 use super::schedule::Stage;
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::inputs::inputs_for;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
 use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
 use f3g_nets::{Discriminator, Lpips};
@@ -140,8 +139,7 @@ impl Replica {
         sample: &DeviceSample,
     ) -> Result<(Terms, Option<Tensor<4>>), AvatarError> {
         let (config, stage) = (ctx.config, ctx.stage);
-        let inputs = inputs_for(
-            &self.constants,
+        let inputs = self.constants.inputs(
             &sample.pose,
             &sample.body.camera,
             sample.noise.as_ref(),
