@@ -7,7 +7,7 @@ use std::path::Path;
 use serde_json::Value;
 
 use crate::DataError;
-use f3g_splat::Camera;
+use f3g_camera::Camera;
 
 /// A named camera of a capture.
 #[derive(Clone, Debug, PartialEq)]
@@ -112,8 +112,8 @@ pub fn read_calibration(path: &Path) -> Result<Vec<CaptureCamera>, DataError> {
             t,
             width,
             height,
-            near: f3g_splat::DEFAULT_NEAR,
-            far: f3g_splat::DEFAULT_FAR,
+            near: f3g_camera::DEFAULT_NEAR,
+            far: f3g_camera::DEFAULT_FAR,
         };
         camera
             .validate()

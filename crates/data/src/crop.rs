@@ -4,9 +4,9 @@
 
 use glam::Vec3;
 
+use f3g_camera::Camera;
 use f3g_io::Image;
 use f3g_rig::Rig;
-use f3g_splat::Camera;
 
 use crate::imgops::crop_resize;
 

@@ -1,8 +1,8 @@
 //! Image operations on `[H, W, C]` f32 images: resizing with matching intrinsics,
 //! crop-and-resize, mask morphology, drawing.
 
+use f3g_camera::Camera;
 use f3g_io::Image;
-use f3g_splat::Camera;
 
 /// Resizes to `width × height` (triangle filter, i.e. bilinear with area averaging when
 /// shrinking).

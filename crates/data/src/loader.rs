@@ -21,9 +21,9 @@ use crate::crop::{HeadBox, crop_view, head_box, head_vertices};
 use crate::dataset::Dataset;
 use crate::imgops::{morph, resize, resized_camera, scaled_size};
 use crate::split::Split;
+use f3g_camera::Camera;
 use f3g_io::Image;
 use f3g_rig::RigParams;
-use f3g_splat::Camera;
 
 /// Loader settings.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]

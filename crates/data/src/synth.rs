@@ -30,10 +30,10 @@ use crate::DataError;
 use crate::calibration::{CaptureCamera, write_calibration};
 use crate::dataset::BODY_PARAMS;
 use crate::split::SYNTH_MARKER;
+use f3g_camera::Camera;
 use f3g_io::Image;
 use f3g_rig::builtin::BuiltinHuman;
 use f3g_rig::{Rig, RigParams};
-use f3g_splat::Camera;
 use f3g_template::{Projection, rasterize};
 
 /// Settings of a synthetic capture.

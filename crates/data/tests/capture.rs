@@ -74,7 +74,7 @@ fn reprojected_meshes_land_on_the_rendered_silhouettes() {
 fn supersampled_coverage(
     vertices: &[glam::Vec3],
     triangles: &[[u32; 3]],
-    camera: &f3g_splat::Camera,
+    camera: &f3g_camera::Camera,
     s: usize,
 ) -> Vec<f32> {
     let (w, h) = (camera.width as usize, camera.height as usize);

@@ -20,8 +20,8 @@ pub enum SplatError {
         value: f64,
     },
     /// The camera cannot be used for projection.
-    #[error("invalid camera: {0}")]
-    Camera(String),
+    #[error(transparent)]
+    Camera(#[from] f3g_camera::CameraError),
     /// The spherical-harmonics coefficient count is not (degree + 1)² for a degree 0..=3.
     #[error(
         "spherical harmonics with {coeffs} coefficients per channel: expected 1, 4, 9 or 16 (degree 0..3)"

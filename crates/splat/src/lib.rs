@@ -15,7 +15,6 @@
 //! `i + 0.5`), quaternions (w, x, y, z), natural-log scales, opacity logits, SH colour with
 //! `0.5 + C0 · f_dc` for degree 0. Images are `[H, W, C]` row-major.
 
-mod camera;
 mod cloud;
 pub mod cpu;
 #[cfg(any(feature = "gpu", feature = "cuda"))]
@@ -27,9 +26,11 @@ mod real;
 pub mod reference;
 pub mod sh;
 
-pub use camera::{Camera, DEFAULT_FAR, DEFAULT_NEAR, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE};
 pub use cloud::GaussianCloud;
 pub use cpu::RenderOptions;
 pub use error::SplatError;
+pub use f3g_camera::{
+    Camera, CameraError, DEFAULT_FAR, DEFAULT_NEAR, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE,
+};
 pub use op::{Gaussians, Rendered, SplatBackend, render};
 pub use real::Real;

@@ -7,7 +7,7 @@
 use glam::{Vec2, Vec3};
 use rayon::prelude::*;
 
-use f3g_splat::Camera;
+use f3g_camera::Camera;
 
 /// How world points map to pixels.
 #[derive(Clone, Debug, PartialEq)]

@@ -25,9 +25,9 @@ use rayon::prelude::*;
 
 use crate::TemplateError;
 use crate::mesh::SurfaceQuery;
+use f3g_camera::Camera;
 use f3g_io::Image;
 use f3g_rig::{Mesh, Posed, Rig, RigParams};
-use f3g_splat::Camera;
 
 /// Settings of the reconstruction.
 #[derive(Clone, Debug, PartialEq)]

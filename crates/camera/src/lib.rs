@@ -8,7 +8,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::SplatError;
+/// A camera that projection cannot use; the message names the field.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("invalid camera: {0}")]
+pub struct CameraError(pub String);
 
 /// Default near plane (metres), as in gsplat.
 pub const DEFAULT_NEAR: f64 = 0.01;
@@ -154,8 +157,8 @@ impl Camera {
     }
 
     /// Checks everything projection relies on; the error names the offending field.
-    pub fn validate(&self) -> Result<(), SplatError> {
-        let bad = |m: String| Err(SplatError::Camera(m));
+    pub fn validate(&self) -> Result<(), CameraError> {
+        let bad = |m: String| Err(CameraError(m));
         let all_k = self.k.iter().flatten();
         let all_r = self.r.iter().flatten();
         if let Some(v) = all_k
