@@ -2,7 +2,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::cpu::GaussianSlices;
+use crate::semantics::GaussianSlices;
 use crate::{Gaussians, SplatError, sh};
 
 /// Gaussian parameters as flat `f32` arrays (layouts as in [`crate::cpu`]).

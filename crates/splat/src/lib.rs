@@ -5,8 +5,9 @@
 //!
 //! - [`reference`]: the readable renderer (gsplat 1.5.3's semantics, every Gaussian at every
 //!   pixel) that every fast path is tested against.
-//! - [`cpu`]: the fast multi-threaded CPU renderer (generic over `f32`/`f64`); its module docs
-//!   state the exact semantics (footprint, cut-offs, outputs).
+//! - [`semantics`]: what every path computes (footprint, cut-offs, outputs, layouts), its
+//!   constants and input checks, shared by the CPU renderer and the GPU kernels.
+//! - [`cpu`]: the fast multi-threaded CPU renderer (generic over `f32`/`f64`).
 //! - [`op`]: the same renderer as a Burn operation with a hand-written backward
 //!   ([`render`] is the entry point for tensors that need gradients).
 //! - [`ply`]: the standard 3DGS `.ply` layout, read and write.
@@ -24,13 +25,14 @@ pub mod op;
 pub mod ply;
 mod real;
 pub mod reference;
+pub mod semantics;
 pub mod sh;
 
 pub use cloud::GaussianCloud;
-pub use cpu::RenderOptions;
 pub use error::SplatError;
 pub use f3g_camera::{
     Camera, CameraError, DEFAULT_FAR, DEFAULT_NEAR, MAX_IMAGE_PIXELS, MAX_IMAGE_SIDE,
 };
 pub use op::{Gaussians, Rendered, SplatBackend, render};
 pub use real::Real;
+pub use semantics::RenderOptions;

@@ -24,8 +24,9 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{AutodiffBackend, Backend, Dispatch, ExtensionType, Flex, backend_extension};
 use burn::tensor::{DType, Element, Int, IntDType, Shape, Tensor, TensorData};
 
-use crate::cpu::{self, ForwardOutput, GaussianSlices, PixelGrads, RenderOptions, TileBins};
+use crate::cpu::{self, ForwardOutput, PixelGrads, TileBins};
 use crate::cpu::{Projected, ScreenGaussian};
+use crate::semantics::{GaussianSlices, RenderOptions, TILE_SIZE};
 use crate::{Camera, SplatError};
 
 /// Number of channels of the packed render: R, G, B, alpha, depth.
@@ -239,8 +240,8 @@ impl SplatBackend for Flex {
         let (w, h) = (camera.width as usize, camera.height as usize);
         let radii = host::<i32>(&state.radii);
         let bins = TileBins {
-            tiles_x: w.div_ceil(cpu::TILE_SIZE),
-            tiles_y: h.div_ceil(cpu::TILE_SIZE),
+            tiles_x: w.div_ceil(TILE_SIZE),
+            tiles_y: h.div_ceil(TILE_SIZE),
             offsets: host::<u32>(&state.tile_offsets).into_owned(),
             ids: host::<u32>(&state.tile_ids).into_owned(),
         };

@@ -27,8 +27,10 @@
 //! The Gaussian's box (step 3) is not used when compositing: the reference shows that the box
 //! loses nothing, which is what lets the fast paths skip everything outside it.
 
-use crate::cpu::{ALPHA_MIN, EXTENT_MAX_SIGMAS, GaussianSlices, LOW_PASS, RenderOptions};
-use crate::cpu::{ScreenGaussian as Screen, TRANSMITTANCE_MIN, pixel_box};
+use crate::cpu::{ScreenGaussian as Screen, pixel_box};
+use crate::semantics::{
+    ALPHA_MIN, EXTENT_MAX_SIGMAS, GaussianSlices, LOW_PASS, RenderOptions, TRANSMITTANCE_MIN,
+};
 use crate::{Camera, Real, sh};
 
 /// One pixel's discrete decisions: the Gaussians composited (with whether their alpha was

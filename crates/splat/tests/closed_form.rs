@@ -3,7 +3,8 @@
 mod common;
 
 use common::random_scene;
-use f3g_splat::cpu::{self, GaussianSlices};
+use f3g_splat::cpu;
+use f3g_splat::semantics::GaussianSlices;
 use f3g_splat::sh::SH_C0;
 use f3g_splat::{Camera, RenderOptions, SplatError};
 

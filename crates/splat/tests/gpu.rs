@@ -16,9 +16,10 @@ mod common;
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::{Cube, DispatchDevice};
 use burn::tensor::TensorData;
-use f3g_splat::cpu::{self, GaussianSlices, TILE_SIZE};
+use f3g_splat::cpu;
 use f3g_splat::cube;
 use f3g_splat::op::GaussianTensors;
+use f3g_splat::semantics::{GaussianSlices, TILE_SIZE};
 
 type CubeDevice = <Cube as burn::backend::BackendTypes>::Device;
 

@@ -11,7 +11,8 @@
 use std::path::{Path, PathBuf};
 
 use f3g_io::Npz;
-use f3g_splat::cpu::{self, GaussianSlices};
+use f3g_splat::cpu;
+use f3g_splat::semantics::GaussianSlices;
 use f3g_splat::{Camera, RenderOptions, reference};
 
 fn golden_files() -> Vec<PathBuf> {

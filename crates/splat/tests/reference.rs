@@ -6,7 +6,8 @@
 mod common;
 
 use common::{Scene, random_scene};
-use f3g_splat::cpu::{self, GaussianSlices};
+use f3g_splat::cpu;
+use f3g_splat::semantics::GaussianSlices;
 use f3g_splat::{RenderOptions, reference};
 
 fn max_abs_diff<T: Copy + Into<f64>>(a: &[T], b: &[T]) -> f64 {

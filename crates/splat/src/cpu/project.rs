@@ -20,8 +20,9 @@
 use multiversion::multiversion;
 use rayon::prelude::*;
 
+use super::GaussianGrads;
 use super::raster::pixel_box;
-use super::{ALPHA_MIN, GaussianGrads, GaussianSlices, LOW_PASS};
+use crate::semantics::{ALPHA_MIN, GaussianSlices, LOW_PASS, opacity_extent};
 use crate::{Camera, real::Real, sh};
 
 /// One Gaussian on the screen, everything the rasteriser reads.
@@ -351,17 +352,6 @@ fn project_one<T: Real>(
         pixels: [0; 4],
     }
     .with_footprint(width, height)
-}
-
-/// Most standard deviations a footprint reaches (gsplat's cap; it binds only for `o > 1`).
-pub const EXTENT_MAX_SIGMAS: f64 = 3.33;
-
-/// Half-width in standard deviations of the region where `o · exp(−½ m²) ≥ 1/255`.
-pub fn opacity_extent<T: Real>(opacity: T) -> T {
-    (T::c(2.0) * (opacity / T::c(ALPHA_MIN)).ln())
-        .max(T::zero())
-        .sqrt()
-        .min(T::c(EXTENT_MAX_SIGMAS))
 }
 
 /// Chains screen-space gradients back to the Gaussian parameters (in parallel).

@@ -11,8 +11,9 @@
 use multiversion::multiversion;
 use rayon::prelude::*;
 
+use super::PixelGrads;
 use super::project::{Projected, ScreenGaussian, ScreenGrads};
-use super::{ALPHA_MIN, PixelGrads, RenderOptions, TILE_SIZE, TRANSMITTANCE_MIN};
+use crate::semantics::{ALPHA_MIN, RenderOptions, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::{Camera, real::Real};
 
 /// Pixels `[x0, x1) × [y0, y1)` whose centres lie in the Gaussian's footprint box

@@ -18,11 +18,11 @@ use super::project::{Projection, project};
 use super::project_backward::project_backward;
 use super::raster::{Accumulation, rasterize, rasterize_backward};
 use super::scan::grid;
-use crate::cpu::{GaussianSlices, MAX_INTERSECTIONS, RenderOptions};
 use crate::op::{
     GaussianTensors, RasterState, SplatBackend, SplatForward, check_background_shape,
     check_gaussian_shapes, rejected,
 };
+use crate::semantics::{GaussianSlices, MAX_INTERSECTIONS, RenderOptions, check_finite};
 use crate::{Camera, SplatError};
 
 /// Units per cube of the input check.
@@ -106,7 +106,7 @@ fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
     };
     slices
         .validate()
-        .and_then(|()| crate::cpu::check_finite("background", &host(&inputs.background)))
+        .and_then(|()| check_finite("background", &host(&inputs.background)))
         .err()
         .unwrap_or(SplatError::NonFinite {
             name: "inputs",
@@ -124,6 +124,7 @@ impl SplatBackend for Cube {
         let device = inputs.means.device.clone();
         let checked = camera
             .validate()
+            .map_err(SplatError::from)
             .and_then(|()| options.validate())
             .and_then(|()| check_shapes(&inputs));
         if let Err(error) = checked {

@@ -26,7 +26,7 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 use super::project::Projection;
 use super::scan::{exclusive_scan, grid};
 use super::sort::sort_pairs;
-use crate::cpu::TILE_SIZE;
+use crate::semantics::TILE_SIZE;
 
 /// Units per cube.
 const UNITS: usize = 256;

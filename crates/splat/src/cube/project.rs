@@ -20,8 +20,8 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 
 use super::scan::grid;
 use crate::Camera;
-use crate::cpu::{ALPHA_MIN, EXTENT_MAX_SIGMAS, LOW_PASS, TILE_SIZE};
 use crate::op::{GaussianTensors, SCREEN_FLOATS};
+use crate::semantics::{ALPHA_MIN, EXTENT_MAX_SIGMAS, LOW_PASS, TILE_SIZE};
 
 /// Floats of the packed camera constants the kernel reads (see [`camera_constants`]).
 const CAMERA_FLOATS: usize = 25;

@@ -17,8 +17,8 @@ use burn_cubecl::ops::numeric::empty_device_dtype;
 use super::project::camera_constants;
 use super::scan::grid;
 use crate::Camera;
-use crate::cpu::LOW_PASS;
 use crate::op::GaussianTensors;
+use crate::semantics::LOW_PASS;
 
 /// Units per cube.
 const UNITS: usize = 256;

@@ -31,8 +31,8 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
 use super::bin::TileBins;
-use crate::cpu::{ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
 use crate::op::{PACKED_CHANNELS, SCREEN_FLOATS};
+use crate::semantics::{ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
 
 mod kernels {
     use burn_cubecl::cubecl;

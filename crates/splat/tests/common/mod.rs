@@ -2,7 +2,7 @@
 //! `f3g_splat::reference`).
 #![allow(dead_code)]
 
-use f3g_splat::cpu::GaussianSlices;
+use f3g_splat::semantics::GaussianSlices;
 use f3g_splat::{Camera, sh};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
