@@ -3,9 +3,15 @@
 //! The method, one module each: [`schedule`] (stages and learning rates), [`losses`] (body,
 //! face, adversarial, offset), [`face_model`] (the canonical face model built from the body
 //! branch), [`step`] (one step on one device: gradients, then a separate apply, so that
-//! data-parallel replicas can average their gradients between the two). This module is the
-//! loop around them: it owns the run folder, the loader, the log, validation grids and
-//! checkpoints.
+//! data-parallel replicas can average their gradients between the two). Around them:
+//! `restore.rs` (networks, optimisers and replicas from a checkpoint), `parallel.rs` (one
+//! data-parallel step), `validation.rs` (the validation grids), [`pca`] (the pose PCA's fit).
+//! This module is the loop: it owns the run folder, the loader, the log and checkpoints.
+//!
+//! `log.jsonl` is the one file of a run written in place: one JSON line is appended per step
+//! (a kill can leave a partial last line, which readers skip), and a resumed run first
+//! rewrites it, atomically, to the lines of the steps before its checkpoint. Every other
+//! file is written whole and atomically.
 //!
 //! Samples are drawn by the loader as a pure function of the seed and the sample index, so a
 //! resumed run continues exactly as an uninterrupted one would. With `R` replicas (one per
@@ -28,11 +34,14 @@
 
 pub mod face_model;
 pub mod losses;
+mod parallel;
 pub mod pca;
 pub mod profile;
+mod restore;
 pub mod sample;
 pub mod schedule;
 pub mod step;
+mod validation;
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -40,27 +49,24 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-use burn::module::Module;
-use burn::tensor::{Device, Tensor};
+use burn::tensor::Device;
 use serde::Serialize;
 
 use crate::AvatarError;
 use crate::config::TrainConfig;
-use crate::model::{AvatarNets, Constants, FaceBase, canonical, render_posed};
+use crate::model::{AvatarNets, FaceBase};
 use crate::report;
-use crate::run::{Run, RunInfo, TrainState, load_face_base, load_optim, read_state};
+use crate::run::{Run, RunInfo, TrainState, load_face_base, read_state};
 use crate::setup::Setup;
 use f3g_data::Dataset;
 use f3g_data::loader::{Loader, LoaderOptions};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_rig::ModelSpec;
-use profile::{PhaseTimer, mark};
+use profile::PhaseTimer;
 use sample::DeviceSample;
 pub use schedule::{Schedule, Stage};
 pub use step::AllReduce;
-use step::{
-    Optimisers, Replica, SampleGradients, StepContext, adam, adam_disc, add_values, sum_gradients,
-};
+use step::Replica;
 
 /// What one step did.
 #[derive(Clone, Debug, Serialize)]
@@ -235,126 +241,6 @@ impl Trainer {
         Self::assemble(
             run, config, setup, dataset, split, state, checkpoint, face_base, devices,
         )
-    }
-
-    #[allow(clippy::too_many_arguments)]
-    fn assemble(
-        run: Run,
-        config: TrainConfig,
-        setup: Setup,
-        dataset: Arc<Dataset>,
-        split: Split,
-        state: TrainState,
-        checkpoint: Option<PathBuf>,
-        face_base: Option<FaceBase>,
-        devices: &[Device],
-    ) -> Result<Self, AvatarError> {
-        let device = first_device(devices)?.without_autodiff().autodiff();
-        let mut nets = AvatarNets::new(&config, &setup, &device)?;
-        let mut optimisers = Optimisers {
-            body: adam(config.adam_epsilon),
-            face: config.face_branch.then(|| adam(config.adam_epsilon)),
-            disc: None,
-        };
-        let with_disc = config.face_losses && config.adversarial;
-        let mut disc = if with_disc {
-            let d = f3g_nets::checkpoint::with_deterministic_ids(
-                config
-                    .discriminator
-                    .init(config.seed.wrapping_add(20), &device)?,
-                crate::model::DISCRIMINATOR_PARAM_IDS,
-            );
-            // A new run may start from pretrained discriminator weights; a resumed one has its
-            // own in the checkpoint.
-            Some(match (&config.discriminator_weights, &checkpoint) {
-                (Some(path), None) => f3g_nets::checkpoint::load(d, Path::new(path))?,
-                _ => d,
-            })
-        } else {
-            None
-        };
-        optimisers.disc = with_disc.then(adam_disc);
-        if let Some(c) = &checkpoint {
-            nets = f3g_nets::checkpoint::load(nets, &c.join("nets.bpk"))?;
-            optimisers.body = load_optim(optimisers.body, &c.join("optim_body.bpk"), &nets.body)?;
-            if let Some(face) = nets.face.as_ref()
-                && let Some(o) = optimisers.face.take()
-            {
-                let path = c.join("optim_face.bpk");
-                optimisers.face = Some(if path.exists() {
-                    load_optim(o, &path, face)?
-                } else {
-                    o
-                });
-            }
-            if let Some(d) = disc.take() {
-                let path = c.join("disc.bpk");
-                disc = Some(if path.exists() {
-                    let d = f3g_nets::checkpoint::load(d, &path)?;
-                    if let Some(o) = optimisers.disc.take() {
-                        optimisers.disc = Some(load_optim(o, &c.join("optim_disc.bpk"), &d)?);
-                    }
-                    d
-                } else {
-                    d
-                });
-            }
-        }
-        let mut replicas = Vec::with_capacity(devices.len());
-        for (rank, d) in devices.iter().enumerate() {
-            let d = d.clone().without_autodiff().autodiff();
-            // Every replica starts from the first one's weights and optimiser state (random
-            // initialisation differs between backends); optimiser state follows its
-            // parameters to their device on the first step.
-            let (n, dc) = if rank == 0 {
-                (nets.clone(), disc.clone())
-            } else {
-                (nets.clone().fork(&d), disc.clone().map(|x| x.fork(&d)))
-            };
-            replicas.push(Replica {
-                constants: Constants::new(&setup, &config, face_base.as_ref(), &d),
-                lpips: f3g_nets::Lpips::load(config.lpips_net, &d)?,
-                nets: n,
-                disc: dc,
-                optimisers: optimisers.clone(),
-                device: d,
-            });
-        }
-        // Checkpoints from now on are written by these devices.
-        let mut state = state;
-        state.device = devices
-            .iter()
-            .map(|d| format!("{:?}", d.clone().without_autodiff()))
-            .collect::<Vec<_>>()
-            .join(",");
-        state.replicas = devices.len() as u64;
-        let validation_view = preset(
-            Protocol::of(&dataset),
-            SplitKind::NovelView,
-            dataset.cameras.len(),
-            dataset.frames(),
-        )
-        .ok()
-        .and_then(|s| {
-            s.frames
-                .iter()
-                .flat_map(|&f| s.cameras.iter().map(move |&c| (c, f)))
-                .find(|&(c, f)| dataset.has_image(c, f))
-        });
-        Ok(Self {
-            schedule: Schedule::new(&config),
-            config,
-            run,
-            setup: Arc::new(setup),
-            dataset,
-            split,
-            replicas,
-            all_reduce: AllReduce::Host,
-            face_base,
-            state,
-            last_checkpoint: checkpoint,
-            validation_view,
-        })
     }
 
     /// Chooses how the replicas sum their gradients (the host's way unless told; the caller
@@ -580,199 +466,6 @@ impl Trainer {
             .map(|l| format!("{l}\n"))
             .collect();
         Ok(f3g_io::write_atomic(&path, kept.as_bytes())?)
-    }
-
-    /// Step `s` on one sample per replica: gradients on every replica, their mean, the same
-    /// update everywhere; then the discriminator the same way.
-    fn run_step(
-        &mut self,
-        s: u64,
-        samples: &[DeviceSample],
-        timer: Option<&PhaseTimer>,
-    ) -> Result<StepReport, AvatarError> {
-        let stage = self.schedule.stage(s);
-        let lr = self.schedule.lr(s);
-        if self.schedule.resets_body_optimiser(s) {
-            for r in &mut self.replicas {
-                r.optimisers.body = adam(self.config.adam_epsilon);
-            }
-        }
-        if self.schedule.needs_face_model(s) && self.face_base.is_none() {
-            let r = &self.replicas[0];
-            let base = face_model::build(
-                &self.setup,
-                &self.config,
-                &r.nets.body,
-                &self.dataset,
-                &self.split,
-                &r.device,
-            )?;
-            for r in &mut self.replicas {
-                r.constants = Constants::new(&self.setup, &self.config, Some(&base), &r.device);
-            }
-            self.face_base = Some(base);
-        }
-        let per_rank = self.gradients(stage, s, samples, timer)?;
-        let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
-        let mut values: Vec<(String, f32)> = Vec::new();
-        let (mut body, mut face, mut fakes) = (Vec::new(), Vec::new(), Vec::new());
-        for g in per_rank {
-            add_values(&mut values, &g.values);
-            body.push(g.body);
-            face.push(g.face);
-            fakes.extend(g.fakes);
-        }
-        let nets = &self.replicas[0].nets;
-        let body = sum_gradients(&nets.body, body, &devices, self.all_reduce);
-        let face = match &nets.face {
-            Some(f) => sum_gradients(f, face, &devices, self.all_reduce),
-            None => face,
-        };
-        for ((r, b), f) in self.replicas.iter_mut().zip(body).zip(face) {
-            r.apply(stage, lr, b, f);
-        }
-        mark(timer, "optimiser")?;
-        let total = values.iter().map(|v| v.1).sum();
-        if let Some(d_loss) = self.discriminator_step(s, fakes, samples)? {
-            values.push(("discriminator".into(), d_loss));
-        }
-        mark(timer, "discriminator")?;
-        Ok(StepReport {
-            step: s,
-            stage,
-            lr,
-            frame: samples[0].frame,
-            camera: samples[0].camera,
-            losses: values,
-            total,
-            seconds: self.state.seconds,
-        })
-    }
-
-    /// Every replica's gradients for its `batch` samples (in parallel threads when there are
-    /// several replicas).
-    fn gradients(
-        &self,
-        stage: Stage,
-        s: u64,
-        samples: &[DeviceSample],
-        timer: Option<&PhaseTimer>,
-    ) -> Result<Vec<SampleGradients>, AvatarError> {
-        let ctx = StepContext {
-            config: &self.config,
-            stage,
-            step: s,
-            timer,
-        };
-        let share = 1.0 / samples.len() as f32;
-        if let [replica] = self.replicas.as_slice() {
-            return Ok(vec![replica.gradients(&ctx, samples, share)?]);
-        }
-        std::thread::scope(|scope| {
-            let handles: Vec<_> = self
-                .replicas
-                .iter()
-                .zip(samples.chunks(self.config.batch))
-                .map(|(r, own)| scope.spawn(move || r.gradients(&ctx, own, share)))
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| {
-                    h.join()
-                        .map_err(|_| AvatarError::Invalid("a replica's thread panicked".into()))?
-                })
-                .collect()
-        })
-    }
-
-    /// The discriminator's step on every head render of the step (`fakes`, in sample order),
-    /// the mean over them as one update on every replica; its mean loss, or `None` when no
-    /// sample had a head render (or there is no discriminator).
-    fn discriminator_step(
-        &mut self,
-        s: u64,
-        fakes: Vec<Option<Tensor<4>>>,
-        samples: &[DeviceSample],
-    ) -> Result<Option<f32>, AvatarError> {
-        if self.replicas[0].disc.is_none() {
-            return Ok(None);
-        }
-        let mut pairs: Vec<Vec<(Tensor<4>, Tensor<4>)>> = vec![Vec::new(); self.replicas.len()];
-        for (i, (fake, sample)) in fakes.into_iter().zip(samples).enumerate() {
-            if let (Some(fake), Some(real)) = (fake, sample.face.as_ref()) {
-                pairs[i / self.config.batch].push((fake, real.image.clone()));
-            }
-        }
-        let count = pairs.iter().map(Vec::len).sum::<usize>();
-        if count == 0 {
-            return Ok(None);
-        }
-        let share = 1.0 / count as f32;
-        let interval = self.config.losses.r1_interval;
-        let r1 =
-            self.state.disc_steps.is_multiple_of(interval) && self.config.losses.r1_gamma > 0.0;
-        let mut grads = Vec::with_capacity(pairs.len());
-        let mut loss = 0.0;
-        for (r, own) in self.replicas.iter().zip(pairs) {
-            let g = r.discriminator_gradients(&self.config, s, r1, own, share)?;
-            grads.push(g.map(|(value, g)| {
-                loss += value;
-                g
-            }));
-        }
-        let devices: Vec<Device> = self.replicas.iter().map(|r| r.device.clone()).collect();
-        if let Some(disc) = self.replicas[0].disc.as_ref() {
-            let grads = sum_gradients(disc, grads, &devices, self.all_reduce);
-            for (r, g) in self.replicas.iter_mut().zip(grads) {
-                if let Some(g) = g {
-                    r.apply_discriminator(self.config.lr_discriminator, g);
-                }
-            }
-        }
-        self.state.disc_steps += 1;
-        Ok(Some(loss))
-    }
-
-    /// Renders the validation view (a held-out camera) and writes GT | render | error grids.
-    fn validate(&self) -> Result<(), AvatarError> {
-        let Some((camera, frame)) = self.validation_view else {
-            return Ok(());
-        };
-        let r = &self.replicas[0];
-        let plain = r.device.clone().without_autodiff();
-        let nets = AvatarNets {
-            body: r.nets.body.valid(),
-            face: r.nets.face.as_ref().map(Module::valid),
-        };
-        let constants = Constants::new(&self.setup, &self.config, self.face_base.as_ref(), &plain);
-        let cache = std::sync::Mutex::new(f3g_data::loader::ImageCache::new(1 << 28));
-        // The whole ground truth: training blanks a boundary band in it (and in the render),
-        // but the grid shows the render as it is, so a blanked band would show up as an
-        // outline of error around every silhouette.
-        let options = LoaderOptions {
-            body_scale: self.config.body_scale,
-            face_size: self.config.face_crop_size,
-            face_padding: self.config.face_padding,
-            band_radius: 0.0,
-            ..Default::default()
-        };
-        let (body, face, _) =
-            f3g_data::loader::make_view(&self.dataset, &cache, camera, frame, &options, [1.0; 3])?;
-        let pose = self.setup.pose(&self.dataset.params[frame])?.upload(&plain);
-        let inputs = constants.inputs(&pose, &body.camera, None, None)?;
-        let c = canonical(&nets, &constants, &inputs)?;
-        let mut rows = Vec::new();
-        for view in std::iter::once(&body).chain(face.as_ref()) {
-            let out = render_posed(&c, &inputs.skinning, &view.camera, [1.0; 3], &plain)?;
-            let render = report::tensor_to_image(out.color);
-            rows.push(report::comparison_row(&view.image, &render));
-        }
-        let dir = self.run.dir.join("validation");
-        std::fs::create_dir_all(&dir).map_err(|e| AvatarError::file(&dir, e))?;
-        let grid = report::stack_rows(&rows);
-        f3g_io::write_png(&dir.join(format!("step-{:09}.png", self.state.step)), &grid)?;
-        f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
-        Ok(())
     }
 }
 
