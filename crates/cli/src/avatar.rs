@@ -10,14 +10,15 @@ use clap::Args;
 use f3g_avatar::animate::{AnimateOptions, CameraPath};
 use f3g_avatar::eval::EvalOptions;
 
-use crate::device::DeviceSpec;
+use crate::device::{DeviceArg, DeviceSpec};
 use f3g_avatar::export::{ExportOptions, Up, export_cloud};
 use f3g_avatar::train::AllReduce;
 use f3g_avatar::trained::TrainedAvatar;
 use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
 use f3g_nets::LpipsNet;
-use f3g_rig::ModelSpec;
+
+use crate::data::CaptureModelArg;
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Options of `f3g train`.
@@ -32,19 +33,10 @@ pub struct TrainArgs {
     /// Resume the run in this folder from its newest checkpoint.
     #[arg(long, conflicts_with_all = ["data", "out", "config", "preset", "set"])]
     pub resume: Option<PathBuf>,
-    /// Configuration file (JSON; any subset of the keys, over the preset it names).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Preset when no config file is given: cpu (the demo's), cpu-long (`f3g demo --quality`)
-    /// or paper (AvatarReX scale).
-    #[arg(long, default_value = "cpu")]
-    pub preset: String,
-    /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
-    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
-    #[arg(long)]
-    pub model: Option<ModelSpec>,
+    #[command(flatten)]
+    pub config: ConfigArgs,
+    #[command(flatten)]
+    pub model: CaptureModelArg,
     /// Training cameras (`0,1,5` or `A..B`), instead of the capture's preset.
     #[arg(long)]
     pub cameras: Option<String>,
@@ -81,15 +73,41 @@ pub struct TrainArgs {
     /// split training into sessions.
     #[arg(long)]
     pub max_steps: Option<u64>,
-    /// Device to train on: cpu, wgpu[:N] or cuda[:N]. A run may resume on another device (the
-    /// CPU resumes bit-exactly; a GPU within float rounding).
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
     /// Data-parallel training on several devices, e.g. `cuda:0,cuda:1`: each step draws one
     /// sample per device and applies the mean of their gradients (instead of --device).
     /// `cpu,cpu` runs two replicas on the CPU, which tests the path without GPUs.
     #[arg(long, value_delimiter = ',', conflicts_with = "device")]
     pub devices: Vec<DeviceSpec>,
+}
+
+/// `--config`, `--preset` and `--set`: a training configuration from the command line
+/// (flattened into `train` and `bench train`).
+#[derive(Args, Debug, Clone, Default)]
+pub struct ConfigArgs {
+    /// Configuration file (JSON; any subset of the keys, over the preset it names).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Preset when no config file is given: cpu (the demo's), cpu-long (`f3g demo --quality`)
+    /// or paper (AvatarReX scale).
+    #[arg(long, default_value = "cpu")]
+    pub preset: String,
+    /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
+}
+
+impl ConfigArgs {
+    /// The file's or the preset's configuration with `--set` and then `extra` overrides.
+    pub fn load(&self, extra: &[String]) -> Result<TrainConfig> {
+        let c = match &self.config {
+            Some(path) => TrainConfig::from_file(path)?,
+            None => TrainConfig::preset(&self.preset)?,
+        };
+        let set: Vec<String> = self.set.iter().chain(extra).cloned().collect();
+        Ok(c.with_overrides(&set)?)
+    }
 }
 
 /// The devices `--device` or `--devices` names, created.
@@ -102,11 +120,7 @@ fn training_devices(a: &TrainArgs) -> Result<Vec<burn::tensor::Device>> {
 
 /// The configuration of a new run from the command line.
 pub fn config_of(a: &TrainArgs) -> Result<TrainConfig> {
-    let mut c = match &a.config {
-        Some(path) => TrainConfig::from_file(path)?,
-        None => TrainConfig::preset(&a.preset)?,
-    };
-    let mut set = a.set.clone();
+    let mut set = Vec::new();
     if a.no_face_branch {
         set.push("face_branch=false".into());
         set.push("face_losses=false".into());
@@ -136,8 +150,7 @@ pub fn config_of(a: &TrainArgs) -> Result<TrainConfig> {
     if let Some(seed) = a.seed {
         set.push(format!("seed={seed}"));
     }
-    c = c.with_overrides(&set)?;
-    Ok(c)
+    a.config.load(&set)
 }
 
 /// Raised by Ctrl-C: the trainer writes a checkpoint and returns.
@@ -153,13 +166,13 @@ fn stop_flag() -> Arc<AtomicBool> {
 pub fn train(a: &TrainArgs) -> Result<PathBuf> {
     let devices = training_devices(a)?;
     let mut trainer = match &a.resume {
-        Some(dir) => Trainer::resume(dir, a.model.as_ref(), &devices)
+        Some(dir) => Trainer::resume(dir, a.model.spec.as_ref(), &devices)
             .with_context(|| format!("resuming {}", dir.display()))?,
         None => {
             let data = a.data.as_ref().context("--data is required")?;
             let out = a.out.as_ref().context("--out is required")?;
             let config = config_of(a)?;
-            let ds_probe = f3g_data::Dataset::open(data, a.model.as_ref())?;
+            let ds_probe = f3g_data::Dataset::open(data, a.model.spec.as_ref())?;
             let cameras = a
                 .cameras
                 .as_deref()
@@ -174,7 +187,7 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
             Trainer::create(
                 out,
                 data,
-                a.model.as_ref(),
+                a.model.spec.as_ref(),
                 config,
                 cameras.as_deref(),
                 frames.as_deref(),
@@ -249,9 +262,8 @@ pub struct EvalArgs {
     /// Capture folder (default: the run's).
     #[arg(long)]
     pub data: Option<PathBuf>,
-    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
-    #[arg(long)]
-    pub model: Option<ModelSpec>,
+    #[command(flatten)]
+    pub model: CaptureModelArg,
     /// Cameras to evaluate instead of the split's.
     #[arg(long)]
     pub cameras: Option<String>,
@@ -277,10 +289,8 @@ pub struct EvalArgs {
     /// Output folder (default RUN/eval/<split>).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
-    /// run's checkpoints.
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
@@ -288,7 +298,8 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
     let (mut cameras, mut frames) = (None, None);
     if a.cameras.is_some() || a.frames.is_some() {
         let info = f3g_avatar::run::Run::new(&a.run).info()?;
-        let ds = f3g_data::Dataset::open(a.data.as_ref().unwrap_or(&info.data), a.model.as_ref())?;
+        let ds =
+            f3g_data::Dataset::open(a.data.as_ref().unwrap_or(&info.data), a.model.spec.as_ref())?;
         cameras = a
             .cameras
             .as_deref()
@@ -318,7 +329,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
     let report = f3g_avatar::eval::evaluate(
         &a.run,
         a.data.as_deref(),
-        a.model.as_ref(),
+        a.model.spec.as_ref(),
         &options,
         &device,
         &mut |i, n| {
@@ -378,10 +389,8 @@ pub struct AnimateArgs {
     /// Feed poses as they are, without the pose-PCA projection.
     #[arg(long)]
     pub no_pca: bool,
-    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
-    /// run's checkpoints.
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
@@ -469,10 +478,8 @@ pub struct ExportPlyArgs {
     /// (COLMAP-style 3DGS scenes, which SuperSplat assumes: the avatar turned 180° about X).
     #[arg(long, value_enum, default_value = "y", allow_hyphen_values = true)]
     pub up: UpArg,
-    /// Device to render (and score LPIPS) on: cpu, wgpu[:N] or cuda[:N]; any device reads any
-    /// run's checkpoints.
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {

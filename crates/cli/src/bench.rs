@@ -16,7 +16,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::device::DeviceSpec;
+use crate::device::{DeviceArg, DeviceSpec};
 use crate::memory;
 
 /// Benchmarks.
@@ -59,9 +59,8 @@ pub struct LbsBenchArgs {
     /// Timed repetitions (the median is reported).
     #[arg(long, default_value_t = 7)]
     pub repeats: usize,
-    /// Device the Gaussians are posed on: cpu, wgpu[:N] or cuda[:N].
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 /// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms, host),
@@ -165,10 +164,8 @@ pub struct SplatBenchArgs {
     /// Write the results as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Device: cpu (the CPU path, stage by stage, and the Burn op) or wgpu[:N] / cuda[:N] (the
-    /// Burn op on that GPU).
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 /// One measured case.
@@ -351,7 +348,7 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
         largest_n * SPLAT_BYTES_PER_GAUSSIAN + largest_image * SPLAT_BYTES_PER_PIXEL,
         &format!("--gaussians {largest_n} with an image of {largest_image} pixels (--resolutions)"),
     )?;
-    if args.device == DeviceSpec::Cpu {
+    if args.device.spec == DeviceSpec::Cpu {
         run_splat_cpu(args)
     } else {
         run_splat_device(args)

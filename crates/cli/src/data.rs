@@ -67,6 +67,15 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
 }
 
 /// Captures.
+/// `--model`: the body model of a capture that names none itself (an `smpl_params.npz`
+/// needs the SMPL-X model file), flattened into every command that opens a capture.
+#[derive(Args, Debug, Clone, Default)]
+pub struct CaptureModelArg {
+    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
+    #[arg(id = "model", long = "model")]
+    pub spec: Option<ModelSpec>,
+}
+
 #[derive(Subcommand, Debug)]
 pub enum DataCommand {
     /// Validate a capture: cameras, image and mask sizes, decodability, body parameters.
@@ -80,9 +89,8 @@ pub enum DataCommand {
 pub struct CheckArgs {
     /// Capture folder.
     pub dir: PathBuf,
-    /// Body model for smpl_params.npz (smplx:MODEL.npz).
-    #[arg(long)]
-    pub model: Option<ModelSpec>,
+    #[command(flatten)]
+    pub model: CaptureModelArg,
     /// Decode every N-th frame fully (1 decodes everything; headers are always checked).
     #[arg(long, default_value_t = 10)]
     pub decode_every: usize,
@@ -102,9 +110,8 @@ pub struct ShowArgs {
     /// Output PNG.
     #[arg(long)]
     pub out: PathBuf,
-    /// Body model for smpl_params.npz (smplx:MODEL.npz).
-    #[arg(long)]
-    pub model: Option<ModelSpec>,
+    #[command(flatten)]
+    pub model: CaptureModelArg,
     /// Width of each camera's thumbnail (8–2048).
     #[arg(long, default_value_t = 256, value_parser = crate::bounds::size::<8, 2048>)]
     pub thumb: usize,
@@ -113,7 +120,7 @@ pub struct ShowArgs {
 pub fn run(cmd: &DataCommand) -> Result<()> {
     match cmd {
         DataCommand::Check(a) => {
-            let ds = Dataset::open(&a.dir, a.model.as_ref())?;
+            let ds = Dataset::open(&a.dir, a.model.spec.as_ref())?;
             let r = check::check(&ds, a.decode_every);
             println!(
                 "{}: {} layout, model {}, {} cameras, {} frames; {} images present ({} decoded), {} missing",
@@ -142,7 +149,7 @@ pub fn run(cmd: &DataCommand) -> Result<()> {
             Ok(())
         }
         DataCommand::Show(a) => {
-            let ds = Dataset::open(&a.dir, a.model.as_ref())?;
+            let ds = Dataset::open(&a.dir, a.model.spec.as_ref())?;
             let sheet = check::contact_sheet(&ds, a.frame, a.thumb, 1.3)
                 .with_context(|| format!("drawing frame {}", a.frame))?;
             f3g_io::write_png(&a.out, &sheet)?;

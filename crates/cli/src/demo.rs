@@ -7,9 +7,9 @@ use clap::Args;
 use f3g_avatar::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
 
-use crate::avatar::{AnimateArgs, EvalArgs, TrainArgs, animate, eval, train};
+use crate::avatar::{AnimateArgs, ConfigArgs, EvalArgs, TrainArgs, animate, eval, train};
 use crate::data::{SynthArgs, synth};
-use crate::device::DeviceSpec;
+use crate::device::DeviceArg;
 
 /// The synthetic capture and training overrides shared by `f3g demo` and `f3g bench quality`.
 #[derive(Args, Debug)]
@@ -26,9 +26,8 @@ pub struct CaptureAndTraining {
     /// Override a training configuration key (repeatable), e.g. `--set steps.joint=50`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
-    /// Device for training, evaluation and animation: cpu, wgpu[:N] or cuda[:N].
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 /// Options of `f3g demo`.
@@ -70,16 +69,18 @@ pub(crate) fn train_or_resume(
     preset: &str,
     seed: u64,
     set: &[String],
-    device: DeviceSpec,
+    device: DeviceArg,
 ) -> Result<()> {
     let mut args = TrainArgs {
         data: Some(data.to_path_buf()),
         out: Some(run.to_path_buf()),
         resume: None,
-        config: None,
-        preset: preset.into(),
-        set: set.to_vec(),
-        model: None,
+        config: ConfigArgs {
+            config: None,
+            preset: preset.into(),
+            set: set.to_vec(),
+        },
+        model: Default::default(),
         cameras: None,
         frames: None,
         no_face_branch: false,
@@ -100,7 +101,7 @@ pub(crate) fn train_or_resume(
             data: None,
             out: None,
             resume: Some(run.to_path_buf()),
-            set: Vec::new(),
+            config: ConfigArgs::default(),
             seed: None,
             ..args
         };
@@ -109,17 +110,12 @@ pub(crate) fn train_or_resume(
     Ok(())
 }
 
-pub(crate) fn eval_args(
-    run: &Path,
-    split: SplitKind,
-    every: usize,
-    device: DeviceSpec,
-) -> EvalArgs {
+pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> EvalArgs {
     EvalArgs {
         run: run.to_path_buf(),
         split,
         data: None,
-        model: None,
+        model: Default::default(),
         cameras: None,
         frames: None,
         every,

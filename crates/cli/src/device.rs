@@ -20,6 +20,29 @@ use anyhow::bail;
 use burn::tensor::Device;
 use f3g_avatar::train::AllReduce;
 
+/// `--device`, as every command that computes declares it (flattened into its arguments).
+#[derive(clap::Args, Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DeviceArg {
+    /// Device to compute on: cpu, wgpu[:N] or cuda[:N] (GPUs need a binary built with the
+    /// `gpu` or `cuda` feature). Any device reads any run, and a run may resume on another
+    /// device.
+    #[arg(id = "device", long = "device", default_value = "cpu")]
+    pub spec: DeviceSpec,
+}
+
+impl DeviceArg {
+    /// Creates the device.
+    pub fn open(&self) -> Result<Device> {
+        self.spec.open()
+    }
+}
+
+impl fmt::Display for DeviceArg {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        self.spec.fmt(f)
+    }
+}
+
 /// A device as named on the command line.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum DeviceSpec {

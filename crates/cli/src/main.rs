@@ -88,3 +88,31 @@ fn main() -> Result<()> {
         Command::Weights(cmd) => nets::weights(&cmd),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use clap::{CommandFactory, Parser};
+
+    /// clap's own consistency checks (duplicate flags, conflicts naming missing arguments),
+    /// which it otherwise runs only in debug builds.
+    #[test]
+    fn the_command_line_is_consistent() {
+        super::Cli::command().debug_assert();
+    }
+
+    /// The flattened argument groups (`--device`, `--model`, `--config/--preset/--set`) parse
+    /// together: two groups with one argument id would panic here, not at compile time.
+    #[test]
+    fn flattened_arguments_parse_together() {
+        for line in [
+            "train --data d --out o --model builtin --device cpu --preset cpu --set lr=0.001",
+            "train --resume r --device cpu",
+            "eval r --model builtin --device cpu",
+            "bench train --device cpu --preset cpu --set batch=2",
+            "demo --device cpu --set steps.joint=1",
+        ] {
+            let args = std::iter::once("f3g").chain(line.split(' '));
+            super::Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{line}: {e}"));
+        }
+    }
+}

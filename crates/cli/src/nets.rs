@@ -15,7 +15,7 @@ use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 use serde::Serialize;
 
-use crate::device::DeviceSpec;
+use crate::device::{DeviceArg, DeviceSpec};
 
 /// The converter, run with the machine's Python (standard library only).
 const CONVERTER: &str = include_str!("../../../tools/convert_lpips.py");
@@ -34,10 +34,8 @@ pub struct MetricsArgs {
     /// images before scoring (the AvatarReX evaluation protocol).
     #[arg(long)]
     pub mask: Option<PathBuf>,
-    /// Device LPIPS runs on: cpu, wgpu[:N] or cuda[:N] (PSNR and SSIM are computed on the
-    /// host).
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 #[derive(Serialize)]
@@ -241,9 +239,8 @@ pub struct NetsBenchArgs {
     /// Write the results as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
-    /// Device the networks run on: cpu, wgpu[:N] or cuda[:N].
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 #[derive(Serialize)]
@@ -317,7 +314,7 @@ fn time_loss<N>(
 pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
     let device = a.device.open()?;
-    let show_repetitions = a.device != DeviceSpec::Cpu;
+    let show_repetitions = a.device.spec != DeviceSpec::Cpu;
     eprintln!(
         "timing on {} (the first repetition of each network is not counted)",
         a.device
@@ -431,7 +428,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             r.name, r.parameters, r.forward_ms, r.forward_backward_ms
         );
     }
-    match a.device {
+    match a.device.spec {
         DeviceSpec::Cpu => println!("(cpu, {} threads)", rayon::current_num_threads()),
         other => println!("({other})"),
     }

@@ -19,7 +19,7 @@ use serde::Serialize;
 
 use crate::avatar::eval;
 use crate::demo::{CaptureAndTraining, ensure_capture, eval_args, train_or_resume};
-use crate::device::DeviceSpec;
+use crate::device::DeviceArg;
 
 /// One ablation of the full method.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize)]
@@ -148,12 +148,7 @@ struct VariantResult {
 }
 
 /// The evaluation of `split` in `run`, reused when it scored the run's final step.
-fn evaluation(
-    run: &Path,
-    split: SplitKind,
-    every: usize,
-    device: DeviceSpec,
-) -> Result<EvalReport> {
+fn evaluation(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> Result<EvalReport> {
     let metrics = run
         .join("eval")
         .join(split.to_string())

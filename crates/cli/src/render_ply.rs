@@ -8,7 +8,7 @@ use clap::Args;
 use f3g_io::Image;
 use f3g_splat::{Camera, RenderOptions, cpu, ply};
 
-use crate::device::DeviceSpec;
+use crate::device::{DeviceArg, DeviceSpec};
 
 /// Host bytes a forward render holds per pixel (colour, alpha, depth, transmittance,
 /// contributor count, the PNG's buffer) and per Gaussian (parameters, projection, tile lists).
@@ -37,10 +37,8 @@ pub struct RenderPlyArgs {
     /// Upper clamp of one Gaussian's alpha (3DGS 0.99, gsplat 0.999).
     #[arg(long, default_value_t = 0.99)]
     pub alpha_max: f64,
-    /// Device: cpu, wgpu[:N] or cuda[:N] (GPUs need a binary built with `--features gpu` or
-    /// `cuda`). The image is the same to float rounding.
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
+    #[command(flatten)]
+    pub device: DeviceArg,
 }
 
 /// Parses `r,g,b` with each component in [0, 1].
@@ -95,7 +93,7 @@ pub fn run(args: &RenderPlyArgs) -> Result<()> {
             args.camera.display()
         ),
     )?;
-    let (color, visible) = if args.device == DeviceSpec::Cpu {
+    let (color, visible) = if args.device.spec == DeviceSpec::Cpu {
         let out = cpu::render(&cloud.slices(), &camera, args.background, &options)
             .with_context(|| format!("rendering {}", args.ply.display()))?;
         let visible = out.projected.iter().filter(|g| g.is_visible()).count();

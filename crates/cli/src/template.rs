@@ -6,6 +6,8 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use f3g_io::Image;
 use f3g_rig::{ModelSpec, sequence};
+
+use crate::data::CaptureModelArg;
 use f3g_template::canonical::CanonicalPose;
 use f3g_template::mesh::read_mesh;
 use f3g_template::posmap::position_colours;
@@ -39,9 +41,8 @@ pub struct ReconstructArgs {
     /// Frame to carve (an A-pose-like frame sees most of the surface).
     #[arg(long, default_value_t = 0)]
     pub frame: usize,
-    /// Body model for captures with smpl_params.npz (smplx:MODEL.npz).
-    #[arg(long)]
-    pub model: Option<ModelSpec>,
+    #[command(flatten)]
+    pub model: CaptureModelArg,
     /// Garment mesh to write (OBJ, canonical pose).
     #[arg(long)]
     pub out: PathBuf,
@@ -99,7 +100,7 @@ pub fn run(args: &TemplateArgs) -> Result<()> {
 
 fn reconstruct(a: &ReconstructArgs) -> Result<()> {
     use f3g_template::reconstruct::{HullOptions, Silhouette, reconstruct};
-    let ds = f3g_data::Dataset::open(&a.data, a.model.as_ref())?;
+    let ds = f3g_data::Dataset::open(&a.data, a.model.spec.as_ref())?;
     let rig = ds.rig()?;
     anyhow::ensure!(
         a.frame < ds.frames(),

@@ -10,13 +10,14 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
+use f3g_avatar::Trainer;
 use f3g_avatar::train::Stage;
 use f3g_avatar::train::profile::{PHASE_MEANINGS, PHASES, PhaseTimer, PhaseTimes};
-use f3g_avatar::{TrainConfig, Trainer};
 use f3g_data::synth::{SynthOptions, generate};
 use serde::Serialize;
 
-use crate::device::DeviceSpec;
+use crate::avatar::ConfigArgs;
+use crate::device::{DeviceArg, DeviceSpec};
 use crate::memory;
 
 /// The stage whose steps are timed.
@@ -44,15 +45,10 @@ impl From<BenchStage> for Stage {
 /// Options of `f3g bench train`.
 #[derive(Args, Debug)]
 pub struct TrainBenchArgs {
-    /// Device to train on: cpu, wgpu[:N] or cuda[:N].
-    #[arg(long, default_value = "cpu")]
-    pub device: DeviceSpec,
-    /// Training preset: cpu, cpu-long or paper.
-    #[arg(long, default_value = "cpu")]
-    pub preset: String,
-    /// Override a configuration key, e.g. `--set batch=2` (repeatable).
-    #[arg(long = "set", value_name = "KEY=VALUE")]
-    pub set: Vec<String>,
+    #[command(flatten)]
+    pub device: DeviceArg,
+    #[command(flatten)]
+    pub config: ConfigArgs,
     /// The stage to time (joint: every network, both renders, LPIPS and the discriminator).
     #[arg(long, value_enum, default_value = "joint")]
     pub stage: BenchStage,
@@ -90,7 +86,8 @@ struct TrainBench {
 
 pub fn run(a: &TrainBenchArgs) -> Result<()> {
     let device = a.device.open()?;
-    let mut config = TrainConfig::preset(&a.preset)?.with_overrides(&a.set)?;
+    let mut config = a.config.load(&[])?;
+    let preset = config.preset.clone();
     // Nothing is written during the bench; keep the run's own periodic outputs out of it too.
     config.checkpoint_every = u64::MAX;
     config.validate_every = u64::MAX;
@@ -98,7 +95,7 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     let data = match &a.data {
         Some(d) => d.clone(),
         None => {
-            let mut options = if a.preset == "paper" {
+            let mut options = if preset == "paper" {
                 SynthOptions::paper()
             } else {
                 SynthOptions::default()
@@ -145,14 +142,14 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     let phases = timer.take(a.steps as u64);
     let peak_mib = match device.memory_pool_usage() {
         Some(usage) => Some(usage.bytes_reserved as f64 / (1 << 20) as f64),
-        None if a.device == DeviceSpec::Cpu => {
+        None if a.device.spec == DeviceSpec::Cpu => {
             Some(memory::peak_bytes().saturating_sub(before) as f64 / (1 << 20) as f64)
         }
         None => None,
     };
     let result = TrainBench {
         device: a.device.to_string(),
-        preset: a.preset.clone(),
+        preset,
         stage: format!("{stage:?}"),
         steps: a.steps,
         step_ms,
