@@ -9,7 +9,7 @@ use serde::Serialize;
 use crate::AvatarError;
 use crate::trained::TrainedAvatar;
 use f3g_io::Image;
-use f3g_rig::{ModelSpec, RigParams};
+use f3g_rig::RigParams;
 use f3g_splat::Camera;
 
 /// Where the camera is.
@@ -55,19 +55,9 @@ pub fn read_motion(path: &Path, avatar: &TrainedAvatar) -> Result<Vec<RigParams>
     let frames = if npz.contains("model") {
         f3g_rig::sequence::read(path, &avatar.setup.rig)?
     } else if npz.contains("body_pose") {
-        if !matches!(avatar.setup.model, ModelSpec::Smplx(_)) {
-            return Err(AvatarError::file(
-                path,
-                format!(
-                    "holds SMPL-X parameters but the avatar's body model is `{}`: convert them with `f3g rig fit`",
-                    avatar.info.model
-                ),
-            ));
-        }
-        let p = f3g_rig::smplx::read_params(path)?;
-        (0..p.frames)
-            .map(|i| p.frame(i, &avatar.setup.rig))
-            .collect()
+        f3g_rig::smplx::read_params(path)?
+            .frames_for(&avatar.setup.rig)
+            .map_err(|e| AvatarError::file(path, e))?
     } else {
         return Err(AvatarError::file(
             path,

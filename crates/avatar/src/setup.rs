@@ -89,8 +89,7 @@ impl Setup {
             }
         };
         let (template, _) = Template::build(
-            &model,
-            model_text,
+            &rig,
             &pose,
             Some(identity),
             garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
@@ -98,13 +97,13 @@ impl Setup {
         )?;
         let maps = PositionMaps::build(&template, config.map_resolution, None)?;
         let head = if config.face_branch {
-            Some(HeadMaps::build(&maps, &rig.skeleton)?)
+            Some(HeadMaps::build(&maps, &rig.head_joints()?)?)
         } else {
             None
         };
         let body_log_scales = knn_log_scales(&maps.positions)?;
-        let head_vertices = f3g_data::crop::head_vertices(&rig)?;
-        let finger_params = rig.finger_params();
+        let head_vertices = rig.head_vertices()?;
+        let finger_params = rig.finger_params()?;
         Ok(Self {
             model,
             rig,

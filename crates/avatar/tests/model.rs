@@ -93,7 +93,7 @@ fn the_camera_changes_colours_only() {
 fn the_networks_do_not_see_the_fingers() {
     let config = small(BodyLayout::Split);
     let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
-    let fingers = rig.finger_params();
+    let fingers = rig.finger_params().unwrap();
     let names = rig.pose_param_names();
     assert!(
         fingers.iter().all(|&i| names[i].starts_with("finger")

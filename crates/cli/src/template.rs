@@ -125,16 +125,11 @@ fn reconstruct(a: &ReconstructArgs) -> Result<()> {
         .collect();
     let params = &ds.params[a.frame];
     let posed = rig.pose(params)?;
-    let model: ModelSpec = ds
-        .model
-        .parse()
-        .map_err(|e: String| anyhow::anyhow!("{e}"))?;
-    let surface = f3g_template::template::body_surface(&model, rig)?;
     let pose = CanonicalPose {
         leg_spread_deg: a.leg_spread,
         arm_raise_deg: a.arm_raise,
     };
-    let (mut canonical, _) = f3g_template::canonical_params(rig, &pose);
+    let mut canonical = rig.canonical_params(&pose)?;
     canonical.identity = params.identity.clone();
     let options = HullOptions {
         resolution: a.resolution,
@@ -142,7 +137,7 @@ fn reconstruct(a: &ReconstructArgs) -> Result<()> {
         ..Default::default()
     };
     let start = std::time::Instant::now();
-    let r = reconstruct(&views, rig, &posed, &surface, &canonical, &options)
+    let r = reconstruct(&views, rig, &posed, &rig.surface, &canonical, &options)
         .with_context(|| format!("reconstructing frame {} of {}", a.frame, a.data.display()))?;
     f3g_rig::obj::write_obj(&a.out, &r.garment.vertices, &r.garment.triangles)?;
     if let Some(h) = &a.hull {
@@ -172,12 +167,6 @@ fn build(a: &BuildArgs) -> Result<()> {
         leg_spread_deg: a.leg_spread,
         arm_raise_deg: a.arm_raise,
     };
-    let model_text = match &a.body {
-        ModelSpec::Builtin => "builtin".to_string(),
-        ModelSpec::Smplx(p) => format!("smplx:{}", p.display()),
-        ModelSpec::Mhr(p) => format!("mhr:{}", p.display()),
-        ModelSpec::Gltf(p) => format!("gltf:{}", p.display()),
-    };
     let garment = match a.clothes.as_deref() {
         None => None,
         Some("builtin:skirt") => Some((
@@ -193,15 +182,14 @@ fn build(a: &BuildArgs) -> Result<()> {
         distance_ratio: a.distance_ratio,
         max_angle_deg: a.max_angle,
     };
+    let rig = a.body.load()?;
     let (template, report) = Template::build(
-        &a.body,
-        &model_text,
+        &rig,
         &pose,
         None,
         garment.as_ref().map(|(m, p)| (m.clone(), p.as_path())),
         &options,
     )?;
-    let rig = a.body.load()?;
     template.save(out, &rig)?;
     println!(
         "template: {} vertices, {} triangles ({}) -> {}",
@@ -214,12 +202,6 @@ fn build(a: &BuildArgs) -> Result<()> {
         },
         out.display()
     );
-    if !report.legs_spread {
-        println!(
-            "note: {} has no recognised hip joints; the canonical pose is its rest pose",
-            rig.name
-        );
-    }
     if let Some(g) = &report.garment {
         println!(
             "garment: {} vertices matched the body, {} inpainted, {} kept closest-point weights (no match in their component); {} degenerate triangles dropped, {} non-manifold edges, {} unused vertices",
@@ -293,7 +275,7 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
         1,
         maps.mask().iter().map(|&m| m as u8 as f32).collect(),
     )?;
-    let head = HeadMaps::build(&maps, &rig.skeleton)?;
+    let head = HeadMaps::build(&maps, &rig.head_joints()?)?;
     let hs = head.size;
     save(
         &a.out.join("head.png"),

@@ -165,7 +165,10 @@ fn reconstructs_the_skirt_of_a_synthetic_capture() {
     }
     // The garment lies on the true skirt, in the canonical pose with the capture's shape.
     let human = f3g_rig::builtin::load().unwrap();
-    let (mut canonical, _) = f3g_template::canonical_params(&human.rig, &CanonicalPose::default());
+    let mut canonical = human
+        .rig
+        .canonical_params(&CanonicalPose::default())
+        .unwrap();
     canonical.identity = ds.params[0].identity.clone();
     let posed = human.rig.pose(&canonical).unwrap();
     let skirt_part = human.part("skirt").unwrap();

@@ -3,7 +3,7 @@
 use serde::Serialize;
 
 use crate::DataError;
-use crate::crop::{head_box, head_vertices};
+use crate::crop::head_box;
 use crate::dataset::Dataset;
 use crate::imgops::{draw_box, paste, resize};
 use f3g_io::Image;
@@ -102,7 +102,7 @@ pub fn contact_sheet(
         Ok(rig) => {
             let posed = rig.pose(&ds.params[frame])?;
             Some(
-                head_vertices(rig)?
+                rig.head_vertices()?
                     .iter()
                     .map(|&v| posed.vertices[v])
                     .collect::<Vec<_>>(),

@@ -6,7 +6,6 @@ use glam::Vec3;
 
 use f3g_camera::Camera;
 use f3g_io::Image;
-use f3g_rig::Rig;
 
 use crate::imgops::crop_resize;
 
@@ -16,21 +15,6 @@ pub struct HeadBox {
     pub x0: f32,
     pub y0: f32,
     pub side: f32,
-}
-
-/// Vertices skinned mostly (weight ≥ 0.5) to the head joint and its descendants.
-pub fn head_vertices(rig: &Rig) -> Result<Vec<usize>, f3g_template::TemplateError> {
-    let head = f3g_template::head::head_joints(&rig.skeleton)?;
-    Ok((0..rig.skin.len())
-        .filter(|&v| {
-            rig.skin
-                .influences(v)
-                .filter(|(j, _)| head.contains(j))
-                .map(|(_, w)| w)
-                .sum::<f32>()
-                >= 0.5
-        })
-        .collect())
 }
 
 /// The square around the projections of `points` (world), enlarged by `padding`; `None` when

@@ -235,17 +235,11 @@ fn read_body(root: &Path, model: Option<&ModelSpec>) -> Result<Body, DataError> 
     } else if smpl.exists() {
         let p = f3g_rig::smplx::read_params(&smpl)?;
         match model {
-            Some(spec @ ModelSpec::Smplx(path)) => {
+            Some(spec) => {
                 let rig = spec.load()?;
-                let params = (0..p.frames).map(|i| p.frame(i, &rig)).collect();
-                Ok((Some(rig), format!("smplx:{}", path.display()), params))
+                let params = p.frames_for(&rig).map_err(|e| DataError::file(&smpl, e))?;
+                Ok((Some(rig), spec.to_string(), params))
             }
-            Some(other) => Err(DataError::file(
-                &smpl,
-                format!(
-                    "holds SMPL-X parameters, which do not match the model {other:?}; convert them with `f3g rig fit`"
-                ),
-            )),
             None => {
                 // Without the model the frames can still be counted and checked.
                 let zero = RigParams {

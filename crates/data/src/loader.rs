@@ -17,7 +17,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use crate::DataError;
-use crate::crop::{HeadBox, crop_view, head_box, head_vertices};
+use crate::crop::{HeadBox, crop_view, head_box};
 use crate::dataset::Dataset;
 use crate::imgops::{morph, resize, resized_camera, scaled_size};
 use crate::split::Split;
@@ -188,7 +188,8 @@ pub fn make_view(
     );
     let rig = ds.rig()?;
     let posed = rig.pose(&ds.params[frame])?;
-    let head: Vec<glam::Vec3> = head_vertices(rig)?
+    let head: Vec<glam::Vec3> = rig
+        .head_vertices()?
         .iter()
         .map(|&v| posed.vertices[v])
         .collect();

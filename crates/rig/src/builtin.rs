@@ -30,6 +30,7 @@ use glam::{Quat, Vec3};
 
 use crate::params::ParameterTransform;
 use crate::rig::{JointModel, Mesh, Parameterization, Rig};
+use crate::roles::{Role, Roles};
 use crate::skeleton::{Joint, Skeleton};
 use crate::{BlendShapes, RigError, SkinWeights};
 
@@ -52,6 +53,36 @@ const FACE_DOFS: [(&str, &[usize]); 9] = [
     ("orbicularis04.R", &[3]),
     ("head", &[3, 4, 5]),
     ("root", &[0, 1, 2, 3, 4, 5]),
+];
+
+/// The parts whose vertices are skin (the template's surface): teeth, tongue and the skirt
+/// helper are not.
+const SKIN_PARTS: [&str; 3] = ["body", "eye_l", "eye_r"];
+
+/// The joints of the body-model roles (MakeHuman's default rig).
+const ROLES: [(Role, &str); 22] = [
+    (Role::Pelvis, "root"),
+    (Role::Spine, "spine03"),
+    (Role::Chest, "spine01"),
+    (Role::Neck, "neck01"),
+    (Role::Head, "head"),
+    (Role::Jaw, "jaw"),
+    (Role::LeftEye, "eye.L"),
+    (Role::RightEye, "eye.R"),
+    (Role::LeftClavicle, "clavicle.L"),
+    (Role::RightClavicle, "clavicle.R"),
+    (Role::LeftShoulder, "upperarm01.L"),
+    (Role::RightShoulder, "upperarm01.R"),
+    (Role::LeftElbow, "lowerarm01.L"),
+    (Role::RightElbow, "lowerarm01.R"),
+    (Role::LeftWrist, "wrist.L"),
+    (Role::RightWrist, "wrist.R"),
+    (Role::LeftHip, "upperleg01.L"),
+    (Role::RightHip, "upperleg01.R"),
+    (Role::LeftKnee, "lowerleg01.L"),
+    (Role::RightKnee, "lowerleg01.R"),
+    (Role::LeftAnkle, "foot.L"),
+    (Role::RightAnkle, "foot.R"),
 ];
 
 /// The built-in human and the extra per-vertex data the synthetic capture uses.
@@ -157,9 +188,23 @@ pub fn load() -> Result<BuiltinHuman, RigError> {
         expression: vec3s(&npz.f32("expression_joint_deltas").map_err(io)?.1),
     };
 
+    let vertex_part: Vec<u8> = npz
+        .i64("vertex_part")
+        .map_err(io)?
+        .1
+        .into_iter()
+        .map(|p| p as u8)
+        .collect();
+    let skin_parts: Vec<u8> = SKIN_PARTS
+        .iter()
+        .filter_map(|name| meta.parts.iter().position(|p| p == name))
+        .map(|p| p as u8)
+        .collect();
     let rig = Rig {
         name: "builtin".into(),
         parameterization: Parameterization::Momentum(parameter_transform(&skeleton)),
+        roles: Roles::from_names(&skeleton, &ROLES),
+        surface: vertex_part.iter().map(|p| skin_parts.contains(p)).collect(),
         skeleton,
         mesh: Mesh {
             vertices,
@@ -187,13 +232,6 @@ pub fn load() -> Result<BuiltinHuman, RigError> {
         .1
         .chunks_exact(3)
         .map(|t| [t[0] as u32, t[1] as u32, t[2] as u32])
-        .collect();
-    let vertex_part = npz
-        .i64("vertex_part")
-        .map_err(io)?
-        .1
-        .into_iter()
-        .map(|p| p as u8)
         .collect();
     Ok(BuiltinHuman {
         rig,

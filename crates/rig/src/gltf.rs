@@ -19,7 +19,9 @@ use glam::{Affine3A, Mat4, Quat, Vec3};
 
 use crate::params::{CHANNELS, ParameterTransform, parse_model};
 use crate::rig::{Mesh, Parameterization, Rig};
+use crate::roles::{RoleMap, Roles};
 use crate::skeleton::{Joint, PARAMS_PER_JOINT, Skeleton};
+use crate::skin::MAX_INFLUENCES;
 use crate::{BlendShapes, RigError, SkinWeights};
 
 /// Momentum's length unit (centimetres) in metres.
@@ -332,9 +334,17 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
             None => default_transform(&skeleton),
         },
     };
+    // Roles from the joint names, then the user's role map beside the file, if any.
+    let map_path = RoleMap::beside(path);
+    let mut roles = Roles::infer(&skeleton);
+    if map_path.exists() {
+        roles = roles
+            .with_map(&skeleton, &RoleMap::read(&map_path)?)
+            .map_err(|e| RigError::file(&map_path, e))?;
+    }
+    let count = vertices.len();
     let rig = Rig {
         name: format!("gltf:{}", path.display()),
-        skeleton,
         parameterization: Parameterization::Momentum(transform),
         mesh: Mesh {
             vertices,
@@ -346,9 +356,136 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
         correctives: None,
         joint_model: None,
         inverse_bind: Some(inverse_bind),
+        roles,
+        surface: vec![true; count],
+        skeleton,
     };
     rig.validate()?;
     Ok(rig)
+}
+
+/// Writes `rig` as a rigged glTF binary (`.glb`) that [`load`] reads back: the skeleton as
+/// nodes (rest offsets as translations, pre-rotations as rotations) and a `skin` with inverse
+/// bind matrices, the template mesh with `JOINTS_0/1` and `WEIGHTS_0/1` (all eight
+/// influences), and the expression shapes as morph targets named in `extras.targetNames`.
+/// What glTF cannot hold is left out: identity shapes and a shape-dependent skeleton (the
+/// file is the model at zero identity), pose correctives, and a Momentum parameterisation
+/// (the reader gives every joint `rx, ry, rz` and the root a translation).
+pub fn write(rig: &Rig, path: &Path) -> Result<(), RigError> {
+    use crate::glb::GlbBuffer;
+    use serde_json::json;
+    let joints = rig.skeleton.joints();
+    let mut buffer = GlbBuffer::default();
+    let positions: Vec<f32> = rig
+        .mesh
+        .vertices
+        .iter()
+        .flat_map(|v| v.to_array())
+        .collect();
+    let position = buffer.accessor(&positions, "VEC3", true, Some(34962));
+    let indices: Vec<u32> = rig.mesh.triangles.iter().flatten().copied().collect();
+    let indices = buffer.accessor(&indices, "SCALAR", false, Some(34963));
+    let mut attributes = json!({ "POSITION": position });
+    for set in 0..MAX_INFLUENCES / 4 {
+        let ids: Vec<u16> = rig
+            .skin
+            .joints
+            .iter()
+            .flat_map(|j| j[4 * set..4 * set + 4].to_vec())
+            .collect();
+        let weights: Vec<f32> = rig
+            .skin
+            .weights
+            .iter()
+            .flat_map(|w| w[4 * set..4 * set + 4].to_vec())
+            .collect();
+        attributes[format!("JOINTS_{set}")] =
+            json!(buffer.accessor(&ids, "VEC4", false, Some(34962)));
+        attributes[format!("WEIGHTS_{set}")] =
+            json!(buffer.accessor(&weights, "VEC4", false, Some(34962)));
+    }
+    let v = rig.mesh.vertices.len();
+    let targets: Vec<serde_json::Value> = (0..rig.expression.len())
+        .map(|s| {
+            let deltas: Vec<f32> = rig.expression.deltas[s * v..(s + 1) * v]
+                .iter()
+                .flat_map(|d| d.to_array())
+                .collect();
+            json!({ "POSITION": buffer.accessor(&deltas, "VEC3", true, Some(34962)) })
+        })
+        .collect();
+    let inverse_bind: Vec<Affine3A> = match &rig.inverse_bind {
+        Some(ibm) => ibm.clone(),
+        None => rig
+            .skeleton
+            .rest(None)
+            .iter()
+            .map(|r| r.inverse().to_affine())
+            .collect(),
+    };
+    let matrices: Vec<f32> = inverse_bind
+        .iter()
+        .flat_map(|a| Mat4::from(*a).to_cols_array())
+        .collect();
+    let inverse_bind = buffer.accessor(&matrices, "MAT4", false, None);
+    let mut nodes: Vec<serde_json::Value> = joints
+        .iter()
+        .map(|j| {
+            json!({
+                "name": j.name,
+                "translation": j.offset.to_array(),
+                "rotation": j.pre_rotation.to_array(),
+            })
+        })
+        .collect();
+    for (i, j) in joints.iter().enumerate() {
+        if let Some(p) = j.parent {
+            let children = nodes[p]
+                .as_object_mut()
+                .expect("object")
+                .entry("children")
+                .or_insert_with(|| json!([]));
+            children.as_array_mut().expect("array").push(json!(i));
+        }
+    }
+    let mesh_node = nodes.len();
+    nodes.push(json!({ "name": rig.name, "mesh": 0, "skin": 0 }));
+    let roots: Vec<usize> = joints
+        .iter()
+        .enumerate()
+        .filter(|(_, j)| j.parent.is_none())
+        .map(|(i, _)| i)
+        .chain([mesh_node])
+        .collect();
+    let document = json!({
+        "asset": { "version": "2.0", "generator": "f3g-avatar" },
+        "scene": 0,
+        "scenes": [{ "nodes": roots }],
+        "nodes": nodes,
+        "meshes": [{
+            "name": rig.name,
+            "primitives": [{ "attributes": attributes, "indices": indices, "mode": 4,
+                             "targets": targets }],
+            "weights": vec![0.0; rig.expression.len()],
+            "extras": { "targetNames": rig.expression.names },
+        }],
+        "skins": [{ "joints": (0..joints.len()).collect::<Vec<_>>(),
+                    "inverseBindMatrices": inverse_bind }],
+    });
+    let mut document = document;
+    if rig.expression.is_empty() {
+        // glTF forbids empty `targets` and `weights` arrays.
+        let mesh = &mut document["meshes"][0];
+        mesh.as_object_mut().expect("object").remove("weights");
+        mesh["primitives"][0]
+            .as_object_mut()
+            .expect("object")
+            .remove("targets");
+    }
+    f3g_io::write_atomic(path, &buffer.finish(document)).map_err(|e| RigError::File {
+        file: e.path,
+        reason: e.reason,
+    })
 }
 
 /// Scales the translation rows of a Momentum (centimetre) transform to metres.

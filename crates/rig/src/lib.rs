@@ -11,15 +11,19 @@
 //! skinning transforms map rest-space points to posed points.
 
 pub mod blend;
+pub mod body;
 pub mod builtin;
+pub mod choreography;
 pub mod correctives;
 mod error;
 pub mod fit;
+pub mod glb;
 pub mod gltf;
 pub mod mhr;
 pub mod obj;
 pub mod params;
 pub mod rig;
+pub mod roles;
 pub mod sequence;
 pub mod skeleton;
 pub mod skin;
@@ -27,9 +31,11 @@ pub mod smplx;
 pub mod spec;
 
 pub use blend::BlendShapes;
+pub use body::CanonicalPose;
 pub use error::RigError;
 pub use params::{ModelDefinition, ParameterTransform, parse_model, read_model_file};
 pub use rig::{JointModel, Mesh, Parameterization, Posed, Rig, RigParams, vertex_normals};
+pub use roles::{Role, RoleMap, Roles};
 pub use skeleton::{Joint, JointPose, PARAMS_PER_JOINT, Similarity, Skeleton, euler_xyz};
 pub use skin::{MAX_INFLUENCES, PointTransform, SkinWeights, point_transforms, skin_points};
 pub use spec::ModelSpec;

@@ -20,6 +20,7 @@ use crate::correctives::PoseCorrectives;
 use crate::gltf::momentum_to_metres;
 use crate::params::read_model_file;
 use crate::rig::{Mesh, Parameterization, Rig};
+use crate::roles::Roles;
 use crate::skeleton::{Joint, Skeleton};
 use crate::{BlendShapes, RigError, SkinWeights};
 
@@ -222,7 +223,6 @@ pub fn load(dir: &Path, lod: u32) -> Result<Rig, RigError> {
     let correctives = read_correctives(dir, lod, skeleton.len(), n, unit)?;
     let rig = Rig {
         name: format!("mhr:{}", dir.display()),
-        skeleton,
         parameterization: Parameterization::Momentum(transform),
         mesh: Mesh {
             vertices,
@@ -234,6 +234,9 @@ pub fn load(dir: &Path, lod: u32) -> Result<Rig, RigError> {
         correctives,
         joint_model: None,
         inverse_bind: Some(inverse_bind),
+        roles: Roles::infer(&skeleton),
+        surface: vec![true; n],
+        skeleton,
     };
     rig.validate()?;
     Ok(rig)

@@ -12,7 +12,8 @@ use crate::RigError;
 use crate::blend::BlendShapes;
 use crate::correctives::PoseCorrectives;
 use crate::params::ParameterTransform;
-use crate::skeleton::{JointPose, PARAMS_PER_JOINT, Similarity, Skeleton};
+use crate::roles::Roles;
+use crate::skeleton::{JointPose, Similarity, Skeleton};
 use crate::skin::{SkinWeights, skin_points};
 
 /// How a model's pose parameter vector maps to joint poses.
@@ -59,6 +60,10 @@ pub struct Rig {
     pub joint_model: Option<JointModel>,
     /// Inverse bind matrices from a file; when absent, the inverse of the rest pose.
     pub inverse_bind: Option<Vec<Affine3A>>,
+    /// The joint of each role the model has (the body-model contract, [`crate::body`]).
+    pub roles: Roles,
+    /// Per vertex: whether it is skin, part of the canonical template (not teeth, say).
+    pub surface: Vec<bool>,
 }
 
 /// Parameters of a rig: pose, identity and expression blocks.
@@ -178,6 +183,15 @@ impl Rig {
                     "a joint model needs world-aligned rest frames (identity pre-rotations)".into(),
                 );
             }
+        }
+        if self.surface.len() != v {
+            return bad(format!(
+                "{} surface flags for {v} vertices",
+                self.surface.len()
+            ));
+        }
+        if let Err(e) = self.roles.validate(j) {
+            return bad(e);
         }
         if let Some(ibm) = &self.inverse_bind
             && ibm.len() != j
@@ -337,52 +351,6 @@ impl Rig {
             .zip(&to.skinning)
             .map(|(f, t)| *t * f.inverse())
             .collect()
-    }
-
-    /// Indices of the pose parameters that articulate the fingers: those that drive only
-    /// joints below a wrist (a joint named `*wrist*`, or `*hand` where no wrist exists — SMPL-X
-    /// `left_wrist`, MakeHuman `wrist.L`, MHR `l_wrist`, Mixamo `LeftHand`).
-    pub fn finger_params(&self) -> Vec<usize> {
-        let joints = self.skeleton.joints();
-        let lower: Vec<String> = joints.iter().map(|j| j.name.to_lowercase()).collect();
-        let mut wrists: Vec<usize> = (0..joints.len())
-            .filter(|&j| lower[j].contains("wrist"))
-            .collect();
-        if wrists.is_empty() {
-            wrists = (0..joints.len())
-                .filter(|&j| lower[j].ends_with("hand"))
-                .collect();
-        }
-        let in_hand: Vec<bool> = (0..joints.len())
-            .map(|j| {
-                wrists
-                    .iter()
-                    .any(|&w| w != j && self.skeleton.is_ancestor_or_self(w, j))
-            })
-            .collect();
-        match &self.parameterization {
-            Parameterization::AxisAngle => (0..joints.len())
-                .filter(|&j| in_hand[j])
-                .flat_map(|j| 3 * j..3 * j + 3)
-                .collect(),
-            Parameterization::Momentum(t) => {
-                let mut drives_hand = vec![false; t.len()];
-                let mut drives_other = vec![false; t.len()];
-                for &(row, col, w) in &t.entries {
-                    if w != 0.0 {
-                        let joint = row as usize / PARAMS_PER_JOINT;
-                        if in_hand[joint] {
-                            drives_hand[col as usize] = true;
-                        } else {
-                            drives_other[col as usize] = true;
-                        }
-                    }
-                }
-                (0..t.len())
-                    .filter(|&c| drives_hand[c] && !drives_other[c])
-                    .collect()
-            }
-        }
     }
 
     /// Vertex normals of a posed mesh (area-weighted).

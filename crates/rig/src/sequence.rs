@@ -10,7 +10,7 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
-use crate::rig::{Parameterization, Rig, RigParams};
+use crate::rig::{Rig, RigParams};
 use crate::{RigError, smplx};
 
 fn io(e: f3g_io::IoError) -> RigError {
@@ -40,19 +40,9 @@ pub fn read(path: &Path, rig: &Rig) -> Result<Vec<RigParams>, RigError> {
                 .map_err(io)?
                 .contains("global_orient");
             if is_smpl {
-                if !matches!(rig.parameterization, Parameterization::AxisAngle)
-                    || rig.skeleton.len() != smplx::JOINT_NAMES.len()
-                {
-                    return Err(RigError::file(
-                        path,
-                        format!(
-                            "holds SMPL-X parameters but the model is {}; use smplx:MODEL, or convert with `f3g rig fit`",
-                            rig.name
-                        ),
-                    ));
-                }
-                let p = smplx::read_params(path)?;
-                Ok((0..p.frames).map(|i| p.frame(i, rig)).collect())
+                smplx::read_params(path)?
+                    .frames_for(rig)
+                    .map_err(|e| RigError::file(path, e))
             } else {
                 read_npz(path, rig)
             }

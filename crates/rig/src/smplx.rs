@@ -17,6 +17,7 @@ use glam::{Quat, Vec3};
 
 use crate::correctives::PoseCorrectives;
 use crate::rig::{JointModel, Mesh, Parameterization, Rig, RigParams};
+use crate::roles::{Role, Roles};
 use crate::skeleton::{Joint, Skeleton};
 use crate::{BlendShapes, RigError, SkinWeights};
 
@@ -80,6 +81,32 @@ pub const JOINT_NAMES: [&str; 55] = [
 ];
 
 const JOINTS: usize = 55;
+
+/// The joints of the body-model roles.
+const ROLES: [(Role, &str); 22] = [
+    (Role::Pelvis, "pelvis"),
+    (Role::Spine, "spine1"),
+    (Role::Chest, "spine3"),
+    (Role::Neck, "neck"),
+    (Role::Head, "head"),
+    (Role::Jaw, "jaw"),
+    (Role::LeftEye, "left_eye"),
+    (Role::RightEye, "right_eye"),
+    (Role::LeftClavicle, "left_collar"),
+    (Role::RightClavicle, "right_collar"),
+    (Role::LeftShoulder, "left_shoulder"),
+    (Role::RightShoulder, "right_shoulder"),
+    (Role::LeftElbow, "left_elbow"),
+    (Role::RightElbow, "right_elbow"),
+    (Role::LeftWrist, "left_wrist"),
+    (Role::RightWrist, "right_wrist"),
+    (Role::LeftHip, "left_hip"),
+    (Role::RightHip, "right_hip"),
+    (Role::LeftKnee, "left_knee"),
+    (Role::RightKnee, "right_knee"),
+    (Role::LeftAnkle, "left_ankle"),
+    (Role::RightAnkle, "right_ankle"),
+];
 
 fn io(e: f3g_io::IoError) -> RigError {
     RigError::File {
@@ -242,9 +269,9 @@ pub fn load(path: &Path, num_betas: usize, num_expression: usize) -> Result<Rig,
             correctives[f * v * 3 + k] = w;
         }
     }
+    let skeleton = Skeleton::new(joints)?;
     let rig = Rig {
         name: format!("smplx:{}", path.display()),
-        skeleton: Skeleton::new(joints)?,
         parameterization: Parameterization::AxisAngle,
         mesh: Mesh {
             vertices: template,
@@ -272,6 +299,9 @@ pub fn load(path: &Path, num_betas: usize, num_expression: usize) -> Result<Rig,
         }),
         joint_model: Some(joint_model),
         inverse_bind: None,
+        roles: Roles::from_names(&skeleton, &ROLES),
+        surface: vec![true; v],
+        skeleton,
     };
     rig.validate()?;
     Ok(rig)
@@ -320,8 +350,28 @@ impl SmplParams {
         .concat()
     }
 
+    /// Every frame's parameters for `rig`, which must have SMPL-X's joints and axis-angle
+    /// parameterisation (an SMPL-X model file of any version); otherwise an error that says how
+    /// to convert the parameters.
+    pub fn frames_for(&self, rig: &Rig) -> Result<Vec<RigParams>, RigError> {
+        let names: Vec<&str> = rig
+            .skeleton
+            .joints()
+            .iter()
+            .map(|j| j.name.as_str())
+            .collect();
+        if rig.parameterization != Parameterization::AxisAngle || names != JOINT_NAMES {
+            return Err(RigError::Params(format!(
+                "SMPL-X parameters do not match the body model `{}` (not an SMPL-X model): \
+                 convert them with `f3g rig fit`",
+                rig.name
+            )));
+        }
+        Ok((0..self.frames).map(|i| self.frame(i, rig)).collect())
+    }
+
     /// Parameters of frame `i` for an SMPL-X rig (betas and expression padded or cut to its sizes).
-    pub fn frame(&self, i: usize, rig: &Rig) -> RigParams {
+    fn frame(&self, i: usize, rig: &Rig) -> RigParams {
         let fit = |v: &[f32], n: usize| {
             (0..n)
                 .map(|k| v.get(k).copied().unwrap_or(0.0))

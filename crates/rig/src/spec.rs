@@ -41,18 +41,33 @@ impl FromStr for ModelSpec {
     }
 }
 
-impl ModelSpec {
-    /// Loads the model.
-    pub fn load(&self) -> Result<Rig, RigError> {
+impl std::fmt::Display for ModelSpec {
+    /// The spelling [`FromStr`] reads back (`builtin`, `smplx:PATH`, …).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::Builtin => Ok(builtin::load()?.rig),
-            Self::Smplx(p) => smplx::load(p, 10, 10),
-            Self::Mhr(p) => mhr::load(p, 1),
+            Self::Builtin => write!(f, "builtin"),
+            Self::Smplx(p) => write!(f, "smplx:{}", p.display()),
+            Self::Mhr(p) => write!(f, "mhr:{}", p.display()),
+            Self::Gltf(p) => write!(f, "gltf:{}", p.display()),
+        }
+    }
+}
+
+impl ModelSpec {
+    /// Loads the model as a body model of the avatar pipeline: every required role resolved
+    /// ([`Rig::check_body_model`]), or an error naming the missing one.
+    pub fn load(&self) -> Result<Rig, RigError> {
+        let rig = match self {
+            Self::Builtin => builtin::load()?.rig,
+            Self::Smplx(p) => smplx::load(p, 10, 10)?,
+            Self::Mhr(p) => mhr::load(p, 1)?,
             Self::Gltf(p) => {
                 let model = p.with_extension("model");
-                gltf::load(p, model.exists().then_some(model.as_path()))
+                gltf::load(p, model.exists().then_some(model.as_path()))?
             }
-        }
+        };
+        rig.check_body_model()?;
+        Ok(rig)
     }
 }
 
@@ -68,6 +83,9 @@ mod tests {
             ModelSpec::Smplx("/m/SMPLX_NEUTRAL.npz".into())
         );
         assert!("mhr:".parse::<ModelSpec>().unwrap_err().contains("empty"));
+        for text in ["builtin", "smplx:/m/a.npz", "mhr:/m", "gltf:b.glb"] {
+            assert_eq!(text.parse::<ModelSpec>().unwrap().to_string(), text);
+        }
         assert!(
             "smpl:x"
                 .parse::<ModelSpec>()

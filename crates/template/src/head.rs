@@ -1,7 +1,7 @@
 //! Head maps: the head's square of the position maps, densified ×2 for the face branch.
 //!
 //! The head region is where Gaussians are mostly skinned to the head joint and its
-//! descendants (weight ≥ 0.5). Its bounding box in the front map, enlarged by 10 % and made
+//! descendants (weight ≥ 0.5; the body model names its head, see `f3g_rig::body`). Its bounding box in the front map, enlarged by 10 % and made
 //! square, is cropped from both the front and the back map (same columns), giving a
 //! `[S, 2S]` head map. Densification is masked bilinear upsampling by 2 (sample positions as
 //! `align_corners=False`): an output texel blends its four source texels, weighted by bilinear
@@ -15,7 +15,7 @@ use glam::Vec3;
 
 use crate::TemplateError;
 use crate::posmap::PositionMaps;
-use f3g_rig::{Skeleton, SkinWeights};
+use f3g_rig::SkinWeights;
 
 /// Densification factor (the reference uses 2).
 pub const DENSIFY: usize = 2;
@@ -38,22 +38,10 @@ pub struct HeadMaps {
     pub sources: Vec<Vec<(usize, f32)>>,
 }
 
-/// Joints of the head: `head` and all its descendants.
-pub fn head_joints(skeleton: &Skeleton) -> Result<Vec<usize>, TemplateError> {
-    let head = skeleton.index_of("head").ok_or_else(|| {
-        TemplateError::Invalid(
-            "the body model has no joint called `head`, so the head region cannot be found".into(),
-        )
-    })?;
-    Ok((0..skeleton.len())
-        .filter(|&j| skeleton.is_ancestor_or_self(head, j))
-        .collect())
-}
-
 impl HeadMaps {
-    /// Finds the head region of `maps` and densifies it.
-    pub fn build(maps: &PositionMaps, skeleton: &Skeleton) -> Result<Self, TemplateError> {
-        let head = head_joints(skeleton)?;
+    /// Finds the head region of `maps` (Gaussians skinned mostly to the `head` joints, the
+    /// body model's [`f3g_rig::Rig::head_joints`]) and densifies it.
+    pub fn build(maps: &PositionMaps, head: &[usize]) -> Result<Self, TemplateError> {
         let r = maps.resolution;
         let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
         for (g, &p) in maps.pixels.iter().enumerate() {

@@ -23,7 +23,7 @@ pub mod reconstruct;
 pub mod template;
 pub mod transfer;
 
-pub use canonical::{CanonicalPose, canonical_params, without_root};
+pub use canonical::{CanonicalPose, without_root};
 pub use error::TemplateError;
 pub use head::HeadMaps;
 pub use pca::PosePca;

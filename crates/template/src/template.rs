@@ -12,10 +12,10 @@ use std::path::Path;
 use glam::Vec3;
 
 use crate::TemplateError;
-use crate::canonical::{CanonicalPose, canonical_params};
+use crate::canonical::CanonicalPose;
 use crate::mesh::{MeshReport, clean};
 use crate::transfer::{Transfer, TransferOptions, transfer_weights};
-use f3g_rig::{MAX_INFLUENCES, Mesh, ModelSpec, Rig, RigParams, SkinWeights};
+use f3g_rig::{MAX_INFLUENCES, Mesh, Rig, RigParams, SkinWeights};
 
 /// Vertex labels.
 pub const LABEL_BODY: u8 = 0;
@@ -42,20 +42,6 @@ pub struct BuildReport {
     pub matched: usize,
     pub inpainted: usize,
     pub fallback: usize,
-    pub legs_spread: bool,
-}
-
-/// Which vertices of the posed body model form the skin surface of the template: for the
-/// built-in human the body and eyeballs (teeth, tongue and the skirt helper are not skin).
-pub fn body_surface(model: &ModelSpec, rig: &Rig) -> Result<Vec<bool>, TemplateError> {
-    match model {
-        ModelSpec::Builtin => {
-            let h = f3g_rig::builtin::load()?;
-            let keep = ["body", "eye_l", "eye_r"].map(|p| h.part(p).expect("documented part"));
-            Ok(h.vertex_part.iter().map(|p| keep.contains(p)).collect())
-        }
-        _ => Ok(vec![true; rig.mesh.vertices.len()]),
-    }
 }
 
 /// The part of a mesh made of the selected vertices (triangles whose corners are all kept).
@@ -87,7 +73,7 @@ pub fn submesh(mesh: &Mesh, keep: &[bool]) -> (Mesh, Vec<usize>) {
 /// [`Template::build`] (what `--clothes builtin:skirt` means).
 pub fn builtin_skirt(pose: &CanonicalPose) -> Result<Mesh, TemplateError> {
     let human = f3g_rig::builtin::load()?;
-    let (params, _) = canonical_params(&human.rig, pose);
+    let params = human.rig.canonical_params(pose)?;
     let posed = human.rig.pose(&params)?;
     let skirt = human
         .part("skirt")
@@ -104,19 +90,17 @@ pub fn builtin_skirt(pose: &CanonicalPose) -> Result<Mesh, TemplateError> {
 }
 
 impl Template {
-    /// The body alone in the canonical pose, or the body plus a garment mesh (aligned with the
-    /// canonical body) whose skin weights are transferred from the body. `identity` gives the
-    /// body its subject's shape (zero when `None`).
+    /// The body model's skin surface ([`Rig::surface`]) alone in the canonical pose, or with a
+    /// garment mesh (aligned with the canonical body) whose skin weights are transferred from
+    /// the body. `identity` gives the body its subject's shape (zero when `None`).
     pub fn build(
-        model: &ModelSpec,
-        model_text: &str,
+        rig: &Rig,
         pose: &CanonicalPose,
         identity: Option<&[f32]>,
         garment: Option<(Mesh, &Path)>,
         transfer: &TransferOptions,
     ) -> Result<(Self, BuildReport), TemplateError> {
-        let rig = model.load()?;
-        let (mut canonical, legs_spread) = canonical_params(&rig, pose);
+        let mut canonical = rig.canonical_params(pose)?;
         if let Some(id) = identity {
             if id.len() != canonical.identity.len() || id.iter().any(|v| !v.is_finite()) {
                 return Err(TemplateError::Invalid(format!(
@@ -129,19 +113,15 @@ impl Template {
             canonical.identity = id.to_vec();
         }
         let posed = rig.pose(&canonical)?;
-        let keep = body_surface(model, &rig)?;
         let (body, kept) = submesh(
             &f3g_rig::Mesh {
                 vertices: posed.vertices.clone(),
                 triangles: rig.mesh.triangles.clone(),
             },
-            &keep,
+            &rig.surface,
         );
         let body_skin = rig.skin.select(&kept);
-        let mut report = BuildReport {
-            legs_spread,
-            ..Default::default()
-        };
+        let mut report = BuildReport::default();
         let mut mesh = body.clone();
         let mut skin = body_skin.clone();
         let mut vertex_label = vec![LABEL_BODY; mesh.vertices.len()];
@@ -167,7 +147,7 @@ impl Template {
         }
         Ok((
             Self {
-                model: model_text.to_string(),
+                model: rig.name.clone(),
                 canonical,
                 mesh,
                 skin,
@@ -245,20 +225,23 @@ impl Template {
         Ok(())
     }
 
-    /// Reads a template and the body model it names, checking that they agree.
+    /// Reads a template and loads the body model it names, checking that they agree.
     pub fn load(path: &Path) -> Result<(Self, Rig), TemplateError> {
         let mut npz = f3g_io::Npz::open(path)?;
-        let text = |npz: &mut f3g_io::Npz<_>, name: &str| -> Result<String, TemplateError> {
-            let (_, b) = npz.i64(name)?;
-            String::from_utf8(b.into_iter().map(|x| x as u8).collect())
-                .map_err(|e| TemplateError::file(path, format!("`{name}`: {e}")))
-        };
-        let model = text(&mut npz, "model")?;
-        let spec: ModelSpec = model
+        let model = npz_text(&mut npz, path, "model")?;
+        let spec: f3g_rig::ModelSpec = model
             .parse()
             .map_err(|e: String| TemplateError::file(path, format!("`model`: {e}")))?;
         let rig = spec.load()?;
-        let names = text(&mut npz, "pose_names")?;
+        Ok((Self::read(path, &rig)?, rig))
+    }
+
+    /// Reads a template made for `rig` (a body model already loaded, e.g. from a run folder),
+    /// checking that they agree.
+    pub fn read(path: &Path, rig: &Rig) -> Result<Self, TemplateError> {
+        let mut npz = f3g_io::Npz::open(path)?;
+        let model = npz_text(&mut npz, path, "model")?;
+        let names = npz_text(&mut npz, path, "pose_names")?;
         if names.lines().map(String::from).collect::<Vec<_>>() != rig.pose_param_names() {
             return Err(TemplateError::file(
                 path,
@@ -373,16 +356,24 @@ impl Template {
                 .map(|t| [t[0] as u32, t[1] as u32, t[2] as u32])
                 .collect(),
         };
-        Ok((
-            Self {
-                model,
-                canonical,
-                mesh,
-                skin,
-                vertex_label: labels.into_iter().map(|l| l as u8).collect(),
-                body_vertex,
-            },
-            rig,
-        ))
+        Ok(Self {
+            model,
+            canonical,
+            mesh,
+            skin,
+            vertex_label: labels.into_iter().map(|l| l as u8).collect(),
+            body_vertex,
+        })
     }
+}
+
+/// A UTF-8 byte array of a template file.
+fn npz_text<R: std::io::Read + std::io::Seek>(
+    npz: &mut f3g_io::Npz<R>,
+    path: &Path,
+    name: &str,
+) -> Result<String, TemplateError> {
+    let (_, b) = npz.i64(name)?;
+    String::from_utf8(b.into_iter().map(|x| x as u8).collect())
+        .map_err(|e| TemplateError::file(path, format!("`{name}`: {e}")))
 }

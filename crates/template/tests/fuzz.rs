@@ -18,8 +18,7 @@ static SEED: std::sync::LazyLock<Vec<Array>> = std::sync::LazyLock::new(|| {
     let model = ModelSpec::Builtin;
     let skirt = f3g_template::template::builtin_skirt(&CanonicalPose::default()).unwrap();
     let (t, _) = Template::build(
-        &model,
-        "builtin",
+        &model.load().unwrap(),
         &CanonicalPose::default(),
         None,
         Some((skirt, std::path::Path::new("builtin:skirt"))),

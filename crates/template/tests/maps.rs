@@ -156,15 +156,8 @@ fn a_sphere_maps_to_its_surface_and_front_and_back_align() {
 fn a_fully_covered_head_crop_densifies_to_four_times_the_texels() {
     let t = rigid_template(cube(0.5));
     let maps = PositionMaps::build(&t, 20, Some(2.0)).unwrap();
-    // A one-joint skeleton called "head": everything is head.
-    let skeleton = f3g_rig::Skeleton::new(vec![f3g_rig::Joint {
-        name: "head".into(),
-        parent: None,
-        offset: Vec3::ZERO,
-        pre_rotation: glam::Quat::IDENTITY,
-    }])
-    .unwrap();
-    let head = HeadMaps::build(&maps, &skeleton).unwrap();
+    // The one joint of the rigid template is the head: everything is head.
+    let head = HeadMaps::build(&maps, &[0]).unwrap();
     let [_, _, side] = head.crop;
     assert_eq!(side, 11);
     assert_eq!(head.size, 22);
@@ -183,17 +176,22 @@ fn a_fully_covered_head_crop_densifies_to_four_times_the_texels() {
 #[test]
 fn builtin_maps_posed_at_the_canonical_pose_equal_the_canonical_maps() {
     let model = ModelSpec::Builtin;
-    let (t, report) = Template::build(
-        &model,
-        "builtin",
+    let (t, _) = Template::build(
+        &model.load().unwrap(),
         &CanonicalPose::default(),
         None,
         None,
         &TransferOptions::default(),
     )
     .unwrap();
-    assert!(report.legs_spread);
     let rig = model.load().unwrap();
+    // The legs are spread: each hip turned 25° about its forward axis.
+    let names = rig.pose_param_names();
+    let hip = |n: &str| t.canonical.pose[names.iter().position(|p| p == n).unwrap()];
+    assert_eq!(
+        (hip("upperleg01.L_rz"), hip("upperleg01.R_rz")),
+        (25f32.to_radians(), -25f32.to_radians())
+    );
     let maps = PositionMaps::build(&t, 96, None).unwrap();
     let poser = Poser::new(&rig, &t).unwrap();
     let posed = posed_positions(&poser, &maps, &t.canonical).unwrap();
@@ -206,7 +204,6 @@ fn builtin_maps_posed_at_the_canonical_pose_equal_the_canonical_maps() {
     // Moving the root does not move root-relative posed maps.
     let mut moved = t.canonical.clone();
     moved.pose[0] = 1.0;
-    let names = rig.pose_param_names();
     moved.pose[names.iter().position(|n| n == "root_ry").unwrap()] = 0.7;
     let again = posed_positions(&poser, &maps, &moved).unwrap();
     assert!(
@@ -216,9 +213,9 @@ fn builtin_maps_posed_at_the_canonical_pose_equal_the_canonical_maps() {
             .all(|(a, b)| (*a - *b).length() < 1e-5)
     );
 
-    let head = HeadMaps::build(&maps, &rig.skeleton).unwrap();
+    let head_joints = rig.head_joints().unwrap();
+    let head = HeadMaps::build(&maps, &head_joints).unwrap();
     assert!(!head.is_empty());
-    let head_joints = f3g_template::head::head_joints(&rig.skeleton).unwrap();
     let head_weight = |g: usize| {
         head.skin
             .influences(g)
@@ -242,8 +239,7 @@ fn expressions_and_shape_move_the_template_with_the_posed_body_model() {
     let mut identity = vec![0.0; rig.identity.len()];
     identity[0] = 0.4; // a little more masculine than the average
     let (t, _) = Template::build(
-        &model,
-        "builtin",
+        &model.load().unwrap(),
         &CanonicalPose::default(),
         Some(&identity),
         None,
@@ -302,8 +298,7 @@ fn expressions_and_shape_move_the_template_with_the_posed_body_model() {
             .all(|d| d.length() < 1e-6)
     );
     let bad = Template::build(
-        &model,
-        "builtin",
+        &model.load().unwrap(),
         &CanonicalPose::default(),
         Some(&[1.0]),
         None,

@@ -1,9 +1,9 @@
 //! Robust skin-weight transfer on the built-in human.
 
 use f3g_rig::{Mesh, ModelSpec};
-use f3g_template::canonical::{CanonicalPose, canonical_params};
+use f3g_template::canonical::CanonicalPose;
 use f3g_template::mesh::{SurfaceQuery, clean};
-use f3g_template::template::{body_surface, submesh};
+use f3g_template::template::submesh;
 use f3g_template::{TransferOptions, transfer_weights};
 use glam::Vec3;
 
@@ -16,15 +16,14 @@ struct Body {
 fn canonical_body() -> Body {
     let model = ModelSpec::Builtin;
     let rig = model.load().unwrap();
-    let (params, _) = canonical_params(&rig, &CanonicalPose::default());
+    let params = rig.canonical_params(&CanonicalPose::default()).unwrap();
     let posed = rig.pose(&params).unwrap();
-    let keep = body_surface(&model, &rig).unwrap();
     let (mesh, kept) = submesh(
         &Mesh {
             vertices: posed.vertices,
             triangles: rig.mesh.triangles.clone(),
         },
-        &keep,
+        &rig.surface,
     );
     Body {
         mesh,

@@ -1,0 +1,186 @@
+//! The body-model contract: everything the avatar pipeline asks of a body model, and nothing
+//! else. A loader that fills these fields of a [`Rig`] adds a body model:
+//!
+//! - the skinned model itself (skeleton, pose parameterisation with named parameters,
+//!   identity and expression blend shapes with names, skin weights, optional correctives);
+//! - [`Rig::roles`]: the joint of each [`Role`] ([`crate::roles`]), resolved once when the model
+//!   loads; [`Role::REQUIRED`] must all be there ([`Rig::check_body_model`], which
+//!   [`crate::ModelSpec::load`] runs, names the first role missing);
+//! - [`Rig::surface`]: which vertices are skin (the canonical template is made of them;
+//!   helpers such as teeth are not).
+//!
+//! Everything else the pipeline needs is derived here from them: the head region
+//! ([`Rig::head_joints`], [`Rig::head_vertices`]), the canonical pose
+//! ([`Rig::canonical_params`]: legs apart, arms raised, by rotating the hip and shoulder joints
+//! about their forward axis) and the finger parameters ([`Rig::finger_params`]). No code
+//! outside this crate looks a joint up by name.
+
+use serde::{Deserialize, Serialize};
+
+use crate::RigError;
+use crate::rig::{Parameterization, Rig, RigParams};
+use crate::roles::{Role, RoleMap};
+use crate::skeleton::PARAMS_PER_JOINT;
+
+/// Angles of the canonical pose.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CanonicalPose {
+    /// Rotation of each hip away from the body, degrees.
+    pub leg_spread_deg: f32,
+    /// Rotation of each upper arm upwards from the model's rest pose, degrees.
+    pub arm_raise_deg: f32,
+}
+
+impl Default for CanonicalPose {
+    /// Legs apart by ±25° about the forward axis, as Animatable Gaussians' canonical pose, so
+    /// that the front and back maps see the inner legs; arms as the model rests.
+    fn default() -> Self {
+        Self {
+            leg_spread_deg: 25.0,
+            arm_raise_deg: 0.0,
+        }
+    }
+}
+
+/// The rotation channel about a joint's forward (z) axis at rest.
+const RZ: usize = 5;
+
+impl Rig {
+    /// The joint of `role`; an error naming the role and how to name its joint otherwise.
+    pub fn role(&self, role: Role) -> Result<usize, RigError> {
+        self.roles.get(role).ok_or_else(|| {
+            RigError::Model(format!(
+                "the body model `{}` has no joint in the role `{}`: name it in a role map \
+                 (a JSON file `{{\"{}\": \"JOINT\"}}` saved as MODEL.roles.json beside a glTF \
+                 model, e.g. {})",
+                self.name,
+                role.name(),
+                role.name(),
+                RoleMap::beside(std::path::Path::new("body.glb")).display()
+            ))
+        })
+    }
+
+    /// Checks that the model has every role the avatar pipeline needs.
+    pub fn check_body_model(&self) -> Result<(), RigError> {
+        for role in Role::REQUIRED {
+            self.role(role)?;
+        }
+        Ok(())
+    }
+
+    /// The head joint and all its descendants (jaw, eyes, face joints).
+    pub fn head_joints(&self) -> Result<Vec<usize>, RigError> {
+        let head = self.role(Role::Head)?;
+        Ok((0..self.skeleton.len())
+            .filter(|&j| self.skeleton.is_ancestor_or_self(head, j))
+            .collect())
+    }
+
+    /// Vertices skinned mostly (weight ≥ 0.5) to the head joints: the head region of the mesh.
+    pub fn head_vertices(&self) -> Result<Vec<usize>, RigError> {
+        let head = self.head_joints()?;
+        Ok((0..self.skin.len())
+            .filter(|&v| {
+                self.skin
+                    .influences(v)
+                    .filter(|(j, _)| head.contains(j))
+                    .map(|(_, w)| w)
+                    .sum::<f32>()
+                    >= 0.5
+            })
+            .collect())
+    }
+
+    /// Sets a rotation channel (`3..6`: rx, ry, rz) of `joint` in `params`: the joint's own
+    /// axis-angle component, or the Momentum parameter that drives exactly that channel with
+    /// weight 1 and nothing else. A model without such a parameter cannot take the rotation:
+    /// an error naming the joint.
+    pub fn set_rotation(
+        &self,
+        params: &mut RigParams,
+        joint: usize,
+        channel: usize,
+        radians: f32,
+    ) -> Result<(), RigError> {
+        let name = &self.skeleton.joints()[joint].name;
+        match &self.parameterization {
+            Parameterization::AxisAngle => {
+                // One axis of the joint's axis-angle vector (exact for a single axis).
+                params.pose[3 * joint + channel - 3] = radians;
+                Ok(())
+            }
+            Parameterization::Momentum(t) => {
+                let row = (joint * PARAMS_PER_JOINT + channel) as u32;
+                let parameter = t.entries.iter().find(|e| {
+                    e.0 == row && e.2 == 1.0 && t.entries.iter().filter(|o| o.1 == e.1).count() == 1
+                });
+                match parameter {
+                    Some(e) => {
+                        params.pose[e.1 as usize] = radians;
+                        Ok(())
+                    }
+                    None => Err(RigError::Model(format!(
+                        "{}: no pose parameter turns the joint `{name}` alone about its axis {}",
+                        self.name,
+                        crate::params::CHANNELS[channel]
+                    ))),
+                }
+            }
+        }
+    }
+
+    /// The canonical parameters: zero parameters with the hips turned ±`leg_spread` and the
+    /// shoulders ±`arm_raise` about their forward axes (left positive).
+    pub fn canonical_params(&self, pose: &CanonicalPose) -> Result<RigParams, RigError> {
+        let mut params = self.zero_params();
+        for (left, right, degrees) in [
+            (Role::LeftHip, Role::RightHip, pose.leg_spread_deg),
+            (Role::LeftShoulder, Role::RightShoulder, pose.arm_raise_deg),
+        ] {
+            if degrees != 0.0 {
+                let radians = degrees.to_radians();
+                self.set_rotation(&mut params, self.role(left)?, RZ, radians)?;
+                self.set_rotation(&mut params, self.role(right)?, RZ, -radians)?;
+            }
+        }
+        Ok(params)
+    }
+
+    /// Indices of the pose parameters that articulate the fingers: those that drive only
+    /// joints below a wrist (the wrists' roles).
+    pub fn finger_params(&self) -> Result<Vec<usize>, RigError> {
+        let wrists = [self.role(Role::LeftWrist)?, self.role(Role::RightWrist)?];
+        let joints = self.skeleton.len();
+        let in_hand: Vec<bool> = (0..joints)
+            .map(|j| {
+                wrists
+                    .iter()
+                    .any(|&w| w != j && self.skeleton.is_ancestor_or_self(w, j))
+            })
+            .collect();
+        Ok(match &self.parameterization {
+            Parameterization::AxisAngle => (0..joints)
+                .filter(|&j| in_hand[j])
+                .flat_map(|j| 3 * j..3 * j + 3)
+                .collect(),
+            Parameterization::Momentum(t) => {
+                let mut drives_hand = vec![false; t.len()];
+                let mut drives_other = vec![false; t.len()];
+                for &(row, col, w) in &t.entries {
+                    if w != 0.0 {
+                        let joint = row as usize / PARAMS_PER_JOINT;
+                        if in_hand[joint] {
+                            drives_hand[col as usize] = true;
+                        } else {
+                            drives_other[col as usize] = true;
+                        }
+                    }
+                }
+                (0..t.len())
+                    .filter(|&c| drives_hand[c] && !drives_other[c])
+                    .collect()
+            }
+        })
+    }
+}

@@ -1,0 +1,168 @@
+//! The body-model contract: roles resolved at load, the head region and canonical pose they
+//! give, and a rigged glTF with names no table knows made usable by a role map alone.
+
+use f3g_rig::{CanonicalPose, ModelSpec, Rig, RigParams, Role, RoleMap, Skeleton, gltf};
+
+fn builtin() -> Rig {
+    f3g_rig::builtin::load().unwrap().rig
+}
+
+/// The built-in human with its joints renamed `bone000`, `bone001`, … (no name tells a role).
+fn anonymous(rig: &Rig) -> Rig {
+    let joints = rig
+        .skeleton
+        .joints()
+        .iter()
+        .enumerate()
+        .map(|(i, j)| f3g_rig::Joint {
+            name: format!("bone{i:03}"),
+            ..j.clone()
+        })
+        .collect();
+    Rig {
+        skeleton: Skeleton::new(joints).unwrap(),
+        ..rig.clone()
+    }
+}
+
+/// Parameters of `to` copied by name from `from` (pose parameters both models have).
+fn by_name(from: &Rig, params: &RigParams, to: &Rig, rename: impl Fn(&str) -> String) -> RigParams {
+    let names = to.pose_param_names();
+    let mut out = to.zero_params();
+    for (name, value) in from.pose_param_names().iter().zip(&params.pose) {
+        if let Some(i) = names.iter().position(|n| *n == rename(name)) {
+            out.pose[i] = *value;
+        }
+    }
+    out.expression = params.expression.clone();
+    out
+}
+
+#[test]
+fn the_builtin_human_has_every_role_and_a_head() {
+    let rig = builtin();
+    rig.check_body_model().unwrap();
+    assert!(Role::ALL.iter().all(|&r| rig.roles.get(r).is_some()));
+    let head = rig.head_vertices().unwrap();
+    let top = rig
+        .mesh
+        .vertices
+        .iter()
+        .map(|v| v.y)
+        .fold(f32::MIN, f32::max);
+    // The head region is the top ~25 cm of a 1.66 m body.
+    assert!(head.len() > 100);
+    assert!(head.iter().all(|&v| rig.mesh.vertices[v].y > top - 0.35));
+    let canonical = rig.canonical_params(&CanonicalPose::default()).unwrap();
+    let hip = rig.roles.get(Role::LeftHip).unwrap();
+    let posed = rig.pose(&canonical).unwrap();
+    let rest = rig.pose(&rig.zero_params()).unwrap();
+    assert!(
+        (posed.joints[hip]
+            .rotation
+            .angle_between(rest.joints[hip].rotation)
+            - 25f32.to_radians())
+        .abs()
+            < 1e-4
+    );
+}
+
+#[test]
+fn a_rig_written_as_gltf_reads_back_and_poses_the_same() {
+    let rig = builtin();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("human.glb");
+    gltf::write(&rig, &path).unwrap();
+    let back = gltf::load(&path, None).unwrap();
+    let names =
+        |r: &Rig| -> Vec<String> { r.skeleton.joints().iter().map(|j| j.name.clone()).collect() };
+    assert_eq!(names(&back), names(&rig));
+    assert_eq!(back.mesh.triangles, rig.mesh.triangles);
+    assert_eq!(back.skin.joints, rig.skin.joints);
+    assert_eq!(back.expression.names, rig.expression.names);
+    // Names that follow the common conventions give the roles without a map.
+    assert_eq!(back.roles.get(Role::Head), rig.roles.get(Role::Head));
+    // A walking, smiling frame poses both the same.
+    let frame = &f3g_rig::choreography::motion(&rig, 12, 3)[11];
+    let frame = RigParams {
+        identity: vec![0.0; rig.identity.len()],
+        ..frame.clone()
+    };
+    let a = rig.pose(&frame).unwrap();
+    let b = back
+        .pose(&by_name(&rig, &frame, &back, str::to_string))
+        .unwrap();
+    let worst = a
+        .vertices
+        .iter()
+        .zip(&b.vertices)
+        .map(|(p, q)| (*p - *q).length())
+        .fold(0.0, f32::max);
+    assert!(worst < 1e-4, "worst vertex difference {worst} m");
+}
+
+#[test]
+fn a_model_with_unknown_names_is_refused_naming_the_role_and_a_role_map_makes_it_a_body_model() {
+    let rig = builtin();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("bones.glb");
+    gltf::write(&anonymous(&rig), &path).unwrap();
+    let spec = ModelSpec::Gltf(path.clone());
+    let e = spec.load().unwrap_err().to_string();
+    assert!(e.contains("`pelvis`") && e.contains("roles.json"), "{e}");
+
+    // The role map names each role's joint; nothing else about the model changes.
+    let map = RoleMap(
+        rig.roles
+            .iter()
+            .map(|(role, j)| (role, format!("bone{j:03}")))
+            .collect(),
+    );
+    let map_path = RoleMap::beside(&path);
+    assert_eq!(map_path, dir.path().join("bones.roles.json"));
+    std::fs::write(&map_path, serde_json::to_string(&map).unwrap()).unwrap();
+    let model = spec.load().unwrap();
+    assert_eq!(model.roles, rig.roles);
+    assert_eq!(model.head_vertices().unwrap(), rig.head_vertices().unwrap());
+    let rename = |n: &str| {
+        let (joint, channel) = n.rsplit_once('_').unwrap();
+        let j = rig.skeleton.index_of(joint).unwrap();
+        format!("bone{j:03}_{channel}")
+    };
+    let canonical = by_name(
+        &rig,
+        &rig.canonical_params(&CanonicalPose::default()).unwrap(),
+        &model,
+        rename,
+    );
+    assert_eq!(
+        model.canonical_params(&CanonicalPose::default()).unwrap(),
+        canonical
+    );
+    assert_eq!(
+        model.finger_params().unwrap().len(),
+        3 * rig
+            .skeleton
+            .joints()
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| {
+                [Role::LeftWrist, Role::RightWrist].iter().any(|&w| {
+                    let w = rig.roles.get(w).unwrap();
+                    w != *j && rig.skeleton.is_ancestor_or_self(w, *j)
+                })
+            })
+            .count()
+    );
+
+    // A map naming a joint the model lacks is an error naming the file and the joint.
+    std::fs::write(&map_path, r#"{"head": "skull"}"#).unwrap();
+    let e = spec.load().unwrap_err().to_string();
+    assert!(e.contains("bones.roles.json") && e.contains("skull"), "{e}");
+    std::fs::write(&map_path, r#"{"noggin": "bone001"}"#).unwrap();
+    let e = spec.load().unwrap_err().to_string();
+    assert!(
+        e.contains("bones.roles.json") && e.contains("left_wrist"),
+        "{e}"
+    );
+}
