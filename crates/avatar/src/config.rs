@@ -102,13 +102,12 @@ impl Stages {
     }
 }
 
-/// Everything a training run needs besides the capture.
+/// The avatar itself: what inference needs to rebuild and run it (template, maps, networks,
+/// the face branch, the head crops it is seen through, the pose PCA), apart from how it is
+/// trained. In a configuration file its keys sit beside the training keys (one flat JSON
+/// object), so `--set map_resolution=512` names a model key as it always has.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TrainConfig {
-    /// The preset these values started from (informative).
-    pub preset: String,
-    pub seed: u64,
+pub struct ModelConfig {
     pub template: TemplateChoice,
     /// Garment mesh for `template = clothed` with a body model other than the built-in one.
     pub garment: Option<String>,
@@ -124,16 +123,40 @@ pub struct TrainConfig {
     /// Whether the face branch exists: the three face StyleUNets and their Gaussians
     /// (`--no-face-branch` and `--no-face-networks` turn it off).
     pub face_branch: bool,
-    /// Whether head crops are rendered and supervised (L1, LPIPS, adversarial) in the joint
-    /// and fine-tuning stages; without the face branch they train the body Gaussians
-    /// (`--no-face-networks`: the face-crop losses alone). `--no-face-branch` turns both off.
-    pub face_losses: bool,
     /// The three face StyleUNets (their `out_channels` are set per network: 3, 3, 8).
     pub face_net: StyleUNetConfig,
     /// Side of the rendered face crops.
     pub face_crop_size: usize,
     /// Face crop box enlargement around the projected head.
     pub face_padding: f32,
+    /// Initial thickness of the Gaussians: the scale along the surface normal relative to the
+    /// tangent scale (1: isotropic, as Animatable Gaussians; below 1: discs on the surface).
+    pub initial_thickness: f32,
+    /// Initial opacity of every Gaussian (Animatable Gaussians: 0.1).
+    pub initial_opacity: f32,
+    pub colour_activation: ColourActivation,
+    /// Learnable per-Gaussian canonical attributes added to the networks' outputs.
+    pub learn_canonical: bool,
+    /// Step-size multiplier of the canonical attributes relative to `lr`.
+    pub canonical_lr_scale: f32,
+    /// Pose PCA components and clamp (in standard deviations) for unseen poses.
+    pub pca_components: usize,
+    pub pca_sigma: f32,
+}
+
+/// Everything a training run needs besides the capture: the model ([`ModelConfig`]) and how
+/// it is trained.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// The preset these values started from (informative).
+    pub preset: String,
+    pub seed: u64,
+    #[serde(flatten)]
+    pub model: ModelConfig,
+    /// Whether head crops are rendered and supervised (L1, LPIPS, adversarial) in the joint
+    /// and fine-tuning stages; without the face branch they train the body Gaussians
+    /// (`--no-face-networks`: the face-crop losses alone). `--no-face-branch` turns both off.
+    pub face_losses: bool,
     /// Scale of the body views relative to the capture's images.
     pub body_scale: f32,
     pub lpips_net: LpipsNet,
@@ -161,16 +184,6 @@ pub struct TrainConfig {
     /// synthetic captures (their masks are exact), 2 otherwise (Animatable Gaussians, for
     /// matted masks).
     pub band_radius: Option<f32>,
-    /// Initial thickness of the Gaussians: the scale along the surface normal relative to the
-    /// tangent scale (1: isotropic, as Animatable Gaussians; below 1: discs on the surface).
-    pub initial_thickness: f32,
-    /// Initial opacity of every Gaussian (Animatable Gaussians: 0.1).
-    pub initial_opacity: f32,
-    pub colour_activation: ColourActivation,
-    /// Learnable per-Gaussian canonical attributes added to the networks' outputs.
-    pub learn_canonical: bool,
-    /// Step-size multiplier of the canonical attributes relative to `lr`.
-    pub canonical_lr_scale: f32,
     /// Adam's ε of the avatar networks (PyTorch's default 1e-8, as Animatable Gaussians runs
     /// it; Burn's default 1e-5 swamps the small gradients of the per-texel outputs).
     pub adam_epsilon: f32,
@@ -178,9 +191,6 @@ pub struct TrainConfig {
     pub lr_discriminator: f64,
     /// Standard deviation of the noise added to view directions during training.
     pub view_noise: f32,
-    /// Pose PCA components and clamp (in standard deviations) for unseen poses.
-    pub pca_components: usize,
-    pub pca_sigma: f32,
     pub checkpoint_every: u64,
     pub validate_every: u64,
     /// Decoded-image cache of the loader, bytes.
@@ -197,16 +207,25 @@ impl TrainConfig {
         Self {
             preset: "cpu".into(),
             seed: 0,
-            template: TemplateChoice::Clothed,
-            garment: None,
-            map_resolution: 256,
-            body_net: body,
-            body_layout: BodyLayout::Split,
-            face_branch: true,
+            model: ModelConfig {
+                template: TemplateChoice::Clothed,
+                garment: None,
+                map_resolution: 256,
+                body_net: body,
+                body_layout: BodyLayout::Split,
+                face_branch: true,
+                face_net: face,
+                face_crop_size: 128,
+                face_padding: 1.3,
+                initial_thickness: 0.3,
+                initial_opacity: 0.5,
+                colour_activation: ColourActivation::Linear,
+                learn_canonical: true,
+                canonical_lr_scale: 8.0,
+                pca_components: 20,
+                pca_sigma: 2.0,
+            },
             face_losses: true,
-            face_net: face,
-            face_crop_size: 128,
-            face_padding: 1.3,
             body_scale: 1.0,
             lpips_net: LpipsNet::Alex,
             lpips_size: 128,
@@ -235,16 +254,9 @@ impl TrainConfig {
             lr: 1e-3,
             adam_epsilon: 1e-8,
             batch: 1,
-            initial_opacity: 0.5,
             band_radius: None,
-            initial_thickness: 0.3,
-            colour_activation: ColourActivation::Linear,
-            learn_canonical: true,
-            canonical_lr_scale: 8.0,
             lr_discriminator: 2e-3,
             view_noise: 0.1,
-            pca_components: 20,
-            pca_sigma: 2.0,
             checkpoint_every: 100,
             validate_every: 100,
             cache_bytes: 1 << 30,
@@ -280,22 +292,26 @@ impl TrainConfig {
         body.in_channels = 6;
         let mut face = StyleUNetConfig::paper_face(3, false);
         face.in_channels = 6;
+        let cpu = Self::cpu();
         Self {
             preset: "paper".into(),
-            map_resolution: 1024,
-            body_net: body,
-            face_net: face,
-            body_layout: BodyLayout::Three,
-            face_crop_size: 512,
+            model: ModelConfig {
+                map_resolution: 1024,
+                body_net: body,
+                face_net: face,
+                body_layout: BodyLayout::Three,
+                face_crop_size: 512,
+                initial_opacity: 0.1,
+                initial_thickness: 1.0,
+                learn_canonical: false,
+                ..cpu.model.clone()
+            },
             body_scale: 1.0,
-            initial_opacity: 0.1,
-            initial_thickness: 1.0,
-            learn_canonical: false,
             lpips_net: LpipsNet::Vgg,
             lpips_size: 512,
             losses: LossWeights {
                 r1_gamma: 10.0,
-                ..Self::cpu().losses
+                ..cpu.losses.clone()
             },
             discriminator: DiscriminatorConfig::paper(512),
             steps: Stages {
@@ -310,7 +326,7 @@ impl TrainConfig {
             checkpoint_every: 5000,
             validate_every: 5000,
             cache_bytes: 8 << 30,
-            ..Self::cpu()
+            ..cpu
         }
     }
 
@@ -327,7 +343,8 @@ impl TrainConfig {
         }
     }
 
-    /// Reads a JSON config file: its keys over the preset it names.
+    /// Reads a JSON config file: its keys over the preset it names. A key the configuration
+    /// does not have is an error naming it.
     pub fn from_file(path: &Path) -> Result<Self, AvatarError> {
         let text = std::fs::read_to_string(path).map_err(|e| AvatarError::file(path, e))?;
         let value: Value = serde_json::from_str(&text)
@@ -339,6 +356,12 @@ impl TrainConfig {
             .to_string();
         let preset = Self::preset(&preset).map_err(|e| AvatarError::file(path, e))?;
         let mut base = serde_json::to_value(preset).expect("serialisable");
+        if let Some(key) = unknown_key(&base, &value, "") {
+            return Err(AvatarError::file(
+                path,
+                format!("unknown configuration key `{key}`"),
+            ));
+        }
         merge(&mut base, &value);
         let config: Self = serde_json::from_value(base)
             .map_err(|e| AvatarError::file(path, format!("bad configuration: {e}")))?;
@@ -370,19 +393,14 @@ impl TrainConfig {
         Ok(config)
     }
 
-    /// Checks ranges and the consistency between sizes, naming the first bad key.
+    /// Checks ranges and the consistency between sizes, naming the first bad key: the
+    /// model's ([`ModelConfig::validate`]), then training's.
     pub fn validate(&self) -> Result<(), AvatarError> {
+        self.model.validate()?;
         let bad = |k: &str, m: String| Err(AvatarError::config(k, m));
-        let r = self.map_resolution;
-        if r < 16 || !r.is_power_of_two() {
-            return bad("map_resolution", format!("{r} is not a power of two ≥ 16"));
-        }
-        // Sizes are checked before anything is allocated (the paper's largest is 1024).
+        let m = &self.model;
         for (key, value, limit) in [
-            ("map_resolution", r, MAX_MAP_RESOLUTION),
-            ("face_crop_size", self.face_crop_size, MAX_CROP),
             ("lpips_size", self.lpips_size, MAX_CROP),
-            ("pca_components", self.pca_components, 512),
             ("face_init_frames", self.face_init_frames, 100_000),
             ("batch", self.batch, MAX_BATCH),
         ] {
@@ -406,6 +424,117 @@ impl TrainConfig {
                     stage,
                     format!("{steps} is larger than the limit {MAX_STAGE_STEPS}"),
                 );
+            }
+        }
+        self.discriminator
+            .validate()
+            .map_err(|e| AvatarError::config("discriminator", e))?;
+        if self.discriminator.resolution != m.face_crop_size {
+            return bad(
+                "discriminator.resolution",
+                format!(
+                    "must equal face_crop_size ({}); got {}",
+                    m.face_crop_size, self.discriminator.resolution
+                ),
+            );
+        }
+        let min_crop = match self.lpips_net {
+            LpipsNet::Alex => 32,
+            LpipsNet::Vgg => 16,
+        };
+        if m.face_crop_size < min_crop || self.lpips_size < min_crop {
+            return bad(
+                "face_crop_size",
+                format!("face_crop_size and lpips_size must be at least {min_crop} for LPIPS"),
+            );
+        }
+        if !(self.body_scale > 0.0 && self.body_scale <= 1.0) {
+            return bad(
+                "body_scale",
+                format!("{} is not in (0, 1]", self.body_scale),
+            );
+        }
+        for (k, v) in [("lr", self.lr), ("lr_discriminator", self.lr_discriminator)] {
+            if !(v > 0.0 && v < 1.0) {
+                return bad(k, format!("{v} is not in (0, 1)"));
+            }
+        }
+        let l = &self.losses;
+        for (k, v) in [
+            ("losses.l1", l.l1),
+            ("losses.lpips", l.lpips),
+            ("losses.offset", l.offset),
+            ("losses.face_l1", l.face_l1),
+            ("losses.face_lpips", l.face_lpips),
+            ("losses.adversarial", l.adversarial),
+            ("losses.r1_gamma", l.r1_gamma),
+            ("view_noise", self.view_noise),
+            ("band_radius", self.band_radius.unwrap_or(0.0)),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(k, format!("{v} must be finite and ≥ 0"));
+            }
+        }
+        if !(self.adam_epsilon.is_finite() && self.adam_epsilon > 0.0) {
+            return bad(
+                "adam_epsilon",
+                format!("{} must be finite and > 0", self.adam_epsilon),
+            );
+        }
+        if l.r1_interval == 0 {
+            return bad("losses.r1_interval", "must be at least 1".into());
+        }
+        if self.steps.total() == 0 {
+            return bad("steps", "all stages have zero steps".into());
+        }
+        if m.face_branch && !self.face_losses {
+            return bad(
+                "face_losses",
+                "the face branch trains on the face-crop losses: must be true with face_branch"
+                    .into(),
+            );
+        }
+        if m.face_branch && self.face_init_frames == 0 {
+            return bad(
+                "face_init_frames",
+                "must be at least 1 with the face branch".into(),
+            );
+        }
+        if self.checkpoint_every == 0 || self.validate_every == 0 {
+            return bad(
+                "checkpoint_every",
+                "checkpoint_every and validate_every must be ≥ 1".into(),
+            );
+        }
+        Ok(())
+    }
+}
+
+impl ModelConfig {
+    /// The model part of a run's `config.json` (its training keys are ignored), checked.
+    pub fn from_file(path: &Path) -> Result<Self, AvatarError> {
+        let text = std::fs::read_to_string(path).map_err(|e| AvatarError::file(path, e))?;
+        let model: Self = serde_json::from_str(&text)
+            .map_err(|e| AvatarError::file(path, format!("bad model configuration: {e}")))?;
+        model.validate().map_err(|e| AvatarError::file(path, e))?;
+        Ok(model)
+    }
+
+    /// Checks the model's ranges and sizes, naming the first bad key.
+    pub fn validate(&self) -> Result<(), AvatarError> {
+        let bad = |k: &str, m: String| Err(AvatarError::config(k, m));
+        let r = self.map_resolution;
+        if r < 16 || !r.is_power_of_two() {
+            return bad("map_resolution", format!("{r} is not a power of two ≥ 16"));
+        }
+        // Sizes are checked before anything is allocated (the paper's largest is 1024).
+        for (key, value, limit) in [
+            ("map_resolution", r, MAX_MAP_RESOLUTION),
+            ("face_crop_size", self.face_crop_size, MAX_CROP),
+            ("pca_components", self.pca_components, 512),
+        ] {
+            if value > limit {
+                return bad(key, format!("{value} is larger than the limit {limit}"));
             }
         }
         self.body_net
@@ -435,87 +564,35 @@ impl TrainConfig {
                 "in_channels must be 6 and output_size equal to input_size".into(),
             );
         }
-        self.discriminator
-            .validate()
-            .map_err(|e| AvatarError::config("discriminator", e))?;
-        if self.discriminator.resolution != self.face_crop_size {
-            return bad(
-                "discriminator.resolution",
-                format!(
-                    "must equal face_crop_size ({}); got {}",
-                    self.face_crop_size, self.discriminator.resolution
-                ),
-            );
-        }
-        let min_crop = match self.lpips_net {
-            LpipsNet::Alex => 32,
-            LpipsNet::Vgg => 16,
-        };
-        if self.face_crop_size < min_crop || self.lpips_size < min_crop {
-            return bad(
-                "face_crop_size",
-                format!("face_crop_size and lpips_size must be at least {min_crop} for LPIPS"),
-            );
-        }
-        if !(self.body_scale > 0.0 && self.body_scale <= 1.0) {
-            return bad(
-                "body_scale",
-                format!("{} is not in (0, 1]", self.body_scale),
-            );
-        }
         if !(self.face_padding >= 1.0 && self.face_padding <= 4.0) {
             return bad(
                 "face_padding",
                 format!("{} is not in [1, 4]", self.face_padding),
             );
         }
-        for (k, v) in [("lr", self.lr), ("lr_discriminator", self.lr_discriminator)] {
-            if !(v > 0.0 && v < 1.0) {
-                return bad(k, format!("{v} is not in (0, 1)"));
-            }
-        }
-        let l = &self.losses;
-        for (k, v) in [
-            ("losses.l1", l.l1),
-            ("losses.lpips", l.lpips),
-            ("losses.offset", l.offset),
-            ("losses.face_l1", l.face_l1),
-            ("losses.face_lpips", l.face_lpips),
-            ("losses.adversarial", l.adversarial),
-            ("losses.r1_gamma", l.r1_gamma),
-            ("view_noise", self.view_noise),
-        ] {
-            if !(v.is_finite() && v >= 0.0) {
-                return bad(k, format!("{v} must be finite and ≥ 0"));
-            }
-        }
-        if l.r1_interval == 0 {
-            return bad("losses.r1_interval", "must be at least 1".into());
-        }
-        if self.steps.total() == 0 {
-            return bad("steps", "all stages have zero steps".into());
-        }
-        if self.face_branch && !self.face_losses {
+        if !(self.initial_thickness > 0.0 && self.initial_thickness <= 1.0) {
             return bad(
-                "face_losses",
-                "the face branch trains on the face-crop losses: must be true with face_branch"
-                    .into(),
+                "initial_thickness",
+                format!("{} is not in (0, 1]", self.initial_thickness),
             );
         }
-        if self.face_branch && self.face_init_frames == 0 {
+        if !(self.initial_opacity > 0.0 && self.initial_opacity < 1.0) {
             return bad(
-                "face_init_frames",
-                "must be at least 1 with the face branch".into(),
+                "initial_opacity",
+                format!("{} is not in (0, 1)", self.initial_opacity),
             );
         }
-        if self.checkpoint_every == 0 || self.validate_every == 0 {
+        if !(self.canonical_lr_scale.is_finite() && self.canonical_lr_scale >= 0.0) {
             return bad(
-                "checkpoint_every",
-                "checkpoint_every and validate_every must be ≥ 1".into(),
+                "canonical_lr_scale",
+                format!("{} must be finite and ≥ 0", self.canonical_lr_scale),
             );
         }
-        if self.pca_sigma.is_nan() || self.pca_sigma <= 0.0 {
-            return bad("pca_sigma", format!("{} must be positive", self.pca_sigma));
+        if !(self.pca_sigma.is_finite() && self.pca_sigma > 0.0) {
+            return bad(
+                "pca_sigma",
+                format!("{} must be finite and positive", self.pca_sigma),
+            );
         }
         Ok(())
     }
@@ -544,6 +621,24 @@ impl TrainConfig {
         };
         [with(3, false), with(3, true), with(8, false)]
     }
+}
+
+/// The first key of `patch` (as a dotted path) that `base`, a whole configuration, lacks.
+fn unknown_key(base: &Value, patch: &Value, prefix: &str) -> Option<String> {
+    let (Value::Object(b), Value::Object(p)) = (base, patch) else {
+        return None;
+    };
+    p.iter().find_map(|(k, v)| {
+        let path = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match b.get(k) {
+            None => Some(path),
+            Some(inner) => unknown_key(inner, v, &path),
+        }
+    })
 }
 
 /// Deep merge of JSON objects: `patch` wins.

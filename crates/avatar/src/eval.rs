@@ -297,7 +297,7 @@ pub fn evaluate(
             .iter()
             .map(|&v| posed.vertices[v])
             .collect();
-        let head = match head_box(&cam.camera, &head_points, avatar.config.face_padding) {
+        let head = match head_box(&cam.camera, &head_points, avatar.model.face_padding) {
             Some(b) => {
                 let (gt_face, face_cam) =
                     crop_view(&gt_full, &cam.camera, &b, options.face_size, &[1.0; 3]);

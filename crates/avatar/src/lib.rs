@@ -27,9 +27,10 @@ pub mod posing;
 pub mod report;
 pub mod run;
 pub mod setup;
+pub mod setup_file;
 pub mod train;
 pub mod trained;
 
-pub use config::TrainConfig;
+pub use config::{ModelConfig, TrainConfig};
 pub use error::AvatarError;
 pub use train::{Outcome, StepReport, Trainer};

@@ -34,7 +34,7 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use crate::AvatarError;
-use crate::config::{ColourActivation, TrainConfig};
+use crate::config::{ColourActivation, ModelConfig};
 use crate::inputs::{GaussianTables, NetInputs, PcaTensors, PoseTensors};
 use crate::posing::{Skinning, pose_gaussians};
 use crate::setup::{Setup, logit};
@@ -107,8 +107,13 @@ pub const AVATAR_PARAM_IDS: u64 = 1;
 pub const DISCRIMINATOR_PARAM_IDS: u64 = 2;
 
 impl AvatarNets {
-    /// Networks of `config`, weights drawn from its seed, parameter ids deterministic.
-    pub fn new(config: &TrainConfig, setup: &Setup, device: &Device) -> Result<Self, AvatarError> {
+    /// Networks of `config`, weights drawn from `seed`, parameter ids deterministic.
+    pub fn new(
+        config: &ModelConfig,
+        seed: u64,
+        setup: &Setup,
+        device: &Device,
+    ) -> Result<Self, AvatarError> {
         let zeros = |n: usize| {
             config
                 .learn_canonical
@@ -117,9 +122,9 @@ impl AvatarNets {
         let face = if config.face_branch {
             let [p, c, a] = config.face_nets();
             Some(FaceNets {
-                position: p.init(config.seed.wrapping_add(11), device)?,
-                colour: c.init(config.seed.wrapping_add(12), device)?,
-                aux: a.init(config.seed.wrapping_add(13), device)?,
+                position: p.init(seed.wrapping_add(11), device)?,
+                colour: c.init(seed.wrapping_add(12), device)?,
+                aux: a.init(seed.wrapping_add(13), device)?,
                 canonical: zeros(setup.face_count()),
             })
         } else {
@@ -127,9 +132,7 @@ impl AvatarNets {
         };
         let mut body = config.body_nets().into_iter().enumerate().map(|(i, c)| {
             // The first network keeps the seed offset it always had.
-            let seed = config
-                .seed
-                .wrapping_add(if i == 0 { 10 } else { 13 + i as u64 });
+            let seed = seed.wrapping_add(if i == 0 { 10 } else { 13 + i as u64 });
             c.init(seed, device)
         });
         let net = body.next().expect("at least one body network")?;
@@ -251,7 +254,7 @@ impl Constants {
     /// Uploads the setup (and the canonical face model, once it exists).
     pub fn new(
         setup: &Setup,
-        config: &TrainConfig,
+        config: &ModelConfig,
         face_base: Option<&FaceBase>,
         device: &Device,
     ) -> Self {

@@ -94,9 +94,7 @@ impl Run {
                 "not a training run (no config.json): train one with `f3g train`",
             ));
         }
-        let config: TrainConfig = read_json(&path)?;
-        config.validate().map_err(|e| AvatarError::file(&path, e))?;
-        Ok(config)
+        TrainConfig::from_file(&path)
     }
 
     pub fn write_config(&self, config: &TrainConfig) -> Result<(), AvatarError> {

@@ -17,7 +17,7 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
 use crate::AvatarError;
-use crate::config::{TemplateChoice, TrainConfig};
+use crate::config::{ModelConfig, TemplateChoice};
 use f3g_rig::{ModelSpec, Rig, RigParams};
 use f3g_template::canonical::CanonicalPose;
 use f3g_template::template::builtin_skirt;
@@ -39,7 +39,7 @@ pub struct FramePose {
 
 /// The static part of an avatar.
 pub struct Setup {
-    pub model: ModelSpec,
+    /// The body model (its `name` is the spec it was loaded from, e.g. `builtin`).
     pub rig: Rig,
     pub template: Template,
     pub maps: PositionMaps,
@@ -59,12 +59,13 @@ pub fn logit(p: f32) -> f32 {
 }
 
 impl Setup {
-    /// Builds the template of `config` for the body model `model` (as named by the capture),
-    /// with the subject's `identity` (shape) parameters.
+    /// Builds the template of `config` for the body model `model_text` (as named by the
+    /// capture, loaded from its asset files), with the subject's `identity` (shape)
+    /// parameters. A trained run keeps what this makes ([`Setup::write`]).
     pub fn new(
         model_text: &str,
         identity: &[f32],
-        config: &TrainConfig,
+        config: &ModelConfig,
     ) -> Result<Self, AvatarError> {
         let model: ModelSpec = model_text
             .parse()
@@ -104,8 +105,7 @@ impl Setup {
         let body_log_scales = knn_log_scales(&maps.positions)?;
         let head_vertices = rig.head_vertices()?;
         let finger_params = rig.finger_params()?;
-        Ok(Self {
-            model,
+        Ok(Self::from_parts(
             rig,
             template,
             maps,
@@ -113,7 +113,33 @@ impl Setup {
             body_log_scales,
             head_vertices,
             finger_params,
-        })
+        ))
+    }
+
+    /// A setup of parts already made (read from a run folder, [`crate::setup_file`]).
+    pub(crate) fn from_parts(
+        rig: Rig,
+        template: Template,
+        maps: PositionMaps,
+        head: Option<HeadMaps>,
+        body_log_scales: Vec<f32>,
+        head_vertices: Vec<usize>,
+        finger_params: Vec<usize>,
+    ) -> Self {
+        Self {
+            rig,
+            template,
+            maps,
+            head,
+            body_log_scales,
+            head_vertices,
+            finger_params,
+        }
+    }
+
+    /// Pose parameters of the fingers, left out of the networks' inputs.
+    pub fn finger_params(&self) -> &[usize] {
+        &self.finger_params
     }
 
     /// Initial log-scales `[N, 3]`: the k-NN scale in the surface's tangent plane and

@@ -6,7 +6,7 @@ use std::path::Path;
 use burn::tensor::Device;
 
 use crate::AvatarError;
-use crate::config::TrainConfig;
+use crate::config::ModelConfig;
 use crate::inputs::PcaTensors;
 use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
 use crate::posing::Skinning;
@@ -20,7 +20,8 @@ use f3g_splat::{Camera, GaussianCloud};
 /// The networks, canonical face model and setup of a run, on the device it was loaded onto
 /// (without autodiff).
 pub struct TrainedAvatar {
-    pub config: TrainConfig,
+    /// The model's configuration (the run's training settings are not needed).
+    pub model: ModelConfig,
     pub info: RunInfo,
     pub setup: Setup,
     pub nets: AvatarNets,
@@ -35,19 +36,44 @@ pub struct TrainedAvatar {
 
 impl TrainedAvatar {
     /// Loads the newest checkpoint of `run_dir` onto `device` (any device: a checkpoint does
-    /// not remember where it was trained).
+    /// not remember where it was trained). Everything comes from the run folder — the model
+    /// configuration, the stored setup (body model, template, tables), the pose PCA, the
+    /// networks — so a run copied to a machine without the body model's files works. A run
+    /// made before f3g stored its setup is rebuilt from the body model's files instead.
     pub fn load(run_dir: &Path, device: &Device) -> Result<Self, AvatarError> {
         let run = Run::new(run_dir);
-        let config = run.config()?;
+        let config_path = run.dir.join("config.json");
+        if !config_path.exists() {
+            return Err(AvatarError::file(
+                run_dir,
+                "not a training run (no config.json): train one with `f3g train`",
+            ));
+        }
+        let model = ModelConfig::from_file(&config_path)?;
         let info = run.info()?;
         let checkpoint = run
             .latest()?
             .ok_or_else(|| AvatarError::file(run_dir, "has no checkpoint yet: train it first"))?;
         let step = crate::run::read_state(&checkpoint)?.step;
-        let setup = Setup::new(&info.model, &info.identity, &config)?;
+        let setup = if Setup::stored_in(&run.dir) {
+            Setup::read(&run.dir, &model)?
+        } else {
+            Setup::new(&info.model, &info.identity, &model).map_err(|e| {
+                AvatarError::file(
+                    run_dir,
+                    format!(
+                        "keeps no setup (it was trained before f3g stored one in the run), and \
+                         rebuilding it from the body model `{}` failed: {e}. Where the body \
+                         model's files are, `f3g train --resume {}` stores the setup in the run.",
+                        info.model,
+                        run_dir.display()
+                    ),
+                )
+            })?
+        };
         let device = device.clone().without_autodiff();
         let nets = f3g_nets::checkpoint::load(
-            AvatarNets::new(&config, &setup, &device)?,
+            AvatarNets::new(&model, 0, &setup, &device)?,
             &checkpoint.join("nets.bpk"),
         )?;
         let face_path = checkpoint.join("face_base.npz");
@@ -72,9 +98,9 @@ impl TrainedAvatar {
         } else {
             None
         };
-        let constants = Constants::new(&setup, &config, face_base.as_ref(), &device);
+        let constants = Constants::new(&setup, &model, face_base.as_ref(), &device);
         Ok(Self {
-            config,
+            model,
             info,
             setup,
             nets,

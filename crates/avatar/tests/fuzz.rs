@@ -10,9 +10,11 @@ use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::Device;
 use f3g_avatar::TrainConfig;
 use f3g_avatar::run::{Run, load_face_base, load_optim, read_state};
+use f3g_avatar::setup::Setup;
 use f3g_nets::StyleUNetConfig;
 use f3g_testkit::{
-    AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, write_arrays,
+    AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, read_arrays,
+    write_arrays,
 };
 use proptest::prelude::*;
 
@@ -32,7 +34,10 @@ fn the_valid_seeds_read() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("config.json");
     std::fs::write(&path, CONFIG).unwrap();
-    assert_eq!(TrainConfig::from_file(&path).unwrap().map_resolution, 128);
+    assert_eq!(
+        TrainConfig::from_file(&path).unwrap().model.map_resolution,
+        128
+    );
     let sets: Vec<String> = SETS.split(' ').map(String::from).collect();
     assert_eq!(
         TrainConfig::cpu()
@@ -140,6 +145,27 @@ fn pca() -> Vec<Array> {
     ]
 }
 
+/// A small model of the built-in human (face branch on) and its stored setup's folder.
+static SETUP: std::sync::LazyLock<(f3g_avatar::ModelConfig, tempfile::TempDir)> =
+    std::sync::LazyLock::new(|| {
+        let mut model = TrainConfig::cpu().model;
+        model.map_resolution = 32;
+        model.template = f3g_avatar::config::TemplateChoice::Body;
+        let dir = tempfile::tempdir().unwrap();
+        Setup::new("builtin", &[0.0; 5], &model)
+            .unwrap()
+            .write(dir.path())
+            .unwrap();
+        (model, dir)
+    });
+
+#[test]
+fn the_valid_setup_reads() {
+    let (model, dir) = &*SETUP;
+    let setup = Setup::read(dir.path(), model).unwrap();
+    assert!(setup.face_count() > 0 && setup.body_count() > 0);
+}
+
 #[test]
 fn the_valid_checkpoint_seeds_read() {
     let dir = tempfile::tempdir().unwrap();
@@ -210,6 +236,34 @@ proptest! {
             }
             Err(e) => prop_assert!(e.to_string().contains("pca.npz"), "{}", e),
         }
+    }
+}
+
+proptest! {
+    #![proptest_config(config(200))]
+
+    /// A run's `setup.npz` (its body model and template stay valid): every mutation reads to
+    /// a setup whose tables agree with the rig and the template, or is an error naming it.
+    #[test]
+    fn mutated_setups_read_or_error(arrays in mutated_arrays(read_arrays(&SETUP.1.path().join("setup.npz")))) {
+        let (model, valid) = &*SETUP;
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["body_model.npz", "template.npz"] {
+            std::fs::copy(valid.path().join(name), dir.path().join(name)).unwrap();
+        }
+        write_arrays(&dir.path().join("setup.npz"), &arrays);
+        match Setup::read(dir.path(), model) {
+            Ok(setup) => {
+                let (j, n) = (setup.rig.skeleton.len(), setup.body_count());
+                prop_assert_eq!(setup.body_log_scales.len(), n);
+                prop_assert!(setup.maps.skin.joints.iter().flatten().all(|&x| (x as usize) < j));
+                if let Some(h) = &setup.head {
+                    prop_assert!(h.sources.iter().flatten().all(|s| s.0 < n));
+                }
+            }
+            Err(e) => prop_assert!(e.to_string().contains("setup.npz"), "{}", e),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
     }
 }
 

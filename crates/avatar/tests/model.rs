@@ -15,16 +15,16 @@ use f3g_splat::Camera;
 /// The cpu preset at a size that builds in a second.
 fn small(layout: BodyLayout) -> TrainConfig {
     let mut c = TrainConfig::cpu();
-    c.map_resolution = 32;
-    c.face_branch = false;
+    c.model.map_resolution = 32;
+    c.model.face_branch = false;
     c.face_losses = false;
-    c.body_layout = layout;
-    c.body_net.input_size = 16;
-    c.body_net.output_size = 32;
-    c.body_net.max_channels = 8;
-    c.body_net.channel_base = 128;
-    c.body_net.style_dim = 8;
-    c.body_net.middle_size = 4;
+    c.model.body_layout = layout;
+    c.model.body_net.input_size = 16;
+    c.model.body_net.output_size = 32;
+    c.model.body_net.max_channels = 8;
+    c.model.body_net.channel_base = 128;
+    c.model.body_net.style_dim = 8;
+    c.model.body_net.middle_size = 4;
     c.validate().unwrap();
     c
 }
@@ -42,9 +42,9 @@ fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 fn gaussians(config: &TrainConfig, params: &RigParams, camera: &Camera) -> Canonical {
     let device = Device::flex();
     let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
-    let setup = Setup::new("builtin", &rig.zero_params().identity, config).unwrap();
-    let nets = AvatarNets::new(config, &setup, &device).unwrap();
-    let constants = Constants::new(&setup, config, None, &device);
+    let setup = Setup::new("builtin", &rig.zero_params().identity, &config.model).unwrap();
+    let nets = AvatarNets::new(&config.model, config.seed, &setup, &device).unwrap();
+    let constants = Constants::new(&setup, &config.model, None, &device);
     let pose = setup.pose(params).unwrap().upload(&device);
     let inputs = constants.inputs(&pose, camera, None, None).unwrap();
     canonical(&nets, &constants, &inputs).unwrap()
@@ -104,8 +104,8 @@ fn the_networks_do_not_see_the_fingers() {
     );
     assert!(fingers.len() >= 30, "{}", fingers.len());
     let device = Device::flex();
-    let setup = Setup::new("builtin", &rig.zero_params().identity, &config).unwrap();
-    let constants = Constants::new(&setup, &config, None, &device);
+    let setup = Setup::new("builtin", &rig.zero_params().identity, &config.model).unwrap();
+    let constants = Constants::new(&setup, &config.model, None, &device);
     let rest = rig.zero_params();
     let mut curled = rest.clone();
     for &i in &fingers {
@@ -176,11 +176,11 @@ fn host_input(values: &[Vec<f32>], pixels: &[usize], n: usize, size: usize) -> V
 #[test]
 fn device_inputs_equal_the_host_reference() {
     let mut config = small(BodyLayout::Split);
-    config.face_branch = true;
-    config.face_net.input_size = 16;
+    config.model.face_branch = true;
+    config.model.face_net.input_size = 16;
     let device = Device::flex();
     let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
-    let setup = Setup::new("builtin", &rig.zero_params().identity, &config).unwrap();
+    let setup = Setup::new("builtin", &rig.zero_params().identity, &config.model).unwrap();
     // A pose with root motion, a turned head, an open jaw and expressions.
     let mut params = rig.zero_params();
     for (i, p) in params.pose.iter_mut().enumerate() {
@@ -200,7 +200,7 @@ fn device_inputs_equal_the_host_reference() {
         log_scales: vec![-4.0; 3 * n_face],
         quats: [1.0, 0.0, 0.0, 0.0].repeat(n_face),
     };
-    let constants = Constants::new(&setup, &config, Some(&base), &device);
+    let constants = Constants::new(&setup, &config.model, Some(&base), &device);
     let inputs = constants
         .inputs(&pose.upload(&device), &cam, None, None)
         .unwrap();

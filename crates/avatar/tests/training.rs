@@ -30,8 +30,6 @@ fn capture(dir: &Path) {
 fn tiny(steps: [u64; 5]) -> TrainConfig {
     let c = TrainConfig::cpu();
     let mut config = TrainConfig {
-        map_resolution: 32,
-        face_crop_size: 32,
         lpips_size: 32,
         body_scale: 0.5,
         face_init_frames: 2,
@@ -39,18 +37,20 @@ fn tiny(steps: [u64; 5]) -> TrainConfig {
         validate_every: 1000,
         ..c
     };
-    config.body_net.input_size = 16;
-    config.body_net.output_size = 32;
-    config.body_net.max_channels = 16;
-    config.body_net.channel_base = 256;
-    config.body_net.style_dim = 16;
-    config.body_net.middle_size = 4;
-    config.face_net.input_size = 16;
-    config.face_net.output_size = 16;
-    config.face_net.max_channels = 16;
-    config.face_net.channel_base = 128;
-    config.face_net.style_dim = 16;
-    config.face_net.middle_size = 4;
+    config.model.map_resolution = 32;
+    config.model.face_crop_size = 32;
+    config.model.body_net.input_size = 16;
+    config.model.body_net.output_size = 32;
+    config.model.body_net.max_channels = 16;
+    config.model.body_net.channel_base = 256;
+    config.model.body_net.style_dim = 16;
+    config.model.body_net.middle_size = 4;
+    config.model.face_net.input_size = 16;
+    config.model.face_net.output_size = 16;
+    config.model.face_net.max_channels = 16;
+    config.model.face_net.channel_base = 128;
+    config.model.face_net.style_dim = 16;
+    config.model.face_net.middle_size = 4;
     config.discriminator.resolution = 32;
     config.discriminator.max_channels = 16;
     config.discriminator.channel_base = 128;
@@ -69,11 +69,12 @@ fn tiny(steps: [u64; 5]) -> TrainConfig {
 
 /// `tiny(steps)` without the face branch (body Gaussians and body losses only).
 fn tiny_body(steps: [u64; 5]) -> TrainConfig {
-    TrainConfig {
-        face_branch: false,
+    let mut config = TrainConfig {
         face_losses: false,
         ..tiny(steps)
-    }
+    };
+    config.model.face_branch = false;
+    config
 }
 
 /// A new run of `config` on `cap` (the protocol's training split) on the CPU.
@@ -171,10 +172,15 @@ fn every_network_and_the_discriminator_are_updated() {
     let b = TrainedAvatar::load(&before, &Device::flex()).unwrap();
     let a = TrainedAvatar::load(&after, &Device::flex()).unwrap();
     let face_init = tiny([1, 0, 0, 0, 0]);
-    let fresh_face = f3g_avatar::model::AvatarNets::new(&face_init, &a.setup, &Device::flex())
-        .unwrap()
-        .face
-        .unwrap();
+    let fresh_face = f3g_avatar::model::AvatarNets::new(
+        &face_init.model,
+        face_init.seed,
+        &a.setup,
+        &Device::flex(),
+    )
+    .unwrap()
+    .face
+    .unwrap();
     // The body moved between step 4 and the end (joint stage), and so did the face networks
     // from their initial weights.
     assert_ne!(values(&b.nets.body), values(&a.nets.body));

@@ -317,7 +317,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         frames,
         every: a.every,
         scale: a.scale.unwrap_or(1.0),
-        face_size: a.face_size.unwrap_or(config.face_crop_size),
+        face_size: a.face_size.unwrap_or(config.model.face_crop_size),
         lpips_size: a.lpips_size,
         lpips_net: a.lpips.unwrap_or(config.lpips_net),
         out: a.out.clone(),

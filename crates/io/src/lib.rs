@@ -411,6 +411,64 @@ impl<R: std::io::Read + std::io::Seek> Npz<R> {
         npy_values(self.array(name)?).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
     }
 
+    /// Array `name` as `f32`, which must have exactly `shape` and only finite values.
+    pub fn f32_exact(&mut self, name: &str, shape: &[usize]) -> Result<Vec<f32>, IoError> {
+        // The header first: a shape that lies is refused before anything is allocated.
+        let got = self.shape(name)?;
+        self.check_shape(name, &got, shape)?;
+        let (_, values) = self.f32(name)?;
+        match values.iter().position(|v| !v.is_finite()) {
+            Some(i) => Err(IoError::new(
+                &self.path,
+                format!("`{name}`: non-finite value at flat index {i}"),
+            )),
+            None => Ok(values),
+        }
+    }
+
+    /// Integer array `name` of exactly `shape` whose values are indices below `bound`.
+    pub fn indices(
+        &mut self,
+        name: &str,
+        shape: &[usize],
+        bound: usize,
+    ) -> Result<Vec<usize>, IoError> {
+        let got = self.shape(name)?;
+        self.check_shape(name, &got, shape)?;
+        let (_, values) = self.i64(name)?;
+        values
+            .iter()
+            .map(|&v| {
+                usize::try_from(v)
+                    .ok()
+                    .filter(|&v| v < bound)
+                    .ok_or_else(|| {
+                        IoError::new(
+                            &self.path,
+                            format!("`{name}`: {v} is not an index below {bound}"),
+                        )
+                    })
+            })
+            .collect()
+    }
+
+    /// The shape of array `name` (read from its header only).
+    pub fn shape(&mut self, name: &str) -> Result<Vec<usize>, IoError> {
+        let path = self.path.clone();
+        checked_shape(self.array(name)?.shape()).map_err(|e| IoError::new(&path, e))
+    }
+
+    fn check_shape(&self, name: &str, got: &[usize], shape: &[usize]) -> Result<(), IoError> {
+        if got == shape {
+            Ok(())
+        } else {
+            Err(IoError::new(
+                &self.path,
+                format!("`{name}` has shape {got:?}, expected {shape:?}"),
+            ))
+        }
+    }
+
     /// The file this archive came from (or its label).
     pub fn path(&self) -> &Path {
         &self.path

@@ -16,6 +16,7 @@ pub mod builtin;
 pub mod choreography;
 pub mod correctives;
 mod error;
+pub mod file;
 pub mod fit;
 pub mod glb;
 pub mod gltf;

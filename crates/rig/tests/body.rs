@@ -166,3 +166,21 @@ fn a_model_with_unknown_names_is_refused_naming_the_role_and_a_role_map_makes_it
         "{e}"
     );
 }
+
+#[test]
+fn a_rig_file_holds_the_whole_model() {
+    let rig = builtin();
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("body_model.npz");
+    f3g_rig::file::write(&rig, &path).unwrap();
+    let back = f3g_rig::file::read(&path).unwrap();
+    assert_eq!(
+        (&back.name, &back.roles, &back.surface),
+        (&rig.name, &rig.roles, &rig.surface)
+    );
+    assert_eq!(back.pose_param_names(), rig.pose_param_names());
+    let mut frame = f3g_rig::choreography::motion(&rig, 12, 5)[11].clone();
+    frame.identity[0] = 0.5;
+    let (a, b) = (rig.pose(&frame).unwrap(), back.pose(&frame).unwrap());
+    assert_eq!(a.vertices, b.vertices);
+}

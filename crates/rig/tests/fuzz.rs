@@ -236,6 +236,36 @@ proptest! {
 static BUILTIN: std::sync::LazyLock<Rig> =
     std::sync::LazyLock::new(|| ModelSpec::Builtin.load().unwrap());
 
+/// A small rig file: the glTF fixture's rig (Momentum parameters, inverse bind matrices), as
+/// arrays.
+fn rig_file() -> Vec<f3g_testkit::Array> {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("rig.npz");
+    f3g_rig::file::write(&glb_rig(), &path).unwrap();
+    f3g_testkit::read_arrays(&path)
+}
+
+proptest! {
+    #![proptest_config(config(1000))]
+
+    /// A run's `body_model.npz`: every mutation reads to a rig that validates and poses, or
+    /// is an error naming the file.
+    #[test]
+    fn mutated_rig_files_read_or_error(arrays in mutated_arrays(rig_file())) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rig.npz");
+        write_arrays(&path, &arrays);
+        match f3g_rig::file::read(&path) {
+            Ok(rig) => {
+                prop_assert!(rig.validate().is_ok());
+                prop_assert!(rig.pose(&rig.zero_params()).is_ok());
+            }
+            Err(e) => prop_assert!(e.to_string().contains("rig.npz"), "{}", e),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
+    }
+}
+
 proptest! {
     #![proptest_config(config(3000))]
 

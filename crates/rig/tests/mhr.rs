@@ -449,6 +449,10 @@ fn loads_and_poses_like_the_authored_character() {
     let a = author(3);
     write_assets(dir.path(), &a);
     let rig = mhr::load(dir.path(), 1).unwrap();
+    // Written to a rig file and read back, it is the same model (every check below runs on
+    // the copy: Momentum parameters, MLP correctives and inverse bind matrices survive).
+    f3g_rig::file::write(&rig, &dir.path().join("rig.npz")).unwrap();
+    let rig = f3g_rig::file::read(&dir.path().join("rig.npz")).unwrap();
     assert_eq!(rig.skeleton.len(), BONES.len());
     assert_eq!((rig.identity.len(), rig.expression.len()), (45, 2));
     let bind = bind_pose();

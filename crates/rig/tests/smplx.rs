@@ -223,6 +223,10 @@ fn matches_an_independent_evaluation() {
         let m = random_model(seed);
         write_model(&path, &m);
         let rig = smplx::load(&path, 10, 10).unwrap();
+        // Checked on its copy through a rig file (linear correctives, the joint model).
+        let copy = dir.path().join("rig.npz");
+        f3g_rig::file::write(&rig, &copy).unwrap();
+        let rig = f3g_rig::file::read(&copy).unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(100 + seed);
         let mut params = rig.zero_params();
         params

@@ -31,7 +31,7 @@ pub fn build(
         body: body.valid(),
         face: None,
     };
-    let constants = Constants::new(setup, config, None, &plain);
+    let constants = Constants::new(setup, &config.model, None, &plain);
     let n = setup.body_count();
     let mut sum = [
         vec![0.0f64; 3 * n],

@@ -52,7 +52,7 @@ impl Losses<'_> {
         let n = raw.dims()[0];
         let col = |a: usize, b: usize| raw.clone().slice([0..n, a..b]);
         let offsets = col(0, 3).abs().mean() + col(3, 6).abs().mean();
-        let o0 = self.config.initial_opacity;
+        let o0 = self.config.model.initial_opacity;
         let opacity = (sigmoid(col(6, 7) + crate::setup::logit(o0)) - o0)
             .abs()
             .mean();

@@ -154,7 +154,7 @@ impl Trainer {
         dataset.rig()?;
         let split = training_split(&dataset, cameras, frames)?;
         let identity = dataset.params[split.frames[0]].identity.clone();
-        let setup = Setup::new(&dataset.model, &identity, &config)?;
+        let setup = Setup::new(&dataset.model, &identity, &config.model)?;
         let train_params: Vec<_> = split
             .frames
             .iter()
@@ -171,13 +171,15 @@ impl Trainer {
             train_cameras: split.cameras.clone(),
             train_frames: split.frames.clone(),
         })?;
+        // What inference needs of the body model stays with the run.
+        setup.write(&run.dir)?;
         let pca_frames: Vec<_> = evenly(&train_params, 300);
         if pca_frames.len() >= 2 {
             run.write_pca(&pca::fit_pose_pca(
                 &setup,
                 &pca_frames,
-                config.pca_components,
-                config.pca_sigma,
+                config.model.pca_components,
+                config.model.pca_sigma,
                 &first_device(devices)?.without_autodiff(),
             )?)?;
         }
@@ -219,7 +221,14 @@ impl Trainer {
             cameras: info.train_cameras.clone(),
             frames: info.train_frames.clone(),
         };
-        let setup = Setup::new(&dataset.model, &info.identity, &config)?;
+        // The stored setup; a run made before runs kept it gets it now.
+        let setup = if Setup::stored_in(&run.dir) {
+            Setup::read(&run.dir, &config.model)?
+        } else {
+            let setup = Setup::new(&dataset.model, &info.identity, &config.model)?;
+            setup.write(&run.dir)?;
+            setup
+        };
         let checkpoint = run.latest()?;
         let state = match &checkpoint {
             Some(c) => read_state(c)?,
@@ -282,8 +291,8 @@ impl Trainer {
     fn loader_options(&self) -> LoaderOptions {
         LoaderOptions {
             body_scale: self.config.body_scale,
-            face_size: self.config.face_crop_size,
-            face_padding: self.config.face_padding,
+            face_size: self.config.model.face_crop_size,
+            face_padding: self.config.model.face_padding,
             cache_bytes: self.config.cache_bytes,
             prefetch: 4 * self.replicas.len() * self.config.batch,
             random_background: true,

@@ -39,7 +39,8 @@ impl Trainer {
                 &r.device,
             )?;
             for r in &mut self.replicas {
-                r.constants = Constants::new(&self.setup, &self.config, Some(&base), &r.device);
+                r.constants =
+                    Constants::new(&self.setup, &self.config.model, Some(&base), &r.device);
             }
             self.face_base = Some(base);
         }

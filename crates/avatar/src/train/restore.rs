@@ -33,10 +33,10 @@ impl Trainer {
         devices: &[Device],
     ) -> Result<Self, AvatarError> {
         let device = first_device(devices)?.without_autodiff().autodiff();
-        let mut nets = AvatarNets::new(&config, &setup, &device)?;
+        let mut nets = AvatarNets::new(&config.model, config.seed, &setup, &device)?;
         let mut optimisers = Optimisers {
             body: adam(config.adam_epsilon),
-            face: config.face_branch.then(|| adam(config.adam_epsilon)),
+            face: config.model.face_branch.then(|| adam(config.adam_epsilon)),
             disc: None,
         };
         let with_disc = config.face_losses && config.adversarial;
@@ -95,7 +95,7 @@ impl Trainer {
                 (nets.clone().fork(&d), disc.clone().map(|x| x.fork(&d)))
             };
             replicas.push(Replica {
-                constants: Constants::new(&setup, &config, face_base.as_ref(), &d),
+                constants: Constants::new(&setup, &config.model, face_base.as_ref(), &d),
                 lpips: f3g_nets::Lpips::load(config.lpips_net, &d)?,
                 nets: n,
                 disc: dc,

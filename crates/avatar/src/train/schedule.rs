@@ -46,7 +46,7 @@ impl Schedule {
         Self {
             steps: config.steps.clone(),
             lr: config.lr,
-            face_branch: config.face_branch,
+            face_branch: config.model.face_branch,
             face_losses: config.face_losses,
         }
     }

@@ -22,15 +22,20 @@ impl Trainer {
             body: r.nets.body.valid(),
             face: r.nets.face.as_ref().map(Module::valid),
         };
-        let constants = Constants::new(&self.setup, &self.config, self.face_base.as_ref(), &plain);
+        let constants = Constants::new(
+            &self.setup,
+            &self.config.model,
+            self.face_base.as_ref(),
+            &plain,
+        );
         let cache = std::sync::Mutex::new(f3g_data::loader::ImageCache::new(1 << 28));
         // The whole ground truth: training blanks a boundary band in it (and in the render),
         // but the grid shows the render as it is, so a blanked band would show up as an
         // outline of error around every silhouette.
         let options = LoaderOptions {
             body_scale: self.config.body_scale,
-            face_size: self.config.face_crop_size,
-            face_padding: self.config.face_padding,
+            face_size: self.config.model.face_crop_size,
+            face_padding: self.config.model.face_padding,
             band_radius: 0.0,
             ..Default::default()
         };
