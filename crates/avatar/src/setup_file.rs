@@ -193,7 +193,7 @@ impl Setup {
             pixels: npz.indices("map_pixels", &[n], 2 * r * r)?,
             positions: vec3s(&npz.f32_exact("map_positions", &[n, 3])?),
             normals: vec3s(&npz.f32_exact("map_normals", &[n, 3])?),
-            skin: skin(&mut npz, "map", n)?,
+            skin: skin(&mut npz, "map_", n)?,
             labels: npz
                 .indices("map_labels", &[n], 256)?
                 .into_iter()
@@ -248,7 +248,7 @@ impl Setup {
                     pixels: npz.indices("head_pixels", &[m], 2 * size * size)?,
                     positions: vec3s(&npz.f32_exact("head_positions", &[m, 3])?),
                     normals: vec3s(&npz.f32_exact("head_normals", &[m, 3])?),
-                    skin: skin(&mut npz, "head", m)?,
+                    skin: skin(&mut npz, "head_", m)?,
                     sources: sources
                         .chunks_exact(4)
                         .zip(source_weights.chunks_exact(4))

@@ -1,0 +1,267 @@
+//! The architecture's invariants (ARCHITECTURE.md), checked on the sources: each test reads
+//! the workspace's `Cargo.toml`s and `.rs` files (test modules and `tests/` left out) and fails
+//! naming the file and line that breaks a rule.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+
+fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../..")
+}
+
+/// The crates, bottom of the graph first, with the workspace crates each may depend on.
+const LAYERS: [(&str, &[&str]); 10] = [
+    ("io", &[]),
+    ("camera", &[]),
+    ("testkit", &["io"]),
+    ("rig", &["io"]),
+    ("splat", &["io", "camera"]),
+    ("template", &["io", "camera", "rig"]),
+    ("data", &["io", "camera", "rig", "template"]),
+    ("nets", &["io"]),
+    (
+        "avatar",
+        &["io", "camera", "rig", "splat", "template", "data", "nets"],
+    ),
+    (
+        "cli",
+        &[
+            "io", "camera", "rig", "splat", "template", "data", "nets", "avatar",
+        ],
+    ),
+];
+
+/// Crates that may use Burn (the others are plain Rust over `f3g-io`).
+const BURN: [&str; 4] = ["splat", "nets", "avatar", "cli"];
+
+/// The `[dependencies]` entries of a crate's manifest (not dev- or build-dependencies).
+fn dependencies(krate: &str) -> Vec<String> {
+    let text =
+        std::fs::read_to_string(workspace().join("crates").join(krate).join("Cargo.toml")).unwrap();
+    let mut section = String::new();
+    let mut out = Vec::new();
+    for line in text.lines() {
+        let line = line.trim();
+        if line.starts_with('[') {
+            section = line.to_string();
+        } else if section == "[dependencies]"
+            && let Some((name, _)) = line.split_once(['=', '.'])
+            && !line.starts_with('#')
+        {
+            out.push(name.trim().to_string());
+        }
+    }
+    out
+}
+
+/// A source file's code lines with their numbers: comments and `#[cfg(test)]` items left out
+/// (an item ends where its braces close).
+fn code_lines(path: &Path) -> Vec<(usize, String)> {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut out = Vec::new();
+    let (mut in_test, mut depth, mut opened) = (false, 0i64, false);
+    for (i, line) in text.lines().enumerate() {
+        if line.trim() == "#[cfg(test)]" {
+            (in_test, depth, opened) = (true, 0, false);
+            continue;
+        }
+        if in_test {
+            for c in line.chars() {
+                match c {
+                    '{' => (depth, opened) = (depth + 1, true),
+                    '}' => depth -= 1,
+                    _ => {}
+                }
+            }
+            in_test = !(opened && depth <= 0) && !(line.trim_end().ends_with(';') && !opened);
+            continue;
+        }
+        if !line.trim_start().starts_with("//") {
+            out.push((i + 1, line.to_string()));
+        }
+    }
+    out
+}
+
+/// Every `.rs` file under `dir`.
+fn rust_files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                out.push(p);
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+/// The library sources of a crate.
+fn sources(krate: &str) -> Vec<PathBuf> {
+    rust_files(&workspace().join("crates").join(krate).join("src"))
+}
+
+/// `file:line: text` for every code line of `files` that contains one of `needles`.
+fn find(files: &[PathBuf], needles: &[&str]) -> Vec<String> {
+    let root = workspace();
+    let mut out = Vec::new();
+    for f in files {
+        let rel = f.strip_prefix(&root).unwrap_or(f).display().to_string();
+        for (i, l) in code_lines(f) {
+            if needles.iter().any(|n| l.contains(n)) {
+                out.push(format!("{rel}:{i}: {}", l.trim()));
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn crates_depend_only_on_crates_below_them_and_burn_stays_above_the_data() {
+    let mut broken = Vec::new();
+    for (krate, allowed) in LAYERS {
+        for dep in dependencies(krate) {
+            if let Some(other) = dep.strip_prefix("f3g-")
+                && !allowed.contains(&other)
+            {
+                broken.push(format!("{krate} depends on f3g-{other}"));
+            }
+            if dep.starts_with("burn") && !BURN.contains(&krate) {
+                broken.push(format!("{krate} depends on {dep}"));
+            }
+        }
+    }
+    let crates: BTreeSet<String> = std::fs::read_dir(workspace().join("crates"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    let layered: BTreeSet<String> = LAYERS.iter().map(|(k, _)| k.to_string()).collect();
+    assert_eq!(crates, layered, "every crate has its place in LAYERS");
+    let architecture = std::fs::read_to_string(workspace().join("ARCHITECTURE.md")).unwrap();
+    for krate in &crates {
+        if !architecture.contains(&format!("`crates/{krate}`")) {
+            broken.push(format!("ARCHITECTURE.md does not describe crates/{krate}"));
+        }
+    }
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+#[test]
+fn only_the_rig_crate_knows_joint_names() {
+    let mut names: BTreeSet<String> = f3g_rig::builtin::load()
+        .unwrap()
+        .rig
+        .skeleton
+        .joints()
+        .iter()
+        .map(|j| j.name.clone())
+        .collect();
+    names.extend(f3g_rig::smplx::JOINT_NAMES.iter().map(|n| n.to_string()));
+    let channels = ["tx", "ty", "tz", "rx", "ry", "rz", "sc"];
+    let mut broken = Vec::new();
+    for (krate, _) in LAYERS.iter().filter(|(k, _)| *k != "rig") {
+        for file in sources(krate) {
+            for (i, line) in code_lines(&file) {
+                // The string literals of the line.
+                for (k, literal) in line.split('"').enumerate() {
+                    let joint = literal
+                        .rsplit_once('_')
+                        .filter(|(_, c)| channels.contains(c))
+                        .map_or(literal, |(j, _)| j);
+                    if k % 2 == 1 && names.contains(joint) {
+                        broken.push(format!(
+                            "{krate}/{}:{i}: \"{literal}\"",
+                            file.file_name().unwrap().to_string_lossy()
+                        ));
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        broken.is_empty(),
+        "joint names outside f3g-rig: {broken:#?}"
+    );
+}
+
+#[test]
+fn inference_never_imports_training() {
+    let dir = workspace().join("crates/avatar/src");
+    let inference: Vec<PathBuf> = [
+        "trained.rs",
+        "eval.rs",
+        "animate.rs",
+        "export.rs",
+        "model.rs",
+        "inputs.rs",
+        "posing.rs",
+        "setup.rs",
+        "setup_file.rs",
+    ]
+    .iter()
+    .map(|f| dir.join(f))
+    .collect();
+    let broken = find(
+        &inference,
+        &["crate::train::", "crate::train;", "TrainConfig"],
+    );
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+#[test]
+fn no_crate_below_the_avatar_knows_burns_autodiff_but_the_splat_ops_graph_node() {
+    let mut files: Vec<PathBuf> = ["io", "camera", "rig", "template", "data", "nets"]
+        .iter()
+        .flat_map(|k| sources(k))
+        .collect();
+    files.extend(
+        sources("splat")
+            .into_iter()
+            .filter(|f| !f.ends_with("op/autodiff.rs")),
+    );
+    let broken = find(
+        &files,
+        &["backend::autodiff", ".autodiff()", "AutodiffBackend"],
+    );
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+#[test]
+fn the_gpu_kernels_share_semantics_not_the_cpu_path() {
+    let broken = find(
+        &rust_files(&workspace().join("crates/splat/src/cube")),
+        &["crate::cpu"],
+    );
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+#[test]
+fn every_file_is_written_atomically_but_the_training_log() {
+    let files: Vec<PathBuf> = LAYERS
+        .iter()
+        .filter(|(k, _)| *k != "io")
+        .flat_map(|(k, _)| sources(k))
+        .collect();
+    let broken: Vec<String> = find(
+        &files,
+        &[
+            "fs::write(",
+            "File::create(",
+            "OpenOptions::new()",
+            "fs::copy(",
+        ],
+    )
+    .into_iter()
+    // The append-only log (documented in train/mod.rs and ARCHITECTURE.md).
+    .filter(|l| !l.starts_with("crates/avatar/src/train/mod.rs") || !l.contains("OpenOptions"))
+    .collect();
+    assert!(
+        broken.is_empty(),
+        "write through f3g_io::write_atomic: {broken:#?}"
+    );
+}
