@@ -67,8 +67,18 @@ proptest! {
     #[test]
     fn mutated_overrides_apply_or_error(text in mutated_text(SETS)) {
         let sets: Vec<String> = text.split(' ').map(String::from).collect();
-        if let Ok(c) = TrainConfig::cpu().with_overrides(&sets) {
-            prop_assert!(c.validate().is_ok());
+        // Applied, a valid configuration; refused, an error that names the key, the value's
+        // problem or the `--set` syntax.
+        match TrainConfig::cpu().with_overrides(&sets) {
+            Ok(c) => prop_assert!(c.validate().is_ok()),
+            Err(e) => {
+                let e = e.to_string();
+                let named = sets.iter().any(|s| {
+                    let key = s.split('=').next().unwrap_or(s);
+                    e.contains(key.rsplit('.').next().unwrap_or(key))
+                });
+                prop_assert!(named || e.contains("--set") || e.contains("key=value"), "{}", e);
+            }
         }
     }
 }

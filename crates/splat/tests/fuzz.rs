@@ -97,15 +97,32 @@ proptest! {
 
     #[test]
     fn mutated_ascii_ply_is_refused(text in mutated_text(ASCII_PLY)) {
-        let _ = ply::parse_ply(text.as_bytes());
+        // Still an ASCII file: refused, saying so. Otherwise an error of its own, or (a
+        // mutation that made a binary header) a cloud that validates.
+        match ply::parse_ply(text.as_bytes()) {
+            Err(e) if text.starts_with("ply\nformat ascii 1.0\n") => {
+                prop_assert!(e.contains("ascii"), "{}", e)
+            }
+            Err(e) => prop_assert!(!e.is_empty()),
+            Ok(cloud) => {
+                prop_assert!(!text.contains("format ascii"));
+                prop_assert!(cloud.validate().is_ok());
+            }
+        }
     }
 
     #[test]
     fn mutated_camera_json_parses_or_errors(text in mutated_text(CAMERA)) {
+        // A camera that validates projects a point ahead of it to finite f32 pixels, which is
+        // what the renderers compute with.
         if let Ok(cam) = serde_json::from_str::<Camera>(&text)
             && cam.validate().is_ok()
         {
-            prop_assert!(cam.width as u64 * cam.height as u64 <= f3g_splat::MAX_IMAGE_PIXELS);
+            let c = cam.center();
+            let ahead = [0, 1, 2].map(|k| c[k] + cam.r[2][k] * (cam.near + 1.0).min(cam.far));
+            if let Some((uv, depth)) = cam.project(ahead) {
+                prop_assert!(uv.iter().chain([&depth]).all(|v| (*v as f32).is_finite()));
+            }
         }
     }
 }
