@@ -109,8 +109,12 @@ pub fn animate(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<AnimateReport, AvatarError> {
     let frames_dir = options.out.join("frames");
-    std::fs::create_dir_all(&frames_dir).map_err(|e| AvatarError::file(&frames_dir, e))?;
     let ply_dir = options.out.join("ply");
+    // An earlier animation's frames go first, so a shorter one leaves none behind.
+    let numbered = |name: &str, is_dir: bool| !is_dir && name.starts_with("frame_");
+    f3g_io::clear_outputs(&frames_dir, numbered)?;
+    f3g_io::clear_outputs(&ply_dir, numbered)?;
+    std::fs::create_dir_all(&frames_dir).map_err(|e| AvatarError::file(&frames_dir, e))?;
     if options.export_ply {
         std::fs::create_dir_all(&ply_dir).map_err(|e| AvatarError::file(&ply_dir, e))?;
     }

@@ -250,6 +250,8 @@ pub fn evaluate(
         .clone()
         .unwrap_or_else(|| run_dir.join("eval").join(options.split.to_string()));
     let renders = out_dir.join("images");
+    // The images of an earlier evaluation (other frames or cameras) go first.
+    f3g_io::clear_outputs(&renders, |name, is_dir| !is_dir && name.ends_with(".png"))?;
     std::fs::create_dir_all(&renders).map_err(|e| AvatarError::file(&renders, e))?;
     let use_pca = options.split == SplitKind::NovelPose;
     let rig = ds.rig()?;

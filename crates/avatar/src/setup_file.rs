@@ -168,23 +168,23 @@ impl Setup {
             [n] => n,
             ref other => return Err(bad(format!("`map_pixels` has shape {other:?}"))),
         };
-        let skin = |npz: &mut f3g_io::Npz<_>,
-                    prefix: &str,
-                    n: usize|
-         -> Result<SkinWeights, AvatarError> {
-            let joints = npz.indices(&format!("{prefix}_skin_joints"), &[n, MAX_INFLUENCES], j)?;
-            let weights = npz.f32_exact(&format!("{prefix}_skin_weights"), &[n, MAX_INFLUENCES])?;
-            Ok(SkinWeights {
-                joints: joints
-                    .chunks_exact(MAX_INFLUENCES)
-                    .map(|c| std::array::from_fn(|k| c[k] as u16))
-                    .collect(),
-                weights: weights
-                    .chunks_exact(MAX_INFLUENCES)
-                    .map(|c| std::array::from_fn(|k| c[k]))
-                    .collect(),
-            })
-        };
+        // The skin weights stored as `{part}skin_joints` and `{part}skin_weights`.
+        let skin =
+            |npz: &mut f3g_io::Npz<_>, part: &str, n: usize| -> Result<SkinWeights, AvatarError> {
+                let joints = npz.indices(&format!("{part}skin_joints"), &[n, MAX_INFLUENCES], j)?;
+                let weights =
+                    npz.f32_exact(&format!("{part}skin_weights"), &[n, MAX_INFLUENCES])?;
+                Ok(SkinWeights {
+                    joints: joints
+                        .chunks_exact(MAX_INFLUENCES)
+                        .map(|c| std::array::from_fn(|k| c[k] as u16))
+                        .collect(),
+                    weights: weights
+                        .chunks_exact(MAX_INFLUENCES)
+                        .map(|c| std::array::from_fn(|k| c[k]))
+                        .collect(),
+                })
+            };
         let v = template.mesh.vertices.len();
         let maps = PositionMaps {
             resolution: r,

@@ -168,6 +168,21 @@ impl Camera {
         {
             return bad(format!("K, R and t must be finite, found {v}"));
         }
+        // The renderers compute in f32: a value beyond its range would become infinite there
+        // and render nothing without an error.
+        let limit = f64::from(f32::MAX);
+        let all_k = self.k.iter().flatten();
+        let all_r = self.r.iter().flatten();
+        if let Some(v) = all_k
+            .chain(all_r)
+            .chain(self.t.iter())
+            .chain([&self.near, &self.far])
+            .find(|v| v.abs() > limit)
+        {
+            return bad(format!(
+                "{v:e} is beyond the single-precision range (±{limit:e}) the renderers compute in"
+            ));
+        }
         if self.width == 0 || self.height == 0 {
             return bad(format!(
                 "image size {}x{} is empty",
@@ -314,6 +329,15 @@ mod tests {
         let mut cam = front_camera();
         cam.near = 0.0;
         assert!(cam.validate().unwrap_err().to_string().contains("near"));
+        // A focal length that overflows f32 (1e300 in a cam.json) is refused, not rendered as
+        // an empty image.
+        let mut cam = front_camera();
+        cam.k[0][0] = 1e300;
+        let e = cam.validate().unwrap_err().to_string();
+        assert!(e.contains("1e300") && e.contains("single-precision"), "{e}");
+        let mut cam = front_camera();
+        cam.far = 1e39;
+        assert!(cam.validate().is_err());
     }
 
     #[test]

@@ -34,6 +34,10 @@ pub struct SynthArgs {
     /// (16 cameras, 576×768, 40 frames).
     #[arg(long)]
     pub preset: Option<String>,
+    /// Replace the capture already in `--out` (its camera folders, calibration and body
+    /// parameters; nothing else there is touched). Without it such a folder is refused.
+    #[arg(long)]
+    pub overwrite: bool,
 }
 
 pub fn synth(a: &SynthArgs) -> Result<()> {
@@ -47,6 +51,15 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
     options.resolution = a.resolution.unwrap_or(options.resolution);
     options.elevation_deg = a.elevation.unwrap_or(options.elevation_deg);
     options.seed = a.seed;
+    if f3g_data::synth::holds_capture(&a.out) {
+        if !a.overwrite {
+            bail!(
+                "{} already holds a capture: pass --overwrite to replace it, or choose another --out",
+                a.out.display()
+            );
+        }
+        f3g_data::synth::clear(&a.out)?;
+    }
     let bar = ProgressBar::new(options.frames as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames × {msg} [{elapsed} < {eta}]",
     )?);

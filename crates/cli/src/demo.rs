@@ -59,6 +59,7 @@ pub(crate) fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
         elevation: None,
         seed: c.seed,
         preset: None,
+        overwrite: false,
     })
 }
 

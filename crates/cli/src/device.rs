@@ -24,8 +24,7 @@ use f3g_avatar::train::AllReduce;
 #[derive(clap::Args, Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeviceArg {
     /// Device to compute on: cpu, wgpu[:N] or cuda[:N] (GPUs need a binary built with the
-    /// `gpu` or `cuda` feature). Any device reads any run, and a run may resume on another
-    /// device.
+    /// `gpu` or `cuda` feature).
     #[arg(id = "device", long = "device", default_value = "cpu")]
     pub spec: DeviceSpec,
 }

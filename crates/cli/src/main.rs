@@ -55,7 +55,8 @@ enum Command {
     Template(template::TemplateArgs),
     /// Write PNG pictures of a template's position maps (canonical, posed, head, mask).
     Posmaps(template::PosmapsArgs),
-    /// PSNR, SSIM and LPIPS of two images, as JSON.
+    /// PSNR, SSIM and LPIPS of two images, as JSON: `ssim` as scikit-image computes it (7×7
+    /// uniform window: the paper's protocol), `ssim_3dgs` with the 3DGS Gaussian window.
     Metrics(nets::MetricsArgs),
     /// Fetch and convert third-party weights (LPIPS VGG).
     #[command(subcommand)]
@@ -114,5 +115,69 @@ mod tests {
             let args = std::iter::once("f3g").chain(line.split(' '));
             super::Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{line}: {e}"));
         }
+    }
+
+    /// Every flag of every command is in the README's command table, in the row of its
+    /// command (rows start with `` `f3g COMMAND ``).
+    #[test]
+    fn every_flag_is_documented_in_the_readme() {
+        let readme = include_str!("../../../README.md");
+        let rows: Vec<&str> = readme
+            .lines()
+            .filter(|l| l.starts_with("| `f3g "))
+            .collect();
+        // The command path a row documents: `f3g bench train --device …` → "bench train".
+        let root = super::Cli::command();
+        let path_of = |row: &str| -> String {
+            let cell = row.trim_start_matches("| `f3g ");
+            let mut command = &root;
+            let mut path = Vec::new();
+            for word in cell.split([' ', '`']) {
+                match command.find_subcommand(word) {
+                    Some(sub) => {
+                        path.push(word.to_string());
+                        command = sub;
+                    }
+                    None => break,
+                }
+            }
+            path.join(" ")
+        };
+        let mut missing = Vec::new();
+        let mut stack: Vec<(String, &clap::Command)> = root
+            .get_subcommands()
+            .map(|c| (c.get_name().to_string(), c))
+            .collect();
+        while let Some((path, command)) = stack.pop() {
+            stack.extend(
+                command
+                    .get_subcommands()
+                    .map(|c| (format!("{path} {}", c.get_name()), c)),
+            );
+            let own: Vec<&&str> = rows.iter().filter(|r| path_of(r) == path).collect();
+            let flags: Vec<String> = command
+                .get_arguments()
+                .filter_map(|a| a.get_long())
+                .filter(|l| !["help", "version"].contains(l))
+                .map(|l| format!("--{l}"))
+                .collect();
+            if own.is_empty() && !flags.is_empty() {
+                missing.push(format!("`f3g {path}` has no row"));
+            }
+            for flag in flags {
+                let documented = own.iter().any(|r| {
+                    r.split(|c: char| !(c.is_alphanumeric() || c == '-'))
+                        .any(|w| w == flag)
+                });
+                if !own.is_empty() && !documented {
+                    missing.push(format!("`f3g {path}` {flag}"));
+                }
+            }
+        }
+        missing.sort();
+        assert!(
+            missing.is_empty(),
+            "not in the README's command table: {missing:#?}"
+        );
     }
 }

@@ -99,6 +99,48 @@ fn train_resume_evaluate_animate_and_export() {
     let frame = f3g_io::read_rgb(&d.join("anim/frames/frame_00004.png")).unwrap();
     assert_eq!((frame.width, frame.height), (48, 64));
     let cloud = f3g_splat::ply::read_ply(&d.join("anim/ply/frame_00004.ply")).unwrap();
+
+    // The run folder works from anywhere: moved, it animates and exports as before. An
+    // animation into a reused folder leaves no frame of the earlier one (here a stale
+    // frame 99), and what f3g does not own there is kept.
+    std::fs::create_dir(d.join("moved")).unwrap();
+    std::fs::rename(d.join("run"), d.join("moved/run")).unwrap();
+    std::fs::write(d.join("anim/frames/frame_00099.png"), b"stale").unwrap();
+    std::fs::write(d.join("anim/notes.txt"), b"mine").unwrap();
+    ok(&f3g(
+        d,
+        &[
+            "animate",
+            "moved/run",
+            "--motion",
+            "cap/body_params.npz",
+            "--out",
+            "anim",
+            "--size",
+            "48x64",
+        ],
+    ));
+    assert!(!d.join("anim/frames/frame_00099.png").exists());
+    assert!(!d.join("anim/ply").read_dir().unwrap().any(|_| true));
+    assert!(d.join("anim/frames/frame_00004.png").exists() && d.join("anim/notes.txt").exists());
+    std::fs::rename(d.join("moved/run"), d.join("run")).unwrap();
+
+    // A capture folder is not overwritten by accident.
+    let again = f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "2",
+            "--resolution",
+            "64",
+        ],
+    );
+    assert!(!again.status.success());
+    assert!(String::from_utf8_lossy(&again.stderr).contains("--overwrite"));
+
     ok(&f3g(
         d,
         &["export-ply", "run", "--out", "one.ply", "--frame", "4"],

@@ -73,7 +73,13 @@ fn code_lines(path: &Path) -> Vec<(usize, String)> {
                     _ => {}
                 }
             }
-            in_test = !(opened && depth <= 0) && !(line.trim_end().ends_with(';') && !opened);
+            // The item ends where its braces close, or at its `;` when it has none.
+            let ended = if opened {
+                depth <= 0
+            } else {
+                line.trim_end().ends_with(';')
+            };
+            in_test = !ended;
             continue;
         }
         if !line.trim_start().starts_with("//") {

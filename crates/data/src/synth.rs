@@ -342,6 +342,25 @@ fn render_view(
     (image, mask)
 }
 
+/// The calibration file of a capture (AvatarReX's name).
+const CALIBRATION: &str = "calibration_full.json";
+
+/// Whether `dir` already holds a capture (a calibration or body parameters).
+pub fn holds_capture(dir: &Path) -> bool {
+    dir.join(CALIBRATION).exists() || dir.join(BODY_PARAMS).exists()
+}
+
+/// Removes what [`generate`] writes in `dir` (calibration, body parameters, marker and the
+/// `camNN` folders) and nothing else; returns how many entries went.
+pub fn clear(dir: &Path) -> Result<usize, DataError> {
+    Ok(f3g_io::clear_outputs(dir, |name, is_dir| {
+        let camera = name.len() > 3
+            && name.starts_with("cam")
+            && name[3..].chars().all(|c| c.is_ascii_digit());
+        (is_dir && camera) || [CALIBRATION, BODY_PARAMS, SYNTH_MARKER].contains(&name)
+    })?)
+}
+
 /// Writes a synthetic capture into `out`; `progress` is called after each frame.
 pub fn generate(
     out: &Path,
@@ -399,7 +418,7 @@ pub fn generate(
             })?;
         progress(f + 1);
     }
-    write_calibration(&out.join("calibration_full.json"), &cameras)?;
+    write_calibration(&out.join(CALIBRATION), &cameras)?;
     f3g_rig::sequence::write(&out.join(BODY_PARAMS), rig, &params)?;
     let meta =
         serde_json::json!({ "generator": "f3g synth", "model": "builtin", "options": options });

@@ -220,6 +220,37 @@ pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> 
     write_atomic(path, &out.into_inner())
 }
 
+/// Removes what a command wrote in `dir` on an earlier run — the entries whose names `owned`
+/// accepts (`is_dir` tells folders, removed whole) — so that a new run leaves no stale
+/// numbered files beside its own (e.g. the frames of a longer animation). Anything else in
+/// `dir` is left alone. Returns how many entries were removed; a missing `dir` has none.
+pub fn clear_outputs(dir: &Path, owned: impl Fn(&str, bool) -> bool) -> Result<usize, IoError> {
+    let entries = match std::fs::read_dir(dir) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+        Err(e) => return Err(IoError::new(dir, e)),
+    };
+    let mut removed = 0;
+    for entry in entries {
+        let entry = entry.map_err(|e| IoError::new(dir, e))?;
+        let path = entry.path();
+        let is_dir = entry
+            .file_type()
+            .map_err(|e| IoError::new(&path, e))?
+            .is_dir();
+        if owned(&entry.file_name().to_string_lossy(), is_dir) {
+            if is_dir {
+                std::fs::remove_dir_all(&path)
+            } else {
+                std::fs::remove_file(&path)
+            }
+            .map_err(|e| IoError::new(&path, e))?;
+            removed += 1;
+        }
+    }
+    Ok(removed)
+}
+
 /// Encodes `f32` data of the given shape as `.npy` (little-endian, C order).
 pub fn encode_npy_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, String> {
     encode_npy(shape, data)
@@ -629,6 +660,24 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("missing.png"), "{e}");
+    }
+
+    #[test]
+    fn clearing_outputs_removes_only_what_the_command_owns() {
+        let dir = tempfile::tempdir().unwrap();
+        for name in ["frame_00000.png", "frame_00001.png", "notes.txt"] {
+            std::fs::write(dir.path().join(name), b"x").unwrap();
+        }
+        std::fs::create_dir(dir.path().join("cam00")).unwrap();
+        std::fs::write(dir.path().join("cam00/a.jpg"), b"x").unwrap();
+        let owned = |n: &str, is_dir: bool| n.starts_with("frame_") || (is_dir && n == "cam00");
+        assert_eq!(clear_outputs(dir.path(), owned).unwrap(), 3);
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(left, ["notes.txt"]);
+        assert_eq!(clear_outputs(&dir.path().join("none"), owned).unwrap(), 0);
     }
 
     #[test]
