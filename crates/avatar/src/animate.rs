@@ -7,9 +7,9 @@ use glam::Vec3;
 use serde::Serialize;
 
 use crate::AvatarError;
-use crate::trained::TrainedAvatar;
+use crate::eval::EvalAvatar;
 use f3g_io::Image;
-use f3g_rig::RigParams;
+use f3g_rig::{Rig, RigParams};
 use f3g_splat::Camera;
 
 /// Where the camera is.
@@ -47,16 +47,15 @@ pub struct AnimateReport {
     pub seconds_per_frame: f64,
 }
 
-/// Reads a pose sequence for the avatar's body model: an f3g sequence (`.npz` naming its
-/// model, as `f3g synth` and `f3g rig fit` write), or an `smpl_params.npz` when the avatar is
-/// built on SMPL-X.
-pub fn read_motion(path: &Path, avatar: &TrainedAvatar) -> Result<Vec<RigParams>, AvatarError> {
+/// Reads a pose sequence for the body model `rig`: an f3g sequence (`.npz` naming its model,
+/// as `f3g synth` and `f3g rig fit` write), or an `smpl_params.npz` for an SMPL-X model.
+pub fn read_motion(path: &Path, rig: &Rig) -> Result<Vec<RigParams>, AvatarError> {
     let npz = f3g_io::Npz::open(path)?;
     let frames = if npz.contains("model") {
-        f3g_rig::sequence::read(path, &avatar.setup.rig)?
+        f3g_rig::sequence::read(path, rig)?
     } else if npz.contains("body_pose") {
         f3g_rig::smplx::read_params(path)?
-            .frames_for(&avatar.setup.rig)
+            .frames_for(rig)
             .map_err(|e| AvatarError::file(path, e))?
     } else {
         return Err(AvatarError::file(
@@ -67,10 +66,18 @@ pub fn read_motion(path: &Path, avatar: &TrainedAvatar) -> Result<Vec<RigParams>
     if frames.is_empty() {
         return Err(AvatarError::file(path, "holds no frames"));
     }
+    let expected = (
+        rig.num_pose_params(),
+        rig.identity.len(),
+        rig.expression.len(),
+    );
     for (i, p) in frames.iter().enumerate() {
-        avatar
-            .setup
-            .check_params(p, &format!("{} frame {i}", path.display()))?;
+        if (p.pose.len(), p.identity.len(), p.expression.len()) != expected {
+            return Err(AvatarError::file(
+                path,
+                format!("frame {i} does not belong to the body model `{}`", rig.name),
+            ));
+        }
     }
     Ok(frames)
 }
@@ -103,7 +110,7 @@ pub fn orbit_camera(
 
 /// Renders `motion` with the avatar of `run_dir`.
 pub fn animate(
-    avatar: &TrainedAvatar,
+    avatar: &dyn EvalAvatar,
     motion: &[RigParams],
     options: &AnimateOptions,
     progress: &mut dyn FnMut(usize, usize),
@@ -128,7 +135,7 @@ pub fn animate(
                 turns,
                 elevation_deg,
             } => {
-                let posed = avatar.setup.rig.pose(params)?;
+                let posed = avatar.rig().pose(params)?;
                 let (lo, hi) = posed
                     .vertices
                     .iter()

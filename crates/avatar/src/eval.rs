@@ -31,6 +31,8 @@ use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_io::Image;
 use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{Lpips, LpipsNet};
+use f3g_rig::RigParams;
+use f3g_splat::Camera;
 
 /// What to evaluate and how.
 #[derive(Clone, Debug)]
@@ -188,6 +190,114 @@ fn ensure_memory(
     )?)
 }
 
+/// What evaluation needs of an avatar: the trained networks ([`TrainedAvatar`]) or a baked
+/// avatar file ([`crate::bake::BakedAvatar`]).
+pub trait EvalAvatar {
+    /// Renders body parameters; `unseen` says the pose is not a training pose (the networks
+    /// then project it onto the training poses' PCA).
+    fn render(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        background: [f32; 3],
+        unseen: bool,
+    ) -> Result<Image, AvatarError>;
+    fn gaussian_count(&self) -> usize;
+    /// Rig vertices of the head (head crops) and the crops' padding.
+    fn head_vertices(&self) -> &[usize];
+    fn face_padding(&self) -> f32;
+    /// The body model it was trained on, as the capture names it.
+    fn model_name(&self) -> &str;
+    /// Training step of its networks.
+    fn step(&self) -> u64;
+    /// Its body model.
+    fn rig(&self) -> &f3g_rig::Rig;
+    /// The posed Gaussians of a frame with their colour as seen from `camera` (degree-0
+    /// colour, padded to the degree-3 layout), for per-frame `.ply` files.
+    fn posed_cloud(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        unseen: bool,
+    ) -> Result<f3g_splat::GaussianCloud, AvatarError>;
+}
+
+impl EvalAvatar for TrainedAvatar {
+    fn render(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        background: [f32; 3],
+        unseen: bool,
+    ) -> Result<Image, AvatarError> {
+        TrainedAvatar::render(self, params, camera, background, unseen)
+    }
+    fn gaussian_count(&self) -> usize {
+        TrainedAvatar::gaussian_count(self)
+    }
+    fn head_vertices(&self) -> &[usize] {
+        &self.setup.head_vertices
+    }
+    fn face_padding(&self) -> f32 {
+        self.model.face_padding
+    }
+    fn model_name(&self) -> &str {
+        &self.info.model
+    }
+    fn step(&self) -> u64 {
+        self.step
+    }
+    fn rig(&self) -> &f3g_rig::Rig {
+        &self.setup.rig
+    }
+    fn posed_cloud(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        unseen: bool,
+    ) -> Result<f3g_splat::GaussianCloud, AvatarError> {
+        TrainedAvatar::posed_cloud(self, params, camera, unseen)
+    }
+}
+
+impl EvalAvatar for crate::bake::BakedAvatar {
+    fn render(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        background: [f32; 3],
+        _unseen: bool,
+    ) -> Result<Image, AvatarError> {
+        crate::bake::BakedAvatar::render(self, params, camera, background)
+    }
+    fn gaussian_count(&self) -> usize {
+        self.len()
+    }
+    fn head_vertices(&self) -> &[usize] {
+        &self.head_vertices
+    }
+    fn face_padding(&self) -> f32 {
+        self.face_padding
+    }
+    fn model_name(&self) -> &str {
+        &self.rig.name
+    }
+    fn step(&self) -> u64 {
+        self.step
+    }
+    fn rig(&self) -> &f3g_rig::Rig {
+        &self.rig
+    }
+    fn posed_cloud(
+        &self,
+        params: &RigParams,
+        _camera: &Camera,
+        _unseen: bool,
+    ) -> Result<f3g_splat::GaussianCloud, AvatarError> {
+        Ok(self.posed(params)?.padded_to_degree(3))
+    }
+}
+
 /// Evaluates the run at `run_dir` on `options.split` of its capture (or of `data`), rendering
 /// and scoring LPIPS on `device`.
 pub fn evaluate(
@@ -201,13 +311,36 @@ pub fn evaluate(
     let avatar = TrainedAvatar::load(run_dir, device)?;
     let device = avatar.device().clone();
     let data = data.map_or_else(|| avatar.info.data.clone(), Path::to_path_buf);
-    let ds = Dataset::open(&data, model)?;
-    if ds.model != avatar.info.model {
+    let out = options
+        .out
+        .clone()
+        .unwrap_or_else(|| run_dir.join("eval").join(options.split.to_string()));
+    evaluate_avatar(
+        &avatar, run_dir, &data, model, options, &out, &device, progress,
+    )
+}
+
+/// Evaluates `avatar` (read from `source`) on `options.split` of the capture `data`,
+/// writing into `out_dir` and scoring LPIPS on `device`.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_avatar(
+    avatar: &dyn EvalAvatar,
+    source: &Path,
+    data: &Path,
+    model: Option<&f3g_rig::ModelSpec>,
+    options: &EvalOptions,
+    out_dir: &Path,
+    device: &Device,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport, AvatarError> {
+    let ds = Dataset::open(data, model)?;
+    if ds.model != avatar.model_name() {
         return Err(AvatarError::file(
-            &data,
+            data,
             format!(
                 "the capture's body model is `{}`, the avatar's `{}`",
-                ds.model, avatar.info.model
+                ds.model,
+                avatar.model_name()
             ),
         ));
     }
@@ -244,11 +377,7 @@ pub fn evaluate(
         )));
     }
     ensure_memory(&ds, &pairs, avatar.gaussian_count(), options)?;
-    let lpips = Lpips::load(options.lpips_net, &device).ok();
-    let out_dir = options
-        .out
-        .clone()
-        .unwrap_or_else(|| run_dir.join("eval").join(options.split.to_string()));
+    let lpips = Lpips::load(options.lpips_net, device).ok();
     let renders = out_dir.join("images");
     // The images of an earlier evaluation (other frames or cameras) go first.
     f3g_io::clear_outputs(&renders, |name, is_dir| !is_dir && name.ends_with(".png"))?;
@@ -270,7 +399,7 @@ pub fn evaluate(
         let render = quantise(avatar.render(params, &camera, [1.0; 3], use_pca)?);
         let mut body = Scores {
             lpips: None,
-            ..scores(None, &render, &gt, &device)?
+            ..scores(None, &render, &gt, device)?
         };
         let pad = (LPIPS_PAD * options.scale).round() as usize;
         if let Some(square) = CentredSquare::around_mask(&resize(&mask, w, h), pad) {
@@ -286,7 +415,7 @@ pub fn evaluate(
                 ))
             };
             let (a, b) = (lpips_crop(&render), lpips_crop(&gt));
-            body.lpips = lpips_distance(lpips.as_ref(), &a, &b, &device)?;
+            body.lpips = lpips_distance(lpips.as_ref(), &a, &b, device)?;
             let name = format!("{}_{f:08}_lpips", cam.name);
             f3g_io::write_png(&renders.join(format!("{name}.png")), &a)?;
             f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &b)?;
@@ -294,18 +423,17 @@ pub fn evaluate(
         // Head: the face crop at full resolution.
         let posed = rig.pose(params)?;
         let head_points: Vec<glam::Vec3> = avatar
-            .setup
-            .head_vertices
+            .head_vertices()
             .iter()
             .map(|&v| posed.vertices[v])
             .collect();
-        let head = match head_box(&cam.camera, &head_points, avatar.model.face_padding) {
+        let head = match head_box(&cam.camera, &head_points, avatar.face_padding()) {
             Some(b) => {
                 let (gt_face, face_cam) =
                     crop_view(&gt_full, &cam.camera, &b, options.face_size, &[1.0; 3]);
                 let gt_face = quantise(gt_face);
                 let face = quantise(avatar.render(params, &face_cam, [1.0; 3], use_pca)?);
-                let s = scores(lpips.as_ref(), &face, &gt_face, &device)?;
+                let s = scores(lpips.as_ref(), &face, &gt_face, device)?;
                 let name = format!("{}_{f:08}_head", cam.name);
                 f3g_io::write_png(&renders.join(format!("{name}.png")), &face)?;
                 f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt_face)?;
@@ -338,8 +466,8 @@ pub fn evaluate(
             .collect::<Vec<_>>(),
     );
     let report = EvalReport {
-        run: run_dir.to_path_buf(),
-        step: avatar.step,
+        run: source.to_path_buf(),
+        step: avatar.step(),
         split: options.split,
         lpips_net: options.lpips_net.to_string(),
         lpips_available: lpips.is_some(),

@@ -17,6 +17,8 @@
 //! (body ++ face) → LBS → splatting → losses against the capture.
 
 pub mod animate;
+pub mod avatar_file;
+pub mod bake;
 pub mod config;
 mod error;
 pub mod eval;

@@ -110,6 +110,11 @@ impl Run {
         write_json(&self.dir.join("run.json"), info)
     }
 
+    /// The training frames' body parameters (an f3g sequence).
+    pub fn poses_path(&self) -> PathBuf {
+        self.dir.join("poses.npz")
+    }
+
     pub fn log_path(&self) -> PathBuf {
         self.dir.join("log.jsonl")
     }

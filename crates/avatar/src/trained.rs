@@ -20,6 +20,8 @@ use f3g_splat::{Camera, GaussianCloud};
 /// The networks, canonical face model and setup of a run, on the device it was loaded onto
 /// (without autodiff).
 pub struct TrainedAvatar {
+    /// The run folder it was loaded from.
+    pub dir: std::path::PathBuf,
     /// The model's configuration (the run's training settings are not needed).
     pub model: ModelConfig,
     pub info: RunInfo,
@@ -100,6 +102,7 @@ impl TrainedAvatar {
         };
         let constants = Constants::new(&setup, &model, face_base.as_ref(), &device);
         Ok(Self {
+            dir: run.dir.clone(),
             model,
             info,
             setup,
@@ -110,6 +113,29 @@ impl TrainedAvatar {
             device,
             step,
         })
+    }
+
+    /// The training frames' body parameters: the run's `poses.npz`, or (for runs made before
+    /// runs kept them) the training frames of its capture.
+    pub fn training_poses(&self) -> Result<Vec<RigParams>, AvatarError> {
+        let path = Run::new(&self.dir).poses_path();
+        if path.exists() {
+            return Ok(f3g_rig::sequence::read(&path, &self.setup.rig)?);
+        }
+        let ds = f3g_data::Dataset::open(&self.info.data, None).map_err(|e| {
+            AvatarError::file(
+                &path,
+                format!(
+                    "is missing and the run's capture cannot be read for its training poses ({e}); `f3g train --resume` on the run stores them"
+                ),
+            )
+        })?;
+        Ok(self
+            .info
+            .train_frames
+            .iter()
+            .filter_map(|&f| ds.params.get(f).cloned())
+            .collect())
     }
 
     /// The device the avatar computes on.
@@ -133,12 +159,36 @@ impl TrainedAvatar {
         camera: &Camera,
         use_pca: bool,
     ) -> Result<(crate::model::Canonical, Skinning), AvatarError> {
+        let (c, inputs) = self.canonical_with_inputs(params, camera, use_pca)?;
+        Ok((c, inputs.skinning))
+    }
+
+    /// The canonical Gaussians of `params` seen from `camera` and the networks' inputs they
+    /// came from (the displacement by blend shapes and correctives, the skinning).
+    pub(crate) fn canonical_with_inputs(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        use_pca: bool,
+    ) -> Result<(crate::model::Canonical, crate::inputs::NetInputs), AvatarError> {
         self.setup.check_params(params, "pose")?;
         let pca = if use_pca { self.pca.as_ref() } else { None };
         let pose = self.setup.pose(params)?.upload(&self.device);
         let inputs = self.constants.inputs(&pose, camera, None, pca)?;
         let c = canonical(&self.nets, &self.constants, &inputs)?;
-        Ok((c, inputs.skinning))
+        Ok((c, inputs))
+    }
+
+    /// The skin weights of every rendered Gaussian (body, then face), as the setup holds them.
+    pub fn skin(&self) -> f3g_rig::SkinWeights {
+        let mut skin = self.setup.maps.skin.clone();
+        if self.constants.has_face()
+            && let Some(h) = &self.setup.head
+        {
+            skin.joints.extend(&h.skin.joints);
+            skin.weights.extend(&h.skin.weights);
+        }
+        skin
     }
 
     /// Renders body parameters from `camera` over `background`. With `use_pca`, the posed map

@@ -298,3 +298,92 @@ proptest! {
         prop_assert!(GUARD.largest() <= 256 << 20);
     }
 }
+
+/// A small avatar file: two joints, five Gaussians, two correctives.
+fn small_avatar_file() -> Vec<u8> {
+    use f3g_rig::{Joint, Mesh, Parameterization, Rig, Roles, Skeleton, SkinWeights};
+    use glam::{Quat, Vec3};
+    let joint = |name: &str, parent: Option<usize>| Joint {
+        name: name.into(),
+        parent,
+        offset: Vec3::new(0.0, 0.5, 0.0),
+        pre_rotation: Quat::IDENTITY,
+    };
+    let skin = SkinWeights::from_lists(&vec![vec![(0, 0.5), (1, 0.5)]; 3], 2).unwrap();
+    let rig = Rig {
+        name: "small".into(),
+        skeleton: Skeleton::new(vec![joint("a", None), joint("b", Some(0))]).unwrap(),
+        parameterization: Parameterization::AxisAngle,
+        mesh: Mesh {
+            vertices: vec![Vec3::ZERO, Vec3::X, Vec3::Y],
+            triangles: vec![[0, 1, 2]],
+        },
+        identity: Default::default(),
+        expression: Default::default(),
+        skin,
+        correctives: None,
+        joint_model: None,
+        inverse_bind: None,
+        roles: Roles::default(),
+        surface: vec![true; 3],
+    };
+    let n = 5;
+    let ramp = |k: usize, scale: f32| -> Vec<f32> {
+        (0..k).map(|i| (i as f32 * 0.37).sin() * scale).collect()
+    };
+    let baked = f3g_avatar::bake::BakedAvatar {
+        canonical: rig.zero_params(),
+        rig,
+        means: ramp(3 * n, 0.5),
+        quats: (0..n).flat_map(|_| [1.0, 0.0, 0.0, 0.0]).collect(),
+        log_scales: vec![-4.0; 3 * n],
+        opacity_logits: ramp(n, 1.0),
+        sh: ramp(4 * 3 * n, 0.3),
+        sh_degree: 1,
+        skin_joints: vec![[0, 1, 0, 0]; n],
+        skin_weights: vec![[0.5, 0.5, 0.0, 0.0]; n],
+        correctives: ramp(2 * n * f3g_avatar::bake::CORRECTIVE_VALUES, 0.01),
+        feature_joints: vec![1],
+        feature_used: vec![0, 4, 8],
+        feature_mean: vec![0.0; 3],
+        feature_map: ramp(6, 1.0),
+        expression_names: Vec::new(),
+        expressions: Vec::new(),
+        head_vertices: vec![2],
+        face_padding: 1.3,
+        face_crop_size: 64,
+        step: 7,
+    };
+    f3g_avatar::avatar_file::to_bytes(&baked).unwrap()
+}
+
+#[test]
+fn the_small_avatar_file_reads() {
+    let avatar = f3g_avatar::avatar_file::from_bytes(&small_avatar_file()).unwrap();
+    assert_eq!(
+        (avatar.len(), avatar.corrective_count(), avatar.step),
+        (5, 2, 7)
+    );
+    avatar.posed(&avatar.rig.zero_params()).unwrap();
+}
+
+proptest! {
+    #![proptest_config(config(1000))]
+
+    /// An avatar `.glb`: every mutation reads to an avatar that poses, or is an error naming
+    /// the file.
+    #[test]
+    fn mutated_avatar_files_read_or_error(bytes in mutated(small_avatar_file())) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("avatar.glb");
+        std::fs::write(&path, &bytes).unwrap();
+        match f3g_avatar::avatar_file::read(&path) {
+            Ok(avatar) => {
+                let posed = avatar.posed(&avatar.rig.zero_params());
+                prop_assert!(posed.is_ok(), "{:?}", posed.err());
+            }
+            Err(e) => prop_assert!(e.to_string().contains("avatar.glb"), "{}", e),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
+    }
+}

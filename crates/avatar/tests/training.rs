@@ -689,3 +689,124 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
     let same = f3g_nets::metrics::psnr(&render_cloud(&flipped, &turned), &viewer).unwrap();
     assert!(same > 50.0, "{same} dB");
 }
+
+#[test]
+fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks() {
+    use f3g_avatar::avatar_file;
+    use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+    let dir = tempfile::tempdir().unwrap();
+    let cap = dir.path().join("cap");
+    capture(&cap);
+    let run = dir.path().join("run");
+    train_to_end(&run, &cap, tiny([10, 10, 2, 6, 2]));
+    let avatar = f3g_avatar::trained::TrainedAvatar::load(&run, &Device::flex()).unwrap();
+    // The run keeps its training poses.
+    let poses = avatar.training_poses().unwrap();
+    assert_eq!(poses.len(), avatar.info.train_frames.len());
+    let options = BakeOptions {
+        correctives: 3,
+        directions: 16,
+        poses: 4,
+        perturbations: 1,
+        ..BakeOptions::default()
+    };
+    let (baked, report) = BakedAvatar::bake(&avatar, &poses, &options).unwrap();
+    assert_eq!(baked.len(), avatar.gaussian_count());
+    assert_eq!((report.samples, baked.corrective_count()), (8, 3));
+    assert!(report.explained_variance > 0.0 && report.explained_variance <= 1.0 + 1e-9);
+
+    // The file reads back as the same avatar.
+    let path = dir.path().join("avatar.glb");
+    avatar_file::write(&baked, &path).unwrap();
+    let back = avatar_file::read(&path).unwrap();
+    let frame = &poses[poses.len() - 1];
+    let (a, b) = (baked.posed(frame).unwrap(), back.posed(frame).unwrap());
+    let worst = |x: &[f32], y: &[f32]| {
+        x.iter()
+            .zip(y)
+            .map(|(p, q)| (p - q).abs())
+            .fold(0.0f32, f32::max)
+    };
+    assert!(worst(&a.means, &b.means) < 1e-5);
+    assert!(worst(&a.sh, &b.sh) < 1e-5);
+    assert!(worst(&a.log_scales, &b.log_scales) < 1e-4);
+    assert!(worst(&a.opacity_logits, &b.opacity_logits) < 1e-3);
+    assert_eq!(back.expression_names, baked.expression_names);
+
+    // glTF's skinning gives f3g's: the nodes' world transforms times the inverse bind
+    // matrices are the identity in the canonical pose the nodes hold.
+    let file = f3g_rig::glb::GlbFile::parse(&std::fs::read(&path).unwrap()).unwrap();
+    let nodes = file.document["nodes"].as_array().unwrap();
+    let joints = baked.rig.skeleton.joints();
+    let mut world: Vec<glam::Mat4> = Vec::new();
+    for (j, joint) in joints.iter().enumerate() {
+        let n = &nodes[j];
+        let f = |k: &str| -> Vec<f32> {
+            n[k].as_array()
+                .unwrap()
+                .iter()
+                .map(|v| v.as_f64().unwrap() as f32)
+                .collect()
+        };
+        let (t, r, s) = (f("translation"), f("rotation"), f("scale"));
+        let local = glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::from_slice(&s),
+            glam::Quat::from_slice(&r),
+            glam::Vec3::from_slice(&t),
+        );
+        world.push(joint.parent.map_or(local, |p| world[p] * local));
+    }
+    let ibm_index = file.document["skins"][0]["inverseBindMatrices"]
+        .as_u64()
+        .unwrap() as usize;
+    let ibm = file.floats(ibm_index, 16).unwrap();
+    let deviation = world
+        .iter()
+        .zip(ibm.chunks_exact(16))
+        .map(|(w, m)| {
+            (*w * glam::Mat4::from_cols_slice(m))
+                .to_cols_array()
+                .iter()
+                .zip(glam::Mat4::IDENTITY.to_cols_array())
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0f32, f32::max)
+        })
+        .fold(0.0f32, f32::max);
+    assert!(deviation < 1e-4, "{deviation}");
+
+    // At a training pose the baked avatar looks like its networks.
+    let camera =
+        f3g_splat::Camera::look_at([0.4, 0.2, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 90.0, 64, 96);
+    let networks = avatar.render(frame, &camera, [1.0; 3], false).unwrap();
+    let rendered = back.render(frame, &camera, [1.0; 3]).unwrap();
+    let psnr = f3g_nets::metrics::psnr(&networks, &rendered).unwrap();
+    assert!(psnr > 25.0, "baked vs networks: {psnr} dB");
+
+    // Bad files are errors naming them.
+    let bytes = std::fs::read(&path).unwrap();
+    let truncated = dir.path().join("truncated.glb");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let e = avatar_file::read(&truncated).unwrap_err().to_string();
+    assert!(
+        e.contains("truncated.glb") && e.contains("truncated"),
+        "{e}"
+    );
+    let foreign = dir.path().join("rig.glb");
+    f3g_rig::gltf::write(&baked.rig, &foreign).unwrap();
+    let e = avatar_file::read(&foreign).unwrap_err().to_string();
+    assert!(
+        e.contains("rig.glb") && e.contains("not an f3g avatar"),
+        "{e}"
+    );
+    // A corrective count that disagrees with the morph targets.
+    let mut glb = f3g_rig::glb::GlbFile::parse(&bytes).unwrap();
+    glb.document["meshes"][0]["primitives"][0]["extensions"]["F3G_pose_correctives"]["count"] =
+        serde_json::json!(5);
+    let edited = dir.path().join("edited.glb");
+    std::fs::write(&edited, glb.to_bytes()).unwrap();
+    let e = avatar_file::read(&edited).unwrap_err().to_string();
+    assert!(
+        e.contains("edited.glb") && e.contains("morph targets"),
+        "{e}"
+    );
+}

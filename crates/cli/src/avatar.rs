@@ -294,12 +294,42 @@ pub struct EvalArgs {
 }
 
 pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
-    let config = f3g_avatar::run::Run::new(&a.run).config()?;
+    // A baked avatar file, or a run folder.
+    let baked = if a.run.extension().is_some_and(|e| e == "glb") {
+        Some(f3g_avatar::avatar_file::read(&a.run)?)
+    } else {
+        None
+    };
+    let (data, face_size, lpips_net, out) = match &baked {
+        Some(b) => (
+            a.data.clone().with_context(|| {
+                format!(
+                    "{}: an avatar file does not name its capture; give --data",
+                    a.run.display()
+                )
+            })?,
+            a.face_size.unwrap_or(b.face_crop_size),
+            a.lpips.unwrap_or(LpipsNet::Alex),
+            a.out
+                .clone()
+                .unwrap_or_else(|| a.run.with_extension("eval").join(a.split.to_string())),
+        ),
+        None => {
+            let config = f3g_avatar::run::Run::new(&a.run).config()?;
+            let info = f3g_avatar::run::Run::new(&a.run).info()?;
+            (
+                a.data.clone().unwrap_or(info.data),
+                a.face_size.unwrap_or(config.model.face_crop_size),
+                a.lpips.unwrap_or(config.lpips_net),
+                a.out
+                    .clone()
+                    .unwrap_or_else(|| a.run.join("eval").join(a.split.to_string())),
+            )
+        }
+    };
     let (mut cameras, mut frames) = (None, None);
     if a.cameras.is_some() || a.frames.is_some() {
-        let info = f3g_avatar::run::Run::new(&a.run).info()?;
-        let ds =
-            f3g_data::Dataset::open(a.data.as_ref().unwrap_or(&info.data), a.model.spec.as_ref())?;
+        let ds = f3g_data::Dataset::open(&data, a.model.spec.as_ref())?;
         cameras = a
             .cameras
             .as_deref()
@@ -317,26 +347,44 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         frames,
         every: a.every,
         scale: a.scale.unwrap_or(1.0),
-        face_size: a.face_size.unwrap_or(config.model.face_crop_size),
+        face_size,
         lpips_size: a.lpips_size,
-        lpips_net: a.lpips.unwrap_or(config.lpips_net),
-        out: a.out.clone(),
+        lpips_net,
+        out: Some(out.clone()),
     };
     let bar = ProgressBar::new(0).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} images [{elapsed} < {eta}]",
     )?);
     let device = a.device.open()?;
-    let report = f3g_avatar::eval::evaluate(
-        &a.run,
-        a.data.as_deref(),
-        a.model.spec.as_ref(),
-        &options,
-        &device,
-        &mut |i, n| {
-            bar.set_length(n as u64);
-            bar.set_position(i as u64);
-        },
-    )?;
+    let mut progress = |i: usize, n: usize| {
+        bar.set_length(n as u64);
+        bar.set_position(i as u64);
+    };
+    let report = match &baked {
+        Some(b) => f3g_avatar::eval::evaluate_avatar(
+            b,
+            &a.run,
+            &data,
+            a.model.spec.as_ref(),
+            &options,
+            &out,
+            &device,
+            &mut progress,
+        )?,
+        None => {
+            let avatar = TrainedAvatar::load(&a.run, &device)?;
+            f3g_avatar::eval::evaluate_avatar(
+                &avatar,
+                &a.run,
+                &data,
+                a.model.spec.as_ref(),
+                &options,
+                &out,
+                avatar.device(),
+                &mut progress,
+            )?
+        }
+    };
     bar.finish_and_clear();
     print!(
         "{}",
@@ -394,8 +442,14 @@ pub struct AnimateArgs {
 }
 
 pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
-    let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
-    let motion = f3g_avatar::animate::read_motion(&a.motion, &avatar)?;
+    // A baked avatar file renders with f3g's renderer; a run with its networks.
+    let avatar: Box<dyn f3g_avatar::eval::EvalAvatar> =
+        if a.run.extension().is_some_and(|e| e == "glb") {
+            Box::new(f3g_avatar::avatar_file::read(&a.run)?)
+        } else {
+            Box::new(TrainedAvatar::load(&a.run, &a.device.open()?)?)
+        };
+    let motion = f3g_avatar::animate::read_motion(&a.motion, avatar.rig())?;
     let (width, height) = a.size;
     let camera = if a.camera == "orbit" {
         CameraPath::Orbit {
@@ -424,7 +478,7 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
     let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",
     )?);
-    let report = f3g_avatar::animate::animate(&avatar, &motion, &options, &mut |i, _| {
+    let report = f3g_avatar::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
         bar.set_position(i as u64)
     })?;
     bar.finish_and_clear();
@@ -486,7 +540,7 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
     let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let (params, use_pca) = match &a.motion {
         Some(m) => {
-            let motion = f3g_avatar::animate::read_motion(m, &avatar)?;
+            let motion = f3g_avatar::animate::read_motion(m, &avatar.setup.rig)?;
             let p = motion.get(a.frame).cloned().with_context(|| {
                 format!(
                     "--frame {}: {} has {} frames",
@@ -497,17 +551,30 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
             })?;
             (p, true)
         }
-        None => {
-            let ds = f3g_data::Dataset::open(&avatar.info.data, None)?;
-            let p = ds.params.get(a.frame).cloned().with_context(|| {
-                format!(
-                    "--frame {}: the capture has {} frames",
-                    a.frame,
-                    ds.frames()
-                )
-            })?;
-            (p, !avatar.info.train_frames.contains(&a.frame))
-        }
+        None => match f3g_data::Dataset::open(&avatar.info.data, None) {
+            Ok(ds) => {
+                let p = ds.params.get(a.frame).cloned().with_context(|| {
+                    format!(
+                        "--frame {}: the capture has {} frames",
+                        a.frame,
+                        ds.frames()
+                    )
+                })?;
+                (p, !avatar.info.train_frames.contains(&a.frame))
+            }
+            // A run away from its capture still has its training frames' poses.
+            Err(e) => {
+                let i = avatar.info.train_frames.iter().position(|&f| f == a.frame);
+                let poses = avatar.training_poses()?;
+                let p = i.and_then(|i| poses.get(i).cloned()).with_context(|| {
+                    format!(
+                        "--frame {}: the capture cannot be read ({e}) and the frame is not one of the run's training frames; give --motion",
+                        a.frame
+                    )
+                })?;
+                (p, false)
+            }
+        },
     };
     let options = ExportOptions {
         degree: a.sh_degree as usize,
@@ -530,5 +597,91 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
         fit.rms,
         fit.max
     );
+    Ok(())
+}
+
+/// Options of `f3g export-avatar`.
+#[derive(Args, Debug, Clone)]
+pub struct ExportAvatarArgs {
+    /// Run folder.
+    pub run: PathBuf,
+    /// Output `.glb`: the baked avatar (KHR_gaussian_splatting Gaussians, a glTF skin, pose
+    /// correctives and expressions as morph targets, the body model).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Pose correctives K, 0–256 (0: plain linear blend skinning of the mean avatar).
+    #[arg(long, default_value_t = 16, value_parser = crate::bounds::size::<0, 256>)]
+    pub correctives: usize,
+    /// SH degree fitted to the colour network at the canonical pose.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(0..=3))]
+    pub sh_degree: u8,
+    /// View directions of the SH fit, 1–1024.
+    #[arg(long, default_value_t = 48, value_parser = crate::bounds::size::<1, 1024>)]
+    pub directions: usize,
+    /// Training poses the correctives are fitted on, 1–10000 (spread evenly over the run's).
+    #[arg(long, default_value_t = 60, value_parser = crate::bounds::size::<1, 10_000>)]
+    pub poses: usize,
+    /// Perturbed copies of each pose, 0–100.
+    #[arg(long, default_value_t = 3, value_parser = crate::bounds::size::<0, 100>)]
+    pub perturbations: usize,
+    /// Leave the body model's expressions out (smaller file, no facial animation).
+    #[arg(long)]
+    pub no_expressions: bool,
+    /// Seed of the pose perturbations.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Write what baking measured as JSON here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    #[command(flatten)]
+    pub device: DeviceArg,
+}
+
+pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
+    use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+    let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
+    let poses = avatar.training_poses()?;
+    let options = BakeOptions {
+        correctives: a.correctives,
+        sh_degree: a.sh_degree as usize,
+        directions: a.directions,
+        poses: a.poses,
+        perturbations: a.perturbations,
+        expressions: !a.no_expressions,
+        seed: a.seed,
+        ..BakeOptions::default()
+    };
+    let (baked, report) = BakedAvatar::bake(&avatar, &poses, &options)?;
+    let bytes = f3g_avatar::avatar_file::write(&baked, &a.out)?;
+    println!(
+        "wrote {} ({:.1} MB, {} bytes per Gaussian): {} Gaussians, {} correctives explaining {:.1} % \
+         of the pose variation ({} poses; weights predicted from {} pose features to {:.1} % RMS), \
+         {} expressions, SH degree {} (colour RMS {:.4}); four skin influences per Gaussian, chosen \
+         and weighted over the sample poses, leave out {:.4} of the weight on average ({:.3} at \
+         most) and move a Gaussian by {:.2} mm RMS on average ({:.1} mm at most); {:.1} s",
+        a.out.display(),
+        bytes as f64 / 1e6,
+        bytes / report.gaussians.max(1) as u64,
+        report.gaussians,
+        baked.corrective_count(),
+        100.0 * report.explained_variance,
+        report.samples,
+        report.features,
+        100.0 * report.weight_fit_error,
+        baked.expression_names.len(),
+        baked.sh_degree,
+        report.sh_rms,
+        report.dropped_weight_mean,
+        report.dropped_weight_max,
+        1e3 * report.skin_error_mean,
+        1e3 * report.skin_error_max,
+        report.seconds
+    );
+    if let Some(path) = &a.json {
+        let mut value = serde_json::to_value(&report)?;
+        value["bytes"] = serde_json::json!(bytes);
+        value["correctives"] = serde_json::json!(baked.corrective_count());
+        f3g_io::write_atomic(path, serde_json::to_string_pretty(&value)?.as_bytes())?;
+    }
     Ok(())
 }

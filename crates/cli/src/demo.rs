@@ -140,9 +140,9 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
     let capture = out.join("capture");
     let run = out.join("run");
-    println!("1/4 synthetic capture");
+    println!("1/5 synthetic capture");
     ensure_capture(&capture, &a.capture)?;
-    println!("2/4 training ({preset} preset)");
+    println!("2/5 training ({preset} preset)");
     let device = a.capture.device;
     train_or_resume(
         &run,
@@ -152,10 +152,10 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         &a.capture.set,
         device,
     )?;
-    println!("3/4 evaluation");
+    println!("3/5 evaluation");
     let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4, device))?;
     let novel_pose = eval(&eval_args(&run, SplitKind::NovelPose, 1, device))?;
-    println!("4/4 animation");
+    println!("4/5 animation");
     let animation = out.join("animation");
     animate(&AnimateArgs {
         run: run.clone(),
@@ -168,6 +168,31 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         elevation: 5.0,
         fps: 8.0,
         no_pca: false,
+        device,
+    })?;
+    println!("5/5 avatar file and browser player");
+    let glb = out.join("avatar.glb");
+    crate::avatar::export_avatar(&crate::avatar::ExportAvatarArgs {
+        run: run.clone(),
+        out: glb.clone(),
+        correctives: 16,
+        sh_degree: 3,
+        directions: 48,
+        poses: 60,
+        perturbations: 3,
+        no_expressions: false,
+        seed: a.capture.seed,
+        json: None,
+        device,
+    })?;
+    crate::view::view(&crate::view::ViewArgs {
+        source: glb.clone(),
+        motion: vec![capture.join("body_params.npz")],
+        port: 0,
+        host: std::net::IpAddr::from([127, 0, 0, 1]),
+        static_dir: Some(out.join("player")),
+        correctives: 16,
+        fps: 8.0,
         device,
     })?;
     let report = out.join("report.html");
@@ -258,6 +283,12 @@ the CPU in {minutes:.1} minutes.</p>
 {np_grid}
 <h2>Animation (orbit over the capture's motion)</h2>
 {gif}
+<h2>The avatar in your browser</h2>
+<p>The avatar baked into one portable file, <a href="avatar.glb">avatar.glb</a> (glTF 2.0 with
+<code>KHR_gaussian_splatting</code> and a skin), plays in the browser player:
+<code>f3g view {glb}</code> and open <code>http://127.0.0.1:8080/</code>, or serve the folder
+<a href="player/">player/</a> with any static file server (browsers do not run it from
+<code>file://</code>).</p>
 <h2>Training</h2>
 {loss}
 {validation}
@@ -280,6 +311,7 @@ the CPU in {minutes:.1} minutes.</p>
             "held-out frames"
         ),
         gif = img(out.join("animation/animation.gif"), "orbiting camera"),
+        glb = out.join("avatar.glb").display(),
         loss = img(run.join("loss.png"), "losses (moving average, log scale)"),
         validation = img(
             run.join("validation.png"),

@@ -13,6 +13,7 @@ mod render_ply;
 mod rig;
 mod template;
 mod train_bench;
+mod view;
 
 use anyhow::Result;
 use clap::{Parser, Subcommand};
@@ -41,6 +42,10 @@ enum Command {
     Animate(avatar::AnimateArgs),
     /// Write a trained avatar's posed Gaussians as a standard 3DGS .ply.
     ExportPly(avatar::ExportPlyArgs),
+    /// Bake a trained avatar into one portable, animatable glTF file (.glb).
+    ExportAvatar(avatar::ExportAvatarArgs),
+    /// Play an avatar in the browser: a local server (or a static folder) with the player.
+    View(view::ViewArgs),
     /// Render a standard 3DGS `.ply` from a camera JSON to PNG (and optionally `.npy`).
     RenderPly(render_ply::RenderPlyArgs),
     /// Body models: pose and inspect them, convert parameters between them.
@@ -74,6 +79,8 @@ fn main() -> Result<()> {
         Command::Eval(args) => avatar::eval(&args).map(|_| ()),
         Command::Animate(args) => avatar::animate(&args).map(|_| ()),
         Command::ExportPly(args) => avatar::export_ply(&args),
+        Command::ExportAvatar(args) => avatar::export_avatar(&args),
+        Command::View(args) => view::view(&args),
         Command::RenderPly(args) => render_ply::run(&args),
         Command::Rig(cmd) => rig::run(&cmd),
         Command::Synth(args) => data::synth(&args),

@@ -208,6 +208,8 @@ fn inference_never_imports_training() {
         "posing.rs",
         "setup.rs",
         "setup_file.rs",
+        "bake.rs",
+        "avatar_file.rs",
     ]
     .iter()
     .map(|f| dir.join(f))

@@ -537,8 +537,9 @@ fn encode_npy<T: npyz::AutoSerialize + Copy>(
     Ok(buf)
 }
 
-/// Writes named arrays as an uncompressed `.npz` (readable by `numpy.load`), atomically.
-pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<(), IoError> {
+/// Named arrays as the bytes of an uncompressed `.npz` (readable by `numpy.load`); errors
+/// name the array.
+pub fn encode_npz(arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<Vec<u8>, String> {
     let mut buf = Cursor::new(Vec::new());
     {
         let mut zip = npyz::zip::ZipWriter::new(&mut buf);
@@ -549,17 +550,23 @@ pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Res
             .last_modified_time(npyz::zip::DateTime::default());
         for (name, shape, values) in arrays {
             zip.start_file(format!("{name}.npy"), options)
-                .map_err(|e| IoError::new(path, e))?;
+                .map_err(|e| e.to_string())?;
             let bytes = match values {
                 NpyValues::F32(v) => encode_npy(shape, v),
                 NpyValues::I64(v) => encode_npy(shape, v),
             }
-            .map_err(|e| IoError::new(path, format!("`{name}`: {e}")))?;
-            zip.write_all(&bytes).map_err(|e| IoError::new(path, e))?;
+            .map_err(|e| format!("`{name}`: {e}"))?;
+            zip.write_all(&bytes).map_err(|e| e.to_string())?;
         }
-        zip.finish().map_err(|e| IoError::new(path, e))?;
+        zip.finish().map_err(|e| e.to_string())?;
     }
-    write_atomic(path, &buf.into_inner())
+    Ok(buf.into_inner())
+}
+
+/// Writes named arrays as an uncompressed `.npz` (readable by `numpy.load`), atomically.
+pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<(), IoError> {
+    let bytes = encode_npz(arrays).map_err(|e| IoError::new(path, e))?;
+    write_atomic(path, &bytes)
 }
 
 #[cfg(test)]

@@ -147,6 +147,39 @@ impl Rig {
         Ok(params)
     }
 
+    /// Indices of the pose parameters that move the root joint(s): the global rotation and
+    /// translation (they drive no other joint).
+    pub fn root_params(&self) -> Vec<usize> {
+        let joints = self.skeleton.joints();
+        let is_root = |j: usize| joints[j].parent.is_none();
+        match &self.parameterization {
+            Parameterization::AxisAngle => {
+                let n = self.num_pose_params();
+                (0..joints.len())
+                    .filter(|&j| is_root(j))
+                    .flat_map(|j| 3 * j..3 * j + 3)
+                    .chain(n - 3..n)
+                    .collect()
+            }
+            Parameterization::Momentum(t) => {
+                let mut drives_root = vec![false; t.len()];
+                let mut drives_other = vec![false; t.len()];
+                for &(row, col, w) in &t.entries {
+                    if w != 0.0 {
+                        if is_root(row as usize / PARAMS_PER_JOINT) {
+                            drives_root[col as usize] = true;
+                        } else {
+                            drives_other[col as usize] = true;
+                        }
+                    }
+                }
+                (0..t.len())
+                    .filter(|&c| drives_root[c] && !drives_other[c])
+                    .collect()
+            }
+        }
+    }
+
     /// Indices of the pose parameters that articulate the fingers: those that drive only
     /// joints below a wrist (the wrists' roles).
     pub fn finger_params(&self) -> Result<Vec<usize>, RigError> {

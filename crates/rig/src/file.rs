@@ -71,6 +71,12 @@ fn io(e: f3g_io::IoError) -> RigError {
 
 /// Writes `rig` to `path` (atomically).
 pub fn write(rig: &Rig, path: &Path) -> Result<(), RigError> {
+    let bytes = to_bytes(rig).map_err(|e| RigError::file(path, e))?;
+    f3g_io::write_atomic(path, &bytes).map_err(io)
+}
+
+/// The rig file's bytes (to embed it in another file).
+pub fn to_bytes(rig: &Rig) -> Result<Vec<u8>, String> {
     let skeleton = rig.skeleton.joints();
     let (j, v) = (skeleton.len(), rig.mesh.vertices.len());
     let meta = Meta {
@@ -209,13 +215,22 @@ pub fn write(rig: &Rig, path: &Path) -> Result<(), RigError> {
         .iter()
         .map(|(n, s, a)| (*n, s.as_slice(), *a))
         .collect();
-    f3g_io::write_npz(path, &arrays).map_err(io)
+    f3g_io::encode_npz(&arrays)
 }
 
 /// Reads a rig written by [`write`]: every size and index is checked against the description
 /// and the rig validated, so a damaged file is an error naming it (and the array).
 pub fn read(path: &Path) -> Result<Rig, RigError> {
-    let mut npz = f3g_io::Npz::open(path).map_err(io)?;
+    read_from(f3g_io::Npz::open(path).map_err(io)?)
+}
+
+/// Reads a rig file held in memory (embedded in another file); `label` names it in errors.
+pub fn from_bytes(bytes: &[u8], label: &str) -> Result<Rig, RigError> {
+    read_from(f3g_io::Npz::from_bytes(bytes, label).map_err(io)?)
+}
+
+fn read_from<R: std::io::Read + std::io::Seek>(mut npz: f3g_io::Npz<R>) -> Result<Rig, RigError> {
+    let path = &npz.path().to_path_buf();
     let bad = |field: &str, m: String| RigError::field(path, field, m);
     let bytes = npz.i64("meta_json").map_err(io)?.1;
     let bytes: Vec<u8> = bytes

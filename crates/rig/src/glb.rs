@@ -120,28 +120,194 @@ impl GlbBuffer {
 
     /// The `.glb` bytes of `document` (its `buffers`, `bufferViews` and `accessors` are set
     /// from this buffer).
-    pub fn finish(mut self, mut document: Value) -> Vec<u8> {
+    pub fn finish(self, mut document: Value) -> Vec<u8> {
+        document["buffers"] = json!([{ "byteLength": self.bin.len().next_multiple_of(4) }]);
+        document["bufferViews"] = Value::Array(self.views);
+        document["accessors"] = Value::Array(self.accessors);
+        glb_bytes(&document, self.bin)
+    }
+}
+
+/// The `.glb` container of a document and its binary chunk (padded to 4 bytes).
+fn glb_bytes(document: &Value, mut bin: Vec<u8>) -> Vec<u8> {
+    bin.resize(bin.len().next_multiple_of(4), 0);
+    let mut text = serde_json::to_vec(document).expect("serialisable");
+    while !text.len().is_multiple_of(4) {
+        text.push(b' ');
+    }
+    let total = 12 + 8 + text.len() + 8 + bin.len();
+    let mut out = Vec::with_capacity(total);
+    out.extend(b"glTF");
+    out.extend(2u32.to_le_bytes());
+    out.extend((total as u32).to_le_bytes());
+    out.extend((text.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(text);
+    out.extend((bin.len() as u32).to_le_bytes());
+    out.extend(b"BIN\0");
+    out.extend(bin);
+    out
+}
+
+/// A binary glTF read back: its JSON document and binary chunk, with typed accessors that
+/// check every offset and count against the buffer (a damaged file is an error, never a
+/// panic or a huge allocation).
+pub struct GlbFile {
+    pub document: Value,
+    bin: Vec<u8>,
+}
+
+impl GlbFile {
+    /// Parses `.glb` bytes (header, JSON chunk, optional BIN chunk).
+    pub fn parse(bytes: &[u8]) -> Result<Self, String> {
+        let word = |at: usize| -> Result<u32, String> {
+            bytes
+                .get(at..at + 4)
+                .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .ok_or_else(|| "truncated: the file ends inside its header".to_string())
+        };
+        if bytes.get(..4) != Some(b"glTF") {
+            return Err("not a binary glTF file (no `glTF` magic)".into());
+        }
+        if word(4)? != 2 {
+            return Err(format!("glTF version {}, expected 2", word(4)?));
+        }
+        let total = word(8)? as usize;
+        if total > bytes.len() {
+            return Err(format!(
+                "truncated: the header says {total} bytes, the file has {}",
+                bytes.len()
+            ));
+        }
+        let (mut at, mut json, mut bin) = (12usize, None, Vec::new());
+        while at + 8 <= total {
+            let (length, kind) = (word(at)? as usize, word(at + 4)?);
+            let chunk = bytes
+                .get(at + 8..at + 8 + length)
+                .filter(|_| at + 8 + length <= total)
+                .ok_or_else(|| format!("truncated: a chunk of {length} bytes runs past the end"))?;
+            match kind {
+                0x4E4F534A => {
+                    json = Some(
+                        serde_json::from_slice::<Value>(chunk)
+                            .map_err(|e| format!("the JSON chunk is not valid JSON: {e}"))?,
+                    );
+                }
+                0x004E4942 => bin = chunk.to_vec(),
+                _ => {}
+            }
+            at += 8 + length;
+        }
+        let document = json.ok_or("no JSON chunk")?;
+        Ok(Self { document, bin })
+    }
+
+    /// The bytes of accessor `index` (tightly packed, as this module writes them) and its
+    /// element count, for components of `size` bytes, `width` per element.
+    fn accessor_bytes(
+        &self,
+        index: usize,
+        component: u32,
+        size: usize,
+        width: usize,
+    ) -> Result<(&[u8], usize), String> {
+        let a = self
+            .document
+            .pointer(&format!("/accessors/{index}"))
+            .ok_or_else(|| format!("accessor {index} does not exist"))?;
+        if a["componentType"].as_u64() != Some(u64::from(component)) {
+            return Err(format!(
+                "accessor {index} has component type {}, expected {component}",
+                a["componentType"]
+            ));
+        }
+        let count = a["count"]
+            .as_u64()
+            .ok_or_else(|| format!("accessor {index} has no count"))? as usize;
+        let view_index = a["bufferView"]
+            .as_u64()
+            .ok_or_else(|| format!("accessor {index} has no buffer view"))?;
+        let view = self
+            .document
+            .pointer(&format!("/bufferViews/{view_index}"))
+            .ok_or_else(|| format!("buffer view {view_index} does not exist"))?;
+        if view.get("byteStride").is_some_and(|s| !s.is_null()) {
+            return Err(format!("buffer view {view_index} is interleaved"));
+        }
+        let start = view["byteOffset"].as_u64().unwrap_or(0) as usize
+            + a["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let length = count
+            .checked_mul(size * width)
+            .filter(|&l| l <= self.bin.len())
+            .ok_or_else(|| {
+                format!("accessor {index} has count {count}, more than the buffer holds")
+            })?;
+        let bytes = start
+            .checked_add(length)
+            .and_then(|end| self.bin.get(start..end))
+            .ok_or_else(|| format!("accessor {index} runs past the end of the buffer"))?;
+        Ok((bytes, count))
+    }
+
+    /// The file's bytes again (after editing its document).
+    pub fn to_bytes(&self) -> Vec<u8> {
+        glb_bytes(&self.document, self.bin.clone())
+    }
+
+    /// Float accessor `index` with `width` components per element, flattened.
+    pub fn floats(&self, index: usize, width: usize) -> Result<Vec<f32>, String> {
+        let (bytes, _) = self.accessor_bytes(index, FLOAT, 4, width)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect())
+    }
+
+    /// Unsigned short accessor `index`, flattened.
+    pub fn shorts(&self, index: usize, width: usize) -> Result<Vec<u16>, String> {
+        let (bytes, _) = self.accessor_bytes(index, UNSIGNED_SHORT, 2, width)?;
+        Ok(bytes
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect())
+    }
+
+    /// Unsigned int accessor `index`, flattened.
+    pub fn ints(&self, index: usize, width: usize) -> Result<Vec<u32>, String> {
+        let (bytes, _) = self.accessor_bytes(index, UNSIGNED_INT, 4, width)?;
+        Ok(bytes
+            .chunks_exact(4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect())
+    }
+
+    /// The bytes of buffer view `index` (e.g. an embedded file).
+    pub fn view(&self, index: usize) -> Result<&[u8], String> {
+        let view = self
+            .document
+            .pointer(&format!("/bufferViews/{index}"))
+            .ok_or_else(|| format!("buffer view {index} does not exist"))?;
+        let start = view["byteOffset"].as_u64().unwrap_or(0) as usize;
+        let length = view["byteLength"].as_u64().unwrap_or(0) as usize;
+        start
+            .checked_add(length)
+            .and_then(|end| self.bin.get(start..end))
+            .ok_or_else(|| format!("buffer view {index} runs past the end of the buffer"))
+    }
+}
+
+impl GlbBuffer {
+    /// Appends raw bytes as a buffer view (e.g. an embedded file) and returns its index.
+    pub fn view(&mut self, bytes: &[u8]) -> usize {
         while !self.bin.len().is_multiple_of(4) {
             self.bin.push(0);
         }
-        document["buffers"] = json!([{ "byteLength": self.bin.len() }]);
-        document["bufferViews"] = Value::Array(self.views);
-        document["accessors"] = Value::Array(self.accessors);
-        let mut text = serde_json::to_vec(&document).expect("serialisable");
-        while !text.len().is_multiple_of(4) {
-            text.push(b' ');
-        }
-        let total = 12 + 8 + text.len() + 8 + self.bin.len();
-        let mut out = Vec::with_capacity(total);
-        out.extend(b"glTF");
-        out.extend(2u32.to_le_bytes());
-        out.extend((total as u32).to_le_bytes());
-        out.extend((text.len() as u32).to_le_bytes());
-        out.extend(b"JSON");
-        out.extend(text);
-        out.extend((self.bin.len() as u32).to_le_bytes());
-        out.extend(b"BIN\0");
-        out.extend(self.bin);
-        out
+        self.views.push(json!({
+            "buffer": 0,
+            "byteOffset": self.bin.len(),
+            "byteLength": bytes.len(),
+        }));
+        self.bin.extend_from_slice(bytes);
+        self.views.len() - 1
     }
 }

@@ -171,8 +171,10 @@ impl Trainer {
             train_cameras: split.cameras.clone(),
             train_frames: split.frames.clone(),
         })?;
-        // What inference needs of the body model stays with the run.
+        // What inference needs of the body model stays with the run, and so do the training
+        // poses (baking samples them; a player can play them).
         setup.write(&run.dir)?;
+        f3g_rig::sequence::write(&run.poses_path(), &setup.rig, &train_params)?;
         let pca_frames: Vec<_> = evenly(&train_params, 300);
         if pca_frames.len() >= 2 {
             run.write_pca(&pca::fit_pose_pca(
@@ -229,6 +231,14 @@ impl Trainer {
             setup.write(&run.dir)?;
             setup
         };
+        if !run.poses_path().exists() {
+            let poses: Vec<_> = split
+                .frames
+                .iter()
+                .map(|&f| dataset.params[f].clone())
+                .collect();
+            f3g_rig::sequence::write(&run.poses_path(), &setup.rig, &poses)?;
+        }
         let checkpoint = run.latest()?;
         let state = match &checkpoint {
             Some(c) => read_state(c)?,

@@ -1,0 +1,535 @@
+//! The portable avatar file: a [`BakedAvatar`] as one glTF 2.0 binary (`.glb`).
+//!
+//! - **Gaussians**: one `POINTS` primitive with the `KHR_gaussian_splatting` extension
+//!   (release candidate; kernel `ellipse`, colour space `srgb_rec709_display`): `POSITION`
+//!   (the canonical means), `KHR_gaussian_splatting:ROTATION` (unit quaternions, glTF's x, y,
+//!   z, w order), `:SCALE` (linear), `:OPACITY` (linear, in [0, 1]) and
+//!   `:SH_DEGREE_l_COEF_n` (3DGS's coefficients, `0.5 + C0·f_dc` for degree 0).
+//! - **Skinning**: the skeleton as nodes in the canonical pose (local translation, rotation,
+//!   uniform scale), a standard `skin` whose inverse bind matrices are the canonical pose's
+//!   inverse, and per Gaussian `JOINTS_0`/`WEIGHTS_0` (four influences); so `Σ w S_j` with
+//!   `S_j = W_j · IBM_j` poses a Gaussian exactly as f3g does.
+//! - **Morph targets**: the `K` pose correctives' position offsets first, then the body
+//!   model's `E` expressions, named in the mesh's `extras.targetNames` (`corrective_0`, …,
+//!   `expression:mouth-open`, …). Their weights are computed, not animated: expressions come
+//!   from the body parameters, correctives from the pose.
+//! - **`F3G_pose_correctives`** (on the primitive): what glTF morph targets cannot carry —
+//!   per corrective the colour (`colour`, VEC3, added to the degree-0 colour), log-scale
+//!   (`logScale`, VEC3) and opacity-logit (`opacityLogit`, SCALAR) offsets — and the map from
+//!   the pose to the corrective weights: `featureJoints` (joint indices), `featureUsed` (which
+//!   of the `9·J` values of `R_root⁻¹ R_j − I`, row-major per joint, are used), `featureMean`
+//!   and `featureMap` (`[K, F]`, row-major): `w = featureMap · (f − featureMean)`.
+//! - **`F3G_avatar`** (top level): the body model as an f3g rig file in a buffer view
+//!   (`bodyModel`), its parameter names (`parameters.pose|identity|expression`, so motions can
+//!   be mapped onto it), the canonical pose's parameters, the head's vertices and the head
+//!   crops' padding (for evaluation), the training step, the format version.
+//!
+//! A renderer that knows neither extension still shows a skinned point cloud.
+
+use std::path::Path;
+
+use glam::Mat4;
+use serde_json::{Value, json};
+
+use crate::AvatarError;
+use crate::bake::{BakedAvatar, CORRECTIVE_VALUES};
+use f3g_rig::glb::{GlbBuffer, GlbFile};
+use f3g_rig::{RigParams, Similarity};
+
+/// The version of the `F3G_avatar` extension this module writes and reads.
+pub const VERSION: u64 = 1;
+const SPLATS: &str = "KHR_gaussian_splatting";
+const CORRECTIVES: &str = "F3G_pose_correctives";
+const AVATAR: &str = "F3G_avatar";
+
+fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// `ln(p / (1 − p))`, clamped away from the ends so a stored 0 or 1 stays finite.
+fn logit(p: f32) -> f32 {
+    let p = p.clamp(1e-7, 1.0 - 1e-7);
+    (p / (1.0 - p)).ln()
+}
+
+/// Column `c` of a `[rows, width]` array as `[rows, 3]` (the `c`-th VEC3 of each row).
+fn vec3_column(values: &[f32], width: usize, c: usize) -> Vec<f32> {
+    values
+        .chunks_exact(width)
+        .flat_map(|row| row[3 * c..3 * c + 3].to_vec())
+        .collect()
+}
+
+/// The canonical pose's world transform of every joint.
+fn canonical_world(avatar: &BakedAvatar) -> Result<Vec<Similarity>, AvatarError> {
+    Ok(avatar
+        .rig
+        .pose(&f3g_template::without_root(&avatar.rig, &avatar.canonical))?
+        .joints)
+}
+
+/// Writes `avatar` to `path` as `.glb` (atomically); returns the file's size in bytes.
+pub fn write(avatar: &BakedAvatar, path: &Path) -> Result<u64, AvatarError> {
+    let bytes = to_bytes(avatar)?;
+    f3g_io::write_atomic(path, &bytes)?;
+    Ok(bytes.len() as u64)
+}
+
+/// The `.glb` bytes of `avatar`.
+pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
+    let n = avatar.len();
+    let k = avatar.corrective_count();
+    let e = avatar.expression_names.len();
+    let mut buffer = GlbBuffer::default();
+    const VERTEX: Option<u32> = Some(34962);
+
+    // Gaussians.
+    let position = buffer.accessor(&avatar.means, "VEC3", true, VERTEX);
+    let rotations: Vec<f32> = avatar
+        .quats
+        .chunks_exact(4)
+        .flat_map(|q| {
+            let length = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            [q[1] / length, q[2] / length, q[3] / length, q[0] / length]
+        })
+        .collect();
+    let rotation = buffer.accessor(&rotations, "VEC4", false, VERTEX);
+    let scales: Vec<f32> = avatar.log_scales.iter().map(|s| s.exp()).collect();
+    let scale = buffer.accessor(&scales, "VEC3", false, VERTEX);
+    let opacities: Vec<f32> = avatar.opacity_logits.iter().map(|&o| sigmoid(o)).collect();
+    let opacity = buffer.accessor(&opacities, "SCALAR", false, VERTEX);
+    let mut attributes = json!({
+        "POSITION": position,
+        format!("{SPLATS}:ROTATION"): rotation,
+        format!("{SPLATS}:SCALE"): scale,
+        format!("{SPLATS}:OPACITY"): opacity,
+    });
+    let coeffs = f3g_splat::sh::num_coeffs(avatar.sh_degree);
+    for c in 0..coeffs {
+        let l = (c as f64).sqrt() as usize;
+        let values = vec3_column(&avatar.sh, 3 * coeffs, c);
+        attributes[format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l)] =
+            json!(buffer.accessor(&values, "VEC3", false, VERTEX));
+    }
+    let joints: Vec<u16> = avatar.skin_joints.iter().flatten().copied().collect();
+    let weights: Vec<f32> = avatar.skin_weights.iter().flatten().copied().collect();
+    attributes["JOINTS_0"] = json!(buffer.accessor(&joints, "VEC4", false, VERTEX));
+    attributes["WEIGHTS_0"] = json!(buffer.accessor(&weights, "VEC4", false, VERTEX));
+
+    // Morph targets: correctives, then expressions.
+    let stride = CORRECTIVE_VALUES * n;
+    let mut targets = Vec::new();
+    let mut names = Vec::new();
+    let (mut colour, mut log_scale, mut opacity_logit) = (Vec::new(), Vec::new(), Vec::new());
+    for c in 0..k {
+        let basis = &avatar.correctives[c * stride..(c + 1) * stride];
+        let column = |range: std::ops::Range<usize>| -> Vec<f32> {
+            basis
+                .chunks_exact(CORRECTIVE_VALUES)
+                .flat_map(|g| g[range.clone()].to_vec())
+                .collect()
+        };
+        targets.push(json!({ "POSITION": buffer.accessor(&column(0..3), "VEC3", true, VERTEX) }));
+        colour.push(buffer.accessor(&column(3..6), "VEC3", false, None));
+        log_scale.push(buffer.accessor(&column(6..9), "VEC3", false, None));
+        opacity_logit.push(buffer.accessor(&column(9..10), "SCALAR", false, None));
+        names.push(format!("corrective_{c}"));
+    }
+    for (i, name) in avatar.expression_names.iter().enumerate() {
+        let d = &avatar.expressions[i * 3 * n..(i + 1) * 3 * n];
+        targets.push(json!({ "POSITION": buffer.accessor(d, "VEC3", true, VERTEX) }));
+        names.push(format!("expression:{name}"));
+    }
+    let used: Vec<u32> = avatar.feature_used.iter().map(|&u| u as u32).collect();
+    let mut correctives = json!({
+        "count": k,
+        "colour": colour,
+        "logScale": log_scale,
+        "opacityLogit": opacity_logit,
+        "featureJoints": avatar.feature_joints,
+        "expressions": e,
+    });
+    if !used.is_empty() {
+        correctives["featureUsed"] = json!(buffer.accessor(&used, "SCALAR", false, None));
+        correctives["featureMean"] =
+            json!(buffer.accessor(&avatar.feature_mean, "SCALAR", false, None));
+    }
+    if !avatar.feature_map.is_empty() {
+        correctives["featureMap"] =
+            json!(buffer.accessor(&avatar.feature_map, "SCALAR", false, None));
+    }
+    let mut primitive = json!({
+        "attributes": attributes,
+        "mode": 0,
+        "extensions": {
+            SPLATS: { "kernel": "ellipse", "colorSpace": "srgb_rec709_display" },
+            CORRECTIVES: correctives,
+        },
+    });
+    if !targets.is_empty() {
+        primitive["targets"] = Value::Array(targets);
+    }
+    let mut mesh = json!({ "name": "avatar", "primitives": [primitive] });
+    if !names.is_empty() {
+        mesh["weights"] = json!(vec![0.0; names.len()]);
+        mesh["extras"] = json!({ "targetNames": names });
+    }
+
+    // Skeleton in the canonical pose.
+    let world = canonical_world(avatar)?;
+    let skeleton = avatar.rig.skeleton.joints();
+    let mut nodes: Vec<Value> = skeleton
+        .iter()
+        .enumerate()
+        .map(|(j, joint)| {
+            let local = match joint.parent {
+                Some(p) => world[p].inverse().compose(&world[j]),
+                None => world[j],
+            };
+            json!({
+                "name": joint.name,
+                "translation": local.translation.to_array(),
+                "rotation": local.rotation.normalize().to_array(),
+                "scale": [local.scale, local.scale, local.scale],
+            })
+        })
+        .collect();
+    for (j, joint) in skeleton.iter().enumerate() {
+        if let Some(p) = joint.parent {
+            nodes[p]
+                .as_object_mut()
+                .expect("object")
+                .entry("children")
+                .or_insert_with(|| json!([]))
+                .as_array_mut()
+                .expect("array")
+                .push(json!(j));
+        }
+    }
+    let inverse_bind: Vec<f32> = world
+        .iter()
+        .flat_map(|w| Mat4::from(w.inverse().to_affine()).to_cols_array())
+        .collect();
+    let inverse_bind = buffer.accessor(&inverse_bind, "MAT4", false, None);
+    let mesh_node = nodes.len();
+    nodes.push(json!({ "name": "avatar", "mesh": 0, "skin": 0 }));
+    let roots: Vec<usize> = skeleton
+        .iter()
+        .enumerate()
+        .filter(|(_, j)| j.parent.is_none())
+        .map(|(i, _)| i)
+        .chain([mesh_node])
+        .collect();
+
+    // The body model and what evaluation needs.
+    let rig_bytes = f3g_rig::file::to_bytes(&avatar.rig).map_err(AvatarError::Invalid)?;
+    let body_model = buffer.view(&rig_bytes);
+    let head: Vec<u32> = avatar.head_vertices.iter().map(|&v| v as u32).collect();
+    let mut extension = json!({
+        "version": VERSION,
+        "bodyModel": { "bufferView": body_model, "name": avatar.rig.name },
+        "parameters": {
+            "pose": avatar.rig.pose_param_names(),
+            "identity": avatar.rig.identity.names,
+            "expression": avatar.rig.expression.names,
+        },
+        "canonicalPose": buffer.accessor(&avatar.canonical.pose, "SCALAR", false, None),
+        "facePadding": avatar.face_padding,
+        "faceCropSize": avatar.face_crop_size,
+        "step": avatar.step,
+    });
+    if !avatar.canonical.identity.is_empty() {
+        extension["canonicalIdentity"] =
+            json!(buffer.accessor(&avatar.canonical.identity, "SCALAR", false, None));
+    }
+    if !head.is_empty() {
+        extension["headVertices"] = json!(buffer.accessor(&head, "SCALAR", false, None));
+    }
+    let document = json!({
+        "asset": { "version": "2.0", "generator": "f3g-avatar export-avatar" },
+        "extensionsUsed": [SPLATS, CORRECTIVES, AVATAR],
+        "extensions": { AVATAR: extension },
+        "scene": 0,
+        "scenes": [{ "nodes": roots }],
+        "nodes": nodes,
+        "meshes": [mesh],
+        "skins": [{
+            "joints": (0..skeleton.len()).collect::<Vec<_>>(),
+            "inverseBindMatrices": inverse_bind,
+        }],
+    });
+    Ok(buffer.finish(document))
+}
+
+/// Reads an avatar file written by [`write`]; every count and index is checked, so a
+/// truncated, foreign or inconsistent file is an error naming it.
+pub fn read(path: &Path) -> Result<BakedAvatar, AvatarError> {
+    let bytes = std::fs::read(path).map_err(|e| AvatarError::file(path, e))?;
+    from_bytes(&bytes).map_err(|e| AvatarError::file(path, e))
+}
+
+/// An index field of a JSON object.
+fn index(v: &Value, what: &str) -> Result<usize, String> {
+    v.as_u64()
+        .map(|i| i as usize)
+        .ok_or_else(|| format!("{what} is missing or not an index"))
+}
+
+/// Reads an avatar from `.glb` bytes; errors say what is wrong.
+pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
+    let file = GlbFile::parse(bytes)?;
+    let doc = &file.document;
+    let ext = doc
+        .pointer(&format!("/extensions/{AVATAR}"))
+        .ok_or_else(|| format!("not an f3g avatar: no `{AVATAR}` extension (a plain glTF?)"))?;
+    if ext["version"].as_u64() != Some(VERSION) {
+        return Err(format!(
+            "`{AVATAR}` version {}, this f3g reads version {VERSION}",
+            ext["version"]
+        ));
+    }
+    let rig_view = index(&ext["bodyModel"]["bufferView"], "bodyModel.bufferView")?;
+    let rig = f3g_rig::file::from_bytes(file.view(rig_view)?, "the embedded body model")
+        .map_err(|e| e.to_string())?;
+    let floats = |v: &Value, width: usize, what: &str| -> Result<Vec<f32>, String> {
+        let values = file.floats(index(v, what)?, width)?;
+        match values.iter().position(|x| !x.is_finite()) {
+            Some(i) => Err(format!("{what} holds a non-finite value at {i}")),
+            None => Ok(values),
+        }
+    };
+    let pose = floats(&ext["canonicalPose"], 1, "canonicalPose")?;
+    let identity = match ext.get("canonicalIdentity") {
+        Some(v) => floats(v, 1, "canonicalIdentity")?,
+        None => Vec::new(),
+    };
+    let canonical = RigParams {
+        pose,
+        identity,
+        expression: vec![0.0; rig.expression.len()],
+    };
+    if canonical.pose.len() != rig.num_pose_params()
+        || canonical.identity.len() != rig.identity.len()
+    {
+        return Err("the canonical pose does not fit the embedded body model".into());
+    }
+    let head_vertices: Vec<usize> = match ext.get("headVertices") {
+        Some(v) => file
+            .ints(index(v, "headVertices")?, 1)?
+            .into_iter()
+            .map(|x| x as usize)
+            .collect(),
+        None => Vec::new(),
+    };
+    if head_vertices.iter().any(|&v| v >= rig.mesh.vertices.len()) {
+        return Err("headVertices names a vertex the body model does not have".into());
+    }
+    let face_padding = ext["facePadding"].as_f64().unwrap_or(1.3) as f32;
+    let face_crop_size = ext["faceCropSize"].as_u64().unwrap_or(128).clamp(16, 2048) as usize;
+
+    let primitive = doc
+        .pointer("/meshes/0/primitives/0")
+        .ok_or("the file has no mesh primitive")?;
+    let attributes = &primitive["attributes"];
+    let attribute = |name: &str| index(&attributes[name], &format!("attribute {name}"));
+    let means = floats(&attributes["POSITION"], 3, "POSITION")?;
+    let n = means.len() / 3;
+    let sized = |values: Vec<f32>, width: usize, what: &str| -> Result<Vec<f32>, String> {
+        if values.len() == width * n {
+            Ok(values)
+        } else {
+            Err(format!(
+                "{what} has {} values for {n} Gaussians",
+                values.len()
+            ))
+        }
+    };
+    let rotation = format!("{SPLATS}:ROTATION");
+    let quats: Vec<f32> = sized(floats(&attributes[&rotation], 4, &rotation)?, 4, &rotation)?
+        .chunks_exact(4)
+        .flat_map(|q| [q[3], q[0], q[1], q[2]])
+        .collect();
+    let scale = format!("{SPLATS}:SCALE");
+    let log_scales: Vec<f32> = sized(floats(&attributes[&scale], 3, &scale)?, 3, &scale)?
+        .iter()
+        .map(|s| s.max(1e-12).ln())
+        .collect();
+    let opacity = format!("{SPLATS}:OPACITY");
+    let opacity_logits: Vec<f32> = sized(floats(&attributes[&opacity], 1, &opacity)?, 1, &opacity)?
+        .iter()
+        .map(|&o| logit(o))
+        .collect();
+    let mut degree = 0;
+    while degree < 3
+        && attributes
+            .get(format!("{SPLATS}:SH_DEGREE_{}_COEF_0", degree + 1))
+            .is_some()
+    {
+        degree += 1;
+    }
+    let coeffs = f3g_splat::sh::num_coeffs(degree);
+    let mut sh = vec![0.0f32; n * coeffs * 3];
+    for c in 0..coeffs {
+        let l = (c as f64).sqrt() as usize;
+        let name = format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l);
+        let values = sized(floats(&attributes[&name], 3, &name)?, 3, &name)?;
+        for g in 0..n {
+            sh[(g * coeffs + c) * 3..(g * coeffs + c) * 3 + 3]
+                .copy_from_slice(&values[3 * g..3 * g + 3]);
+        }
+    }
+    let joints = file.shorts(attribute("JOINTS_0")?, 4)?;
+    let weights = sized(
+        floats(&attributes["WEIGHTS_0"], 4, "WEIGHTS_0")?,
+        4,
+        "WEIGHTS_0",
+    )?;
+    if joints.len() != 4 * n || joints.iter().any(|&j| j as usize >= rig.skeleton.len()) {
+        return Err("JOINTS_0 does not name four joints of the skeleton per Gaussian".into());
+    }
+    let correctives_ext = primitive
+        .pointer(&format!("/extensions/{CORRECTIVES}"))
+        .ok_or_else(|| format!("the primitive has no `{CORRECTIVES}`"))?;
+    let k = index(&correctives_ext["count"], "count")?;
+    let e = index(&correctives_ext["expressions"], "expressions")?;
+    let targets = primitive["targets"].as_array().cloned().unwrap_or_default();
+    if targets.len() != k + e {
+        return Err(format!(
+            "{} morph targets, but {k} correctives and {e} expressions",
+            targets.len()
+        ));
+    }
+    let list = |name: &str| -> Result<Vec<Value>, String> {
+        let v = correctives_ext[name]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        if v.len() == k {
+            Ok(v)
+        } else {
+            Err(format!(
+                "`{name}` lists {} accessors for {k} correctives",
+                v.len()
+            ))
+        }
+    };
+    let (colour, log_scale, opacity_logit) =
+        (list("colour")?, list("logScale")?, list("opacityLogit")?);
+    let mut correctives = vec![0.0f32; k * n * CORRECTIVE_VALUES];
+    for c in 0..k {
+        let parts = [
+            (
+                sized(
+                    floats(&targets[c]["POSITION"], 3, "a corrective's POSITION")?,
+                    3,
+                    "a corrective",
+                )?,
+                0,
+                3,
+            ),
+            (sized(floats(&colour[c], 3, "colour")?, 3, "colour")?, 3, 3),
+            (
+                sized(floats(&log_scale[c], 3, "logScale")?, 3, "logScale")?,
+                6,
+                3,
+            ),
+            (
+                sized(
+                    floats(&opacity_logit[c], 1, "opacityLogit")?,
+                    1,
+                    "opacityLogit",
+                )?,
+                9,
+                1,
+            ),
+        ];
+        for (values, offset, width) in parts {
+            for g in 0..n {
+                let at = (c * n + g) * CORRECTIVE_VALUES + offset;
+                correctives[at..at + width].copy_from_slice(&values[g * width..(g + 1) * width]);
+            }
+        }
+    }
+    let names: Vec<String> = doc
+        .pointer("/meshes/0/extras/targetNames")
+        .and_then(|v| serde_json::from_value(v.clone()).ok())
+        .unwrap_or_default();
+    let mut expression_names = Vec::with_capacity(e);
+    let mut expressions = Vec::with_capacity(e * 3 * n);
+    for i in 0..e {
+        let name = names
+            .get(k + i)
+            .and_then(|n| n.strip_prefix("expression:"))
+            .ok_or_else(|| format!("morph target {} is not named `expression:…`", k + i))?;
+        expression_names.push(name.to_string());
+        expressions.extend(sized(
+            floats(&targets[k + i]["POSITION"], 3, "an expression's POSITION")?,
+            3,
+            name,
+        )?);
+    }
+    let feature_joints: Vec<usize> =
+        serde_json::from_value(correctives_ext["featureJoints"].clone())
+            .map_err(|e| format!("featureJoints: {e}"))?;
+    if feature_joints.iter().any(|&j| j >= rig.skeleton.len()) {
+        return Err("featureJoints names a joint the skeleton does not have".into());
+    }
+    let (feature_used, feature_mean) = match correctives_ext.get("featureUsed") {
+        Some(v) => {
+            let used: Vec<usize> = file
+                .ints(index(v, "featureUsed")?, 1)?
+                .into_iter()
+                .map(|u| u as usize)
+                .collect();
+            if used.iter().any(|&u| u >= 9 * feature_joints.len()) {
+                return Err("featureUsed names a feature beyond the feature joints'".into());
+            }
+            let mean = floats(&correctives_ext["featureMean"], 1, "featureMean")?;
+            if mean.len() != used.len() {
+                return Err("featureMean and featureUsed differ in length".into());
+            }
+            (used, mean)
+        }
+        None => (Vec::new(), Vec::new()),
+    };
+    let feature_map = match correctives_ext.get("featureMap") {
+        Some(v) => floats(v, 1, "featureMap")?,
+        None => Vec::new(),
+    };
+    if feature_map.len() != k * feature_used.len() {
+        return Err(format!(
+            "featureMap has {} values for {k} correctives × {} features",
+            feature_map.len(),
+            feature_used.len()
+        ));
+    }
+    Ok(BakedAvatar {
+        rig,
+        canonical,
+        means,
+        quats,
+        log_scales,
+        opacity_logits,
+        sh,
+        sh_degree: degree,
+        skin_joints: joints
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect(),
+        skin_weights: weights
+            .chunks_exact(4)
+            .map(|c| [c[0], c[1], c[2], c[3]])
+            .collect(),
+        correctives,
+        feature_joints,
+        feature_used,
+        feature_mean,
+        feature_map,
+        expression_names,
+        expressions,
+        head_vertices,
+        face_padding,
+        face_crop_size,
+        step: ext["step"].as_u64().unwrap_or(0),
+    })
+}

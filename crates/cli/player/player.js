@@ -1,0 +1,404 @@
+// The f3g player: loads a baked avatar (`f3g export-avatar`'s .glb), skins its Gaussians on
+// the GPU with Spark's SplatSkinning and applies its pose correctives and expressions each
+// frame of a motion.
+//
+// Served files: `avatar.glb`, `motions.json` ([{name, frames, fps, url}]) and per motion a
+// little-endian float32 array of `frames × (16·J + E)`: each joint's world matrix (column
+// major) in the frame's pose, then the E expression weights in the file's order.
+//
+// Skinning: Spark's SplatSkinning (dual quaternions, four bones per splat) is given each
+// joint's skinning transform S_j = W_j · rest_j⁻¹ as a rotation and a translation; its own
+// rest pose stays the identity (it would apply rest⁻¹ about the origin, not the joint). Dual
+// quaternions blend like f3g's linear blend for joints that turn little relative to each
+// other and keep volume where they turn more (f3g's linear blend needs Spark's extended
+// splats with covariances, which failed here: "Generator must be provided"). The correctives
+// and expressions change the canonical splats before skinning, on the CPU.
+//
+// The page sets `window.f3g = {ready, error, frame, setFrame(i), setView(...), fps}` so that
+// tests and scripts can wait for it and drive it; errors are shown on the page, not only
+// logged.
+
+import * as THREE from "three";
+import { OrbitControls } from "three/addons/controls/OrbitControls.js";
+import {
+  SparkRenderer,
+  SplatMesh,
+  SplatSkinning,
+  SplatSkinningMode,
+} from "@sparkjsdev/spark";
+
+const C0 = 0.28209479177387814;
+const state = { ready: false, error: null, frame: 0, fps: 0 };
+window.f3g = state;
+
+function fail(message) {
+  state.error = String(message);
+  const box = document.getElementById("error");
+  box.textContent = "f3g player: " + state.error;
+  box.style.display = "block";
+  document.getElementById("status").textContent = "error";
+  console.error(state.error);
+}
+
+window.addEventListener("error", (e) => fail(e.message));
+window.addEventListener("unhandledrejection", (e) => fail(e.reason?.message ?? e.reason));
+
+async function fetchBytes(url) {
+  const response = await fetch(url);
+  if (!response.ok) throw new Error(`${url}: HTTP ${response.status}`);
+  return response.arrayBuffer();
+}
+
+// A binary glTF: its JSON and a typed view of every accessor, checked against the buffer.
+function parseGlb(buffer, name) {
+  const view = new DataView(buffer);
+  if (buffer.byteLength < 20 || view.getUint32(0, true) !== 0x46546c67) {
+    throw new Error(`${name} is not a binary glTF file`);
+  }
+  const total = view.getUint32(8, true);
+  if (total > buffer.byteLength) throw new Error(`${name} is truncated`);
+  let at = 12, json = null, bin = null;
+  while (at + 8 <= total) {
+    const length = view.getUint32(at, true), kind = view.getUint32(at + 4, true);
+    if (at + 8 + length > total) throw new Error(`${name} is truncated`);
+    const bytes = new Uint8Array(buffer, at + 8, length);
+    if (kind === 0x4e4f534a) json = JSON.parse(new TextDecoder().decode(bytes));
+    if (kind === 0x004e4942) bin = bytes;
+    at += 8 + length;
+  }
+  if (!json || !bin) throw new Error(`${name} has no JSON or no binary chunk`);
+  const width = { SCALAR: 1, VEC2: 2, VEC3: 3, VEC4: 4, MAT4: 16 };
+  const types = { 5126: Float32Array, 5125: Uint32Array, 5123: Uint16Array, 5121: Uint8Array };
+  function accessor(index) {
+    const a = json.accessors?.[index];
+    if (!a) throw new Error(`${name}: accessor ${index} is missing`);
+    const v = json.bufferViews[a.bufferView];
+    const Type = types[a.componentType];
+    const count = a.count * width[a.type];
+    const start = (v.byteOffset ?? 0) + (a.byteOffset ?? 0);
+    if (!Type || start + count * Type.BYTES_PER_ELEMENT > bin.byteLength) {
+      throw new Error(`${name}: accessor ${index} does not fit the buffer`);
+    }
+    return new Type(bin.buffer.slice(bin.byteOffset + start,
+      bin.byteOffset + start + count * Type.BYTES_PER_ELEMENT));
+  }
+  return { json, accessor };
+}
+
+// The avatar's arrays (see crates/avatar/src/avatar_file.rs for the layout).
+function readAvatar(glb) {
+  const { json, accessor } = glb;
+  if (!json.extensions?.F3G_avatar) {
+    throw new Error("avatar.glb is not an f3g avatar (no F3G_avatar extension)");
+  }
+  const primitive = json.meshes[0].primitives[0];
+  const at = primitive.attributes;
+  const means = accessor(at.POSITION);
+  const n = means.length / 3;
+  const get = (name, w) => {
+    const values = accessor(at[name]);
+    if (values.length !== w * n) {
+      throw new Error(`avatar.glb: ${name} holds ${values.length} values for ${n} Gaussians`);
+    }
+    return values;
+  };
+  const sh = [];
+  for (let l = 0; l <= 3; l++) {
+    if (at[`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_0`] === undefined) break;
+    for (let m = 0; m < 2 * l + 1; m++) {
+      sh.push(get(`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_${m}`, 3));
+    }
+  }
+  const ext = primitive.extensions.F3G_pose_correctives;
+  const k = ext.count, e = ext.expressions;
+  const targets = primitive.targets ?? [];
+  if (targets.length !== k + e) {
+    throw new Error(`avatar.glb: ${targets.length} morph targets for ${k} correctives and ${e} expressions`);
+  }
+  const correctives = [];
+  for (let c = 0; c < k; c++) {
+    correctives.push({
+      position: accessor(targets[c].POSITION),
+      colour: accessor(ext.colour[c]),
+      logScale: accessor(ext.logScale[c]),
+      opacityLogit: accessor(ext.opacityLogit[c]),
+    });
+  }
+  const expressions = [];
+  for (let i = 0; i < e; i++) expressions.push(accessor(targets[k + i].POSITION));
+  const skin = json.skins[0];
+  const joints = skin.joints.length;
+  // The canonical pose's world matrices, from the nodes' hierarchy.
+  const parents = new Array(json.nodes.length).fill(-1);
+  json.nodes.forEach((node, i) => (node.children ?? []).forEach((c) => (parents[c] = i)));
+  const world = [];
+  const local = (node) => new THREE.Matrix4().compose(
+    new THREE.Vector3(...(node.translation ?? [0, 0, 0])),
+    new THREE.Quaternion(...(node.rotation ?? [0, 0, 0, 1])),
+    new THREE.Vector3(...(node.scale ?? [1, 1, 1])));
+  const worldOf = (i) => {
+    if (world[i]) return world[i];
+    const m = local(json.nodes[i]);
+    world[i] = parents[i] >= 0 ? worldOf(parents[i]).clone().multiply(m) : m;
+    return world[i];
+  };
+  const rest = skin.joints.map((i) => worldOf(i));
+  return {
+    n, means, sh, joints, rest,
+    rotations: get("KHR_gaussian_splatting:ROTATION", 4),
+    scales: get("KHR_gaussian_splatting:SCALE", 3),
+    opacities: get("KHR_gaussian_splatting:OPACITY", 1),
+    skinJoints: get("JOINTS_0", 4),
+    skinWeights: get("WEIGHTS_0", 4),
+    correctives,
+    expressions,
+    featureJoints: ext.featureJoints,
+    featureUsed: ext.featureUsed === undefined ? new Uint32Array(0) : accessor(ext.featureUsed),
+    featureMean: ext.featureMean === undefined ? new Float32Array(0) : accessor(ext.featureMean),
+    featureMap: ext.featureMap === undefined ? new Float32Array(0) : accessor(ext.featureMap),
+    root: skin.joints.findIndex((i) => parents[i] < 0 || !skin.joints.includes(parents[i])),
+  };
+}
+
+// The avatar's canonical Gaussians as a binary 3DGS .ply, which Spark reads with its SH.
+function canonicalPly(a) {
+  const coeffs = a.sh.length;
+  const names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"];
+  for (let i = 0; i < 3 * (coeffs - 1); i++) names.push(`f_rest_${i}`);
+  names.push("opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3");
+  const header = `ply\nformat binary_little_endian 1.0\nelement vertex ${a.n}\n` +
+    names.map((p) => `property float ${p}\n`).join("") + "end_header\n";
+  const head = new TextEncoder().encode(header);
+  const body = new Float32Array(a.n * names.length);
+  for (let g = 0; g < a.n; g++) {
+    const row = body.subarray(g * names.length, (g + 1) * names.length);
+    row.set(a.means.subarray(3 * g, 3 * g + 3), 0);
+    for (let ch = 0; ch < 3; ch++) {
+      row[6 + ch] = a.sh[0][3 * g + ch];
+      for (let c = 1; c < coeffs; c++) row[9 + ch * (coeffs - 1) + c - 1] = a.sh[c][3 * g + ch];
+    }
+    const o = 9 + 3 * (coeffs - 1);
+    const p = Math.min(Math.max(a.opacities[g], 1e-6), 1 - 1e-6);
+    row[o] = Math.log(p / (1 - p));
+    for (let i = 0; i < 3; i++) row[o + 1 + i] = Math.log(Math.max(a.scales[3 * g + i], 1e-12));
+    const q = a.rotations.subarray(4 * g, 4 * g + 4);
+    row.set([q[3], q[0], q[1], q[2]], o + 4);
+  }
+  const out = new Uint8Array(head.length + body.byteLength);
+  out.set(head, 0);
+  out.set(new Uint8Array(body.buffer), head.length);
+  return out;
+}
+
+// The corrective weights of a pose, from its skinning matrices S_j = W_j · rest_j⁻¹: the
+// features R_root⁻¹ R_j − I (row major) of the feature joints, centred, times the map.
+function correctiveWeights(a, skinning) {
+  const k = a.correctives.length, f = a.featureUsed.length;
+  if (k === 0 || f === 0) return new Float32Array(k);
+  const rotation = (m) => {
+    const r = new THREE.Matrix3().setFromMatrix4(m);
+    const e = r.elements; // column major
+    for (let c = 0; c < 3; c++) {
+      const len = Math.hypot(e[3 * c], e[3 * c + 1], e[3 * c + 2]) || 1;
+      for (let i = 0; i < 3; i++) e[3 * c + i] /= len;
+    }
+    return r;
+  };
+  const rootInverse = rotation(skinning[a.root]).transpose();
+  const all = new Float32Array(9 * a.featureJoints.length);
+  a.featureJoints.forEach((j, i) => {
+    const r = rootInverse.clone().multiply(rotation(skinning[j])).elements;
+    for (let row = 0; row < 3; row++) {
+      for (let col = 0; col < 3; col++) {
+        all[9 * i + 3 * row + col] = r[3 * col + row] - (row === col ? 1 : 0);
+      }
+    }
+  });
+  const weights = new Float32Array(k);
+  for (let c = 0; c < k; c++) {
+    let w = 0;
+    for (let i = 0; i < f; i++) w += a.featureMap[c * f + i] * (all[a.featureUsed[i]] - a.featureMean[i]);
+    weights[c] = w;
+  }
+  return weights;
+}
+
+async function main() {
+  const params = new URLSearchParams(location.search);
+  // `?bare` hides the controls (pictures for comparison), `?paused` starts still.
+  if (params.get("bare") !== null) document.body.classList.add("bare");
+  const status = document.getElementById("status");
+  const avatar = readAvatar(parseGlb(await fetchBytes("avatar.glb"), "avatar.glb"));
+  if (avatar.joints > 256) {
+    throw new Error(`the avatar has ${avatar.joints} joints; Spark's skinning takes at most 256`);
+  }
+  const motions = await (await fetch("motions.json")).json();
+  status.textContent = `${avatar.n} Gaussians, ${avatar.joints} joints, ${avatar.correctives.length} correctives`;
+
+  const canvas = document.getElementById("view");
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(1);
+  renderer.setClearColor(0xffffff, 1);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0xffffff);
+  const spark = new SparkRenderer({ renderer, covSplats: true, accumExtSplats: true });
+  scene.add(spark);
+  const camera = new THREE.PerspectiveCamera(30, 1, 0.05, 100);
+  const controls = new OrbitControls(camera, canvas);
+
+  const mesh = new SplatMesh({
+    fileBytes: canonicalPly(avatar), fileType: "ply", extSplats: true, covSplats: true,
+  });
+  await mesh.initialized;
+  scene.add(mesh);
+  const packed = mesh.extSplats;
+  const skinning = new SplatSkinning({
+    mesh, numSplats: avatar.n, numBones: avatar.joints, mode: SplatSkinningMode.LINEAR_BLEND,
+  });
+  const restInverse = avatar.rest.map((m) => m.clone().invert());
+  const jv = new THREE.Vector4(), wv = new THREE.Vector4();
+  for (let i = 0; i < avatar.n; i++) {
+    jv.fromArray(avatar.skinJoints, 4 * i);
+    wv.fromArray(avatar.skinWeights, 4 * i);
+    skinning.setSplatBones(i, jv, wv);
+  }
+  mesh.skinning = skinning;
+  mesh.updateGenerator();
+
+  // The canonical attributes the correctives and expressions are added to.
+  const dc = avatar.sh[0];
+  const logScale = Float32Array.from(avatar.scales, (s) => Math.log(Math.max(s, 1e-12)));
+  const logit = Float32Array.from(avatar.opacities, (p) => {
+    const q = Math.min(Math.max(p, 1e-6), 1 - 1e-6);
+    return Math.log(q / (1 - q));
+  });
+  const center = new THREE.Vector3(), scales = new THREE.Vector3();
+  const quaternion = new THREE.Quaternion(), color = new THREE.Color();
+
+  let motion = null, frames = 0, stride = 0;
+  async function loadMotion(index) {
+    const m = motions[index];
+    const data = new Float32Array(await fetchBytes(m.url));
+    stride = 16 * avatar.joints + avatar.expressions.length;
+    if (data.length !== m.frames * stride) {
+      throw new Error(`${m.url}: ${data.length} values for ${m.frames} frames of ${stride}`);
+    }
+    motion = { ...m, data };
+    frames = m.frames;
+    const slider = document.getElementById("frame");
+    slider.max = String(Math.max(frames - 1, 0));
+    showFrame(0);
+  }
+
+  function showFrame(f) {
+    f = Math.min(Math.max(Math.round(f), 0), Math.max(frames - 1, 0));
+    state.frame = f;
+    const row = motion.data.subarray(f * stride, (f + 1) * stride);
+    const bones = [];
+    for (let j = 0; j < avatar.joints; j++) {
+      const m = new THREE.Matrix4().fromArray(row, 16 * j).multiply(restInverse[j]);
+      skinning.setBoneMatrix(j, m);
+      bones.push(m);
+    }
+    skinning.updateBones();
+    const w = correctiveWeights(avatar, bones);
+    const e = row.subarray(16 * avatar.joints);
+    for (let g = 0; g < avatar.n; g++) {
+      let x = avatar.means[3 * g], y = avatar.means[3 * g + 1], z = avatar.means[3 * g + 2];
+      let r = dc[3 * g], gr = dc[3 * g + 1], b = dc[3 * g + 2];
+      let s0 = logScale[3 * g], s1 = logScale[3 * g + 1], s2 = logScale[3 * g + 2];
+      let o = logit[g];
+      for (let c = 0; c < w.length; c++) {
+        const k = avatar.correctives[c], wc = w[c];
+        if (wc === 0) continue;
+        x += wc * k.position[3 * g]; y += wc * k.position[3 * g + 1]; z += wc * k.position[3 * g + 2];
+        r += wc * k.colour[3 * g] / C0; gr += wc * k.colour[3 * g + 1] / C0; b += wc * k.colour[3 * g + 2] / C0;
+        s0 += wc * k.logScale[3 * g]; s1 += wc * k.logScale[3 * g + 1]; s2 += wc * k.logScale[3 * g + 2];
+        o += wc * k.opacityLogit[g];
+      }
+      for (let i = 0; i < e.length; i++) {
+        if (e[i] === 0) continue;
+        const d = avatar.expressions[i];
+        x += e[i] * d[3 * g]; y += e[i] * d[3 * g + 1]; z += e[i] * d[3 * g + 2];
+      }
+      center.set(x, y, z);
+      scales.set(Math.exp(s0), Math.exp(s1), Math.exp(s2));
+      const q = avatar.rotations;
+      quaternion.set(q[4 * g], q[4 * g + 1], q[4 * g + 2], q[4 * g + 3]);
+      color.setRGB(0.5 + C0 * r, 0.5 + C0 * gr, 0.5 + C0 * b, THREE.LinearSRGBColorSpace);
+      packed.setSplat(g, center, scales, quaternion, 1 / (1 + Math.exp(-o)), color);
+    }
+    packed.needsUpdate = true;
+    mesh.updateVersion();
+    document.getElementById("frame").value = String(f);
+    document.getElementById("frameText").textContent = `${f} / ${frames}`;
+  }
+
+  function fitView(width, height) {
+    renderer.setSize(width, height, false);
+    camera.aspect = width / height;
+    camera.updateProjectionMatrix();
+  }
+  // Frame the avatar: the box of its canonical means.
+  const box = new THREE.Box3().setFromArray(avatar.means);
+  const middle = box.getCenter(new THREE.Vector3());
+  camera.position.set(middle.x, middle.y, middle.z + 4.0);
+  controls.target.copy(middle);
+  controls.update();
+  fitView(canvas.clientWidth || 640, canvas.clientHeight || 480);
+  window.addEventListener("resize", () => fitView(canvas.clientWidth, canvas.clientHeight));
+
+  // Exact views for scripts and tests: eye, target (world), vertical field of view (deg).
+  state.setView = (eye, target, fovDeg, width, height) => {
+    controls.enabled = false;
+    camera.fov = fovDeg;
+    camera.up.set(0, 1, 0);
+    camera.position.set(...eye);
+    camera.lookAt(new THREE.Vector3(...target));
+    fitView(width, height);
+  };
+  state.setFrame = (f) => { playing = false; showFrame(f); };
+  state.rendered = 0;
+
+  let playing = params.get("paused") === null;
+  document.getElementById("play").textContent = playing ? "pause" : "play";
+  let speed = 1, clock = 0, last = performance.now(), counted = 0, since = last;
+  document.getElementById("play").onclick = () => {
+    playing = !playing;
+    document.getElementById("play").textContent = playing ? "pause" : "play";
+  };
+  document.getElementById("frame").oninput = (ev) => { playing = false; showFrame(Number(ev.target.value)); };
+  document.getElementById("speed").onchange = (ev) => { speed = Number(ev.target.value); };
+  const picker = document.getElementById("motion");
+  motions.forEach((m, i) => picker.add(new Option(`${m.name} (${m.frames})`, String(i))));
+  picker.onchange = (ev) => loadMotion(Number(ev.target.value)).catch((e) => fail(e.message));
+  if (motions.length === 0) throw new Error("the server lists no motion");
+  await loadMotion(0);
+  if (params.get("frame") !== null) showFrame(Number(params.get("frame")));
+
+  renderer.setAnimationLoop((now) => {
+    const dt = (now - last) / 1000;
+    last = now;
+    if (playing && frames > 1) {
+      clock += dt * speed * (motion.fps || 15);
+      const f = Math.floor(clock) % frames;
+      if (f !== state.frame) showFrame(f);
+    }
+    if (controls.enabled) controls.update();
+    renderer.render(scene, camera);
+    state.rendered += 1;
+    counted += 1;
+    if (now - since > 1000) {
+      state.fps = (counted * 1000) / (now - since);
+      document.getElementById("fps").textContent = `${state.fps.toFixed(1)} fps`;
+      counted = 0;
+      since = now;
+    }
+    if (!state.ready && state.rendered > 2) {
+      state.ready = true;
+      document.getElementById("status").textContent += " — ready";
+    }
+  });
+}
+
+main().catch((e) => fail(e.message ?? e));

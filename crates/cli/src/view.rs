@@ -1,0 +1,290 @@
+//! `f3g view`: the browser player (`crates/cli/player`) with an avatar and its motions, served
+//! from a local HTTP server or written as a static folder.
+//!
+//! What is served is a fixed table of files built before the server starts — the page, its
+//! vendored libraries (compiled into the binary), `avatar.glb`, `motions.json` and one
+//! `motions/N.bin` per motion — looked up by exact path. Nothing is read from the disk while
+//! serving, so no request (`..`, absolute or percent-encoded paths, links) can reach another
+//! file: anything not in the table is a 404. The server listens on the loopback address unless
+//! `--host` says otherwise.
+//!
+//! A motion file is `frames × (16·J + E)` little-endian floats: each joint's world matrix in
+//! the frame's pose (column major, the avatar's shape), then its `E` expression weights in the
+//! avatar's order (`crates/cli/player/player.js` reads it).
+
+use std::collections::BTreeMap;
+use std::net::IpAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+use f3g_rig::RigParams;
+use glam::Mat4;
+
+use crate::device::DeviceArg;
+
+/// Options of `f3g view`.
+#[derive(Args, Debug, Clone)]
+pub struct ViewArgs {
+    /// A baked avatar (`.glb`, from `f3g export-avatar`) or a run folder (baked first, and
+    /// kept as RUN/avatar-kK.glb for the next time).
+    pub source: PathBuf,
+    /// Motion to offer (an f3g `.npz` sequence or an `smpl_params.npz`), repeatable; without
+    /// one: a run's training poses, or the canonical pose.
+    #[arg(long)]
+    pub motion: Vec<PathBuf>,
+    /// Port to listen on (0: any free port).
+    #[arg(long, default_value_t = 8080)]
+    pub port: u16,
+    /// Address to listen on; the default serves this machine only.
+    #[arg(long, default_value = "127.0.0.1")]
+    pub host: IpAddr,
+    /// Write the player, the avatar and the motions into this folder (for any static file
+    /// host) instead of serving them.
+    #[arg(long = "static", value_name = "DIR")]
+    pub static_dir: Option<PathBuf>,
+    /// Pose correctives when baking a run, 0–256.
+    #[arg(long, default_value_t = 16, value_parser = crate::bounds::size::<0, 256>)]
+    pub correctives: usize,
+    /// Frames per second of the motions.
+    #[arg(long, default_value_t = 15.0)]
+    pub fps: f32,
+    #[command(flatten)]
+    pub device: DeviceArg,
+}
+
+/// The player's own files, compiled in: (path, bytes).
+const PLAYER: [(&str, &[u8]); 10] = [
+    ("index.html", include_bytes!("../player/index.html")),
+    ("player.js", include_bytes!("../player/player.js")),
+    (
+        "vendor/README.md",
+        include_bytes!("../player/vendor/README.md"),
+    ),
+    (
+        "vendor/three/three.module.js",
+        include_bytes!("../player/vendor/three/three.module.js"),
+    ),
+    (
+        "vendor/three/three.core.js",
+        include_bytes!("../player/vendor/three/three.core.js"),
+    ),
+    (
+        "vendor/three/LICENSE",
+        include_bytes!("../player/vendor/three/LICENSE"),
+    ),
+    (
+        "vendor/three/addons/postprocessing/Pass.js",
+        include_bytes!("../player/vendor/three/addons/postprocessing/Pass.js"),
+    ),
+    (
+        "vendor/three/addons/controls/OrbitControls.js",
+        include_bytes!("../player/vendor/three/addons/controls/OrbitControls.js"),
+    ),
+    (
+        "vendor/spark/spark.module.min.js",
+        include_bytes!("../player/vendor/spark/spark.module.min.js"),
+    ),
+    (
+        "vendor/spark/LICENSE",
+        include_bytes!("../player/vendor/spark/LICENSE"),
+    ),
+];
+
+/// The content type of a served path.
+fn content_type(path: &str) -> &'static str {
+    match path.rsplit('.').next() {
+        Some("html") => "text/html; charset=utf-8",
+        Some("js") => "text/javascript; charset=utf-8",
+        Some("json") => "application/json",
+        Some("glb") => "model/gltf-binary",
+        Some("md") | Some("txt") => "text/plain; charset=utf-8",
+        _ => "application/octet-stream",
+    }
+}
+
+/// The baked avatar of `source`: read from a `.glb`, or baked from a run (kept beside it).
+fn avatar_of(
+    a: &ViewArgs,
+) -> Result<(
+    BakedAvatar,
+    Vec<u8>,
+    Option<f3g_avatar::trained::TrainedAvatar>,
+)> {
+    if a.source.is_file() {
+        let bytes = std::fs::read(&a.source).with_context(|| a.source.display().to_string())?;
+        let avatar = f3g_avatar::avatar_file::from_bytes(&bytes)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", a.source.display()))?;
+        return Ok((avatar, bytes, None));
+    }
+    let trained = f3g_avatar::trained::TrainedAvatar::load(&a.source, &a.device.open()?)?;
+    let cached = a.source.join(format!("avatar-k{}.glb", a.correctives));
+    let checkpoint = f3g_avatar::run::Run::new(&a.source).latest()?;
+    let fresh = match (std::fs::metadata(&cached), checkpoint) {
+        (Ok(file), Some(c)) => std::fs::metadata(c.join("state.json"))
+            .and_then(|s| Ok(file.modified()? >= s.modified()?))
+            .unwrap_or(false),
+        _ => false,
+    };
+    if !fresh {
+        println!(
+            "baking {} with {} correctives …",
+            a.source.display(),
+            a.correctives
+        );
+        let options = BakeOptions {
+            correctives: a.correctives,
+            ..BakeOptions::default()
+        };
+        let (baked, _) = BakedAvatar::bake(&trained, &trained.training_poses()?, &options)?;
+        f3g_avatar::avatar_file::write(&baked, &cached)?;
+    }
+    let bytes = std::fs::read(&cached).with_context(|| cached.display().to_string())?;
+    let avatar = f3g_avatar::avatar_file::from_bytes(&bytes)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", cached.display()))?;
+    Ok((avatar, bytes, Some(trained)))
+}
+
+/// A motion as the player reads it (module docs), in the avatar's shape.
+pub fn motion_bytes(avatar: &BakedAvatar, frames: &[RigParams]) -> Result<Vec<u8>> {
+    let rig = &avatar.rig;
+    let expression_index: Vec<Option<usize>> = avatar
+        .expression_names
+        .iter()
+        .map(|n| rig.expression.names.iter().position(|m| m == n))
+        .collect();
+    let mut out = Vec::with_capacity(frames.len() * (16 * rig.skeleton.len() + 4) * 4);
+    for (f, params) in frames.iter().enumerate() {
+        let mut p = params.clone();
+        p.identity = avatar.canonical.identity.clone();
+        let posed = rig
+            .pose(&p)
+            .with_context(|| format!("posing frame {f} of the motion"))?;
+        for w in &posed.joints {
+            for v in Mat4::from(w.to_affine()).to_cols_array() {
+                out.extend(v.to_le_bytes());
+            }
+        }
+        for i in &expression_index {
+            let v = i.and_then(|i| p.expression.get(i).copied()).unwrap_or(0.0);
+            out.extend(v.to_le_bytes());
+        }
+    }
+    Ok(out)
+}
+
+/// Every file of the player for `a`: path → bytes.
+fn files(a: &ViewArgs) -> Result<BTreeMap<String, Vec<u8>>> {
+    let (avatar, glb, trained) = avatar_of(a)?;
+    let mut motions: Vec<(String, Vec<RigParams>)> = Vec::new();
+    for path in &a.motion {
+        let frames = f3g_avatar::animate::read_motion(path, &avatar.rig)?;
+        let name = path
+            .file_stem()
+            .map_or("motion".into(), |s| s.to_string_lossy().into_owned());
+        motions.push((name, frames));
+    }
+    if motions.is_empty() {
+        match &trained {
+            Some(t) => motions.push(("training poses".into(), t.training_poses()?)),
+            None => motions.push(("canonical pose".into(), vec![avatar.canonical.clone()])),
+        }
+    }
+    let mut files: BTreeMap<String, Vec<u8>> = PLAYER
+        .iter()
+        .map(|(p, b)| (p.to_string(), b.to_vec()))
+        .collect();
+    files.insert("avatar.glb".into(), glb);
+    let mut list = Vec::new();
+    for (i, (name, frames)) in motions.iter().enumerate() {
+        let url = format!("motions/{i}.bin");
+        files.insert(url.clone(), motion_bytes(&avatar, frames)?);
+        list.push(serde_json::json!({
+            "name": name, "frames": frames.len(), "fps": a.fps, "url": url,
+        }));
+    }
+    files.insert("motions.json".into(), serde_json::to_vec_pretty(&list)?);
+    Ok(files)
+}
+
+/// The path a request names, as a key of the table (`/` is the page); queries are ignored.
+fn table_key(url: &str) -> String {
+    let path = url.split(['?', '#']).next().unwrap_or("");
+    match path.strip_prefix('/') {
+        Some("") | None => "index.html".into(),
+        Some(rest) => rest.to_string(),
+    }
+}
+
+pub fn view(a: &ViewArgs) -> Result<()> {
+    if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
+        bail!("--fps {}: expected a rate in (0, 1000]", a.fps);
+    }
+    let files = files(a)?;
+    if let Some(dir) = &a.static_dir {
+        for (path, bytes) in &files {
+            let target = dir.join(path);
+            if let Some(parent) = target.parent() {
+                std::fs::create_dir_all(parent).with_context(|| parent.display().to_string())?;
+            }
+            f3g_io::write_atomic(&target, bytes)?;
+        }
+        println!(
+            "wrote the player ({} files) to {}: serve that folder with any static file host",
+            files.len(),
+            dir.display()
+        );
+        return Ok(());
+    }
+    serve(files, a.host, a.port)
+}
+
+fn serve(files: BTreeMap<String, Vec<u8>>, host: IpAddr, port: u16) -> Result<()> {
+    let server = tiny_http::Server::http((host, port))
+        .map_err(|e| anyhow::anyhow!("cannot listen on {host}:{port}: {e}"))?;
+    let address = server
+        .server_addr()
+        .to_ip()
+        .context("the server has no IP address")?;
+    println!("serving the player at http://{address}/ (Ctrl-C to stop)");
+    use std::io::Write;
+    std::io::stdout().flush()?;
+    for request in server.incoming_requests() {
+        let key = table_key(request.url());
+        let response = match files.get(&key) {
+            Some(bytes) => tiny_http::Response::from_data(bytes.clone()).with_header(
+                tiny_http::Header::from_bytes("Content-Type", content_type(&key))
+                    .expect("valid header"),
+            ),
+            None => tiny_http::Response::from_data(b"not found".to_vec()).with_status_code(404),
+        };
+        // A client that went away is not the server's problem.
+        let _ = request.respond(response);
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn requests_map_to_table_keys_only() {
+        assert_eq!(table_key("/"), "index.html");
+        assert_eq!(table_key("/player.js?v=1"), "player.js");
+        assert_eq!(table_key("/../Cargo.toml"), "../Cargo.toml");
+        assert_eq!(table_key("/%2e%2e/x"), "%2e%2e/x");
+        // None of those is in a table built from the player and generated names.
+        let keys: Vec<&str> = PLAYER.iter().map(|(p, _)| *p).collect();
+        for k in [
+            "../Cargo.toml",
+            "%2e%2e/x",
+            "/etc/passwd",
+            "vendor/../player.js",
+        ] {
+            assert!(!keys.contains(&k));
+        }
+        assert_eq!(content_type("player.js"), "text/javascript; charset=utf-8");
+    }
+}

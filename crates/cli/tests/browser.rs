@@ -1,0 +1,325 @@
+//! `f3g export-avatar` + `f3g view` in a real browser: Debian's headless Chromium (SwiftShader
+//! WebGL) driven by puppeteer-core (`tests/browser/shoot.mjs`), and the avatar file through
+//! the Khronos glTF validator (`tests/browser/validate.mjs`).
+//!
+//! Needs `chromium`, `node` and `npm ci` in `tests/browser`; `.ci/run` installs them and runs
+//! this with `F3G_BROWSER_TESTS=1`. Without that variable the tests say so and pass: the
+//! README's test command runs on machines without a browser.
+
+mod common;
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use common::{f3g_in as f3g, ok};
+
+fn enabled() -> bool {
+    let on = std::env::var("F3G_BROWSER_TESTS").is_ok_and(|v| v == "1");
+    if !on {
+        eprintln!("browser tests skipped: set F3G_BROWSER_TESTS=1 (needs chromium, node, npm ci)");
+    }
+    on
+}
+
+fn scripts() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser")
+}
+
+/// `f3g view` running in the background; killed when dropped.
+struct Server {
+    child: Child,
+    url: String,
+}
+
+impl Server {
+    fn start(dir: &Path, args: &[&str]) -> Self {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_f3g"))
+            .arg("view")
+            .args(args)
+            .args(["--port", "0"])
+            .current_dir(dir)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        while !line.contains("http://") {
+            line.clear();
+            assert!(
+                out.read_line(&mut line).unwrap() > 0,
+                "f3g view exited early"
+            );
+        }
+        let url = line[line.find("http://").unwrap()..]
+            .split_whitespace()
+            .next()
+            .unwrap()
+            .to_string();
+        Self { child, url }
+    }
+
+    /// The status line of a raw GET of `path` (sent as is, unnormalised).
+    fn status_of(&self, path: &str) -> String {
+        let host = self.url.trim_start_matches("http://").trim_end_matches('/');
+        let mut stream = TcpStream::connect(host).unwrap();
+        write!(
+            stream,
+            "GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut response = String::new();
+        let _ = stream.read_to_string(&mut response);
+        response.lines().next().unwrap_or("").to_string()
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Runs `shoot.mjs` on `url`; returns its JSON report.
+fn shoot(url: &str, png: &Path, extra: &[&str]) -> serde_json::Value {
+    let report = png.with_extension("json");
+    let out = Command::new("node")
+        .arg(scripts().join("shoot.mjs"))
+        .args([url, png.to_str().unwrap(), report.to_str().unwrap()])
+        .args(extra)
+        .output()
+        .unwrap();
+    ok(&out);
+    serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+}
+
+/// PSNR over the pixels either image covers (not the white background).
+fn avatar_psnr(a: &Path, b: &Path) -> (f64, usize) {
+    let (a, b) = (f3g_io::read_rgb(a).unwrap(), f3g_io::read_rgb(b).unwrap());
+    assert_eq!((a.width, a.height), (b.width, b.height));
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for (p, q) in a.data.chunks_exact(3).zip(b.data.chunks_exact(3)) {
+        if p.iter().chain(q).any(|v| *v < 0.98) {
+            sum += p
+                .iter()
+                .zip(q)
+                .map(|(x, y)| ((x - y) as f64).powi(2))
+                .sum::<f64>()
+                / 3.0;
+            count += 1;
+        }
+    }
+    (-10.0 * (sum / count.max(1) as f64).log10(), count)
+}
+
+/// `cam.json` of a three.js PerspectiveCamera at `eye` looking at `target` (+Y up) with a
+/// vertical field of view `fov` (degrees): what the player's `setView` sets.
+fn camera_json(eye: [f64; 3], target: [f64; 3], fov: f64, w: u32, h: u32) -> String {
+    let focal = h as f64 / 2.0 / (fov.to_radians() / 2.0).tan();
+    serde_json::to_string(&f3g_splat::Camera::look_at(
+        eye,
+        target,
+        [0.0, 1.0, 0.0],
+        focal,
+        w,
+        h,
+    ))
+    .unwrap()
+}
+
+/// A tiny trained run on a 5-frame capture, and its avatar baked with `k` correctives.
+fn avatar(d: &Path, k: &[usize]) {
+    ok(&f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "5",
+            "--resolution",
+            "128",
+        ],
+    ));
+    std::fs::write(
+        d.join("tiny.json"),
+        common::tiny_config([3, 6, 1, 6, 1], ""),
+    )
+    .unwrap();
+    ok(&f3g(
+        d,
+        &[
+            "train",
+            "--data",
+            "cap",
+            "--out",
+            "run",
+            "--config",
+            "tiny.json",
+        ],
+    ));
+    for k in k {
+        let (k, out) = (k.to_string(), format!("k{k}.glb"));
+        ok(&f3g(
+            d,
+            &[
+                "export-avatar",
+                "run",
+                "--out",
+                &out,
+                "--correctives",
+                &k,
+                "--perturbations",
+                "4",
+                "--directions",
+                "16",
+            ],
+        ));
+    }
+}
+
+#[test]
+fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_player() {
+    if !enabled() {
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    avatar(d, &[0, 16]);
+    let (eye, target, fov, w, h) = ([0.5, 0.4, 2.6], [0.0, 0.3, 0.0], 30.0, 320, 240);
+    std::fs::write(d.join("cam.json"), camera_json(eye, target, fov, w, h)).unwrap();
+    let view = format!(
+        "{},{},{},{},{},{},{fov},{w},{h}",
+        eye[0], eye[1], eye[2], target[0], target[1], target[2]
+    );
+    for k in ["k0", "k16"] {
+        // The Khronos validator finds nothing but the extension it does not know.
+        let out = Command::new("node")
+            .arg(scripts().join("validate.mjs"))
+            .arg(d.join(format!("{k}.glb")))
+            .output()
+            .unwrap();
+        ok(&out);
+        // The same frame, seen by the same camera, in the browser and by f3g's renderer.
+        let server = Server::start(d, &[&format!("{k}.glb"), "--motion", "cap/body_params.npz"]);
+        assert!(
+            server.url.starts_with("http://127.0.0.1:"),
+            "{}",
+            server.url
+        );
+        let shot = d.join(format!("{k}.png"));
+        let report = shoot(
+            &format!("{}?paused&bare", server.url),
+            &shot,
+            &["--view", &view, "--frame", "3"],
+        );
+        assert_eq!(report["ready"], true, "{report}");
+        assert_eq!(report["errors"].as_array().unwrap().len(), 0, "{report}");
+        ok(&f3g(
+            d,
+            &[
+                "animate",
+                &format!("{k}.glb"),
+                "--motion",
+                "cap/body_params.npz",
+                "--camera",
+                "cam.json",
+                "--out",
+                k,
+            ],
+        ));
+        let (psnr, pixels) = avatar_psnr(&shot, &d.join(format!("{k}/frames/frame_00003.png")));
+        assert!(pixels > 1000, "the avatar covers {pixels} pixels");
+        assert!(
+            psnr >= 30.0,
+            "{k}: the player's picture is {psnr:.2} dB from f3g's"
+        );
+        drop(server);
+    }
+
+    // Moving the slider changes the frame and the picture.
+    let server = Server::start(d, &["k16.glb", "--motion", "cap/body_params.npz"]);
+    let report = shoot(
+        &format!("{}?paused&bare", server.url),
+        &d.join("slider.png"),
+        &["--view", &view, "--slider"],
+    );
+    assert_ne!(report["frameBefore"], report["frameAfter"], "{report}");
+    let (psnr, _) = avatar_psnr(&d.join("k16.png"), &d.join("slider.png"));
+    assert!(
+        psnr < 40.0,
+        "the picture did not change with the frame ({psnr:.1} dB)"
+    );
+
+    // The server serves its table and nothing else.
+    assert!(server.status_of("/").contains("200"));
+    for path in [
+        "/../Cargo.toml",
+        "/%2e%2e/Cargo.toml",
+        "//etc/passwd",
+        "/vendor/../player.js",
+        "/%2Fetc%2Fpasswd",
+        "/motions/../avatar.glb",
+    ] {
+        assert!(
+            server.status_of(path).contains("404"),
+            "{path}: {}",
+            server.status_of(path)
+        );
+    }
+
+    // A damaged avatar is shown as an error on the page.
+    let report = shoot(&server.url, &d.join("corrupt.png"), &["--corrupt-avatar"]);
+    assert_eq!(report["ready"], false, "{report}");
+    let shown = report["errorShown"].as_str().unwrap_or("");
+    assert!(
+        shown.contains("avatar.glb") && shown.contains("truncated"),
+        "{report}"
+    );
+}
+
+#[test]
+fn bad_avatar_files_and_motions_are_refused_before_serving() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("bad.glb"), b"glTF\x02\0\0\0\xff\xff\0\0").unwrap();
+    let out = f3g(d, &["view", "bad.glb", "--static", "out"]);
+    assert!(!out.status.success());
+    let e = String::from_utf8_lossy(&out.stderr);
+    assert!(e.contains("bad.glb") && e.contains("truncated"), "{e}");
+    assert!(!d.join("out").exists(), "nothing is written on failure");
+
+    // Motions with NaN, or for another body model, are errors naming the file.
+    avatar(d, &[0]);
+    let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
+    let mut frame = rig.zero_params();
+    frame.pose[7] = f32::NAN;
+    f3g_rig::sequence::write(&d.join("nan.npz"), &rig, &[frame]).unwrap();
+    let smpl = f3g_rig::smplx::SmplParams {
+        frames: 1,
+        betas: vec![0.0; 10],
+        global_orient: vec![0.0; 3],
+        transl: vec![0.0; 3],
+        jaw_pose: vec![0.0; 3],
+        leye_pose: vec![0.0; 3],
+        reye_pose: vec![0.0; 3],
+        body_pose: vec![0.0; 63],
+        left_hand_pose: vec![0.0; 45],
+        right_hand_pose: vec![0.0; 45],
+        expression: Vec::new(),
+    };
+    f3g_rig::smplx::write_params(&d.join("smpl_params.npz"), &smpl).unwrap();
+    for (motion, says) in [("nan.npz", "finite"), ("smpl_params.npz", "SMPL-X")] {
+        let out = f3g(
+            d,
+            &["view", "k0.glb", "--motion", motion, "--static", "out"],
+        );
+        assert!(!out.status.success());
+        let e = String::from_utf8_lossy(&out.stderr);
+        assert!(e.contains(motion) && e.contains(says), "{motion}: {e}");
+        assert!(!d.join("out").exists());
+    }
+}
