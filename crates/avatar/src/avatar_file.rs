@@ -178,48 +178,26 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     // Skeleton in the canonical pose.
     let world = canonical_world(avatar)?;
     let skeleton = avatar.rig.skeleton.joints();
-    let mut nodes: Vec<Value> = skeleton
-        .iter()
-        .enumerate()
-        .map(|(j, joint)| {
-            let local = match joint.parent {
+    let (nodes, roots) = f3g_rig::glb::skinned_nodes(
+        &avatar.rig.skeleton,
+        |j| {
+            let local = match skeleton[j].parent {
                 Some(p) => world[p].inverse().compose(&world[j]),
                 None => world[j],
             };
             json!({
-                "name": joint.name,
                 "translation": local.translation.to_array(),
                 "rotation": local.rotation.normalize().to_array(),
                 "scale": [local.scale, local.scale, local.scale],
             })
-        })
-        .collect();
-    for (j, joint) in skeleton.iter().enumerate() {
-        if let Some(p) = joint.parent {
-            nodes[p]
-                .as_object_mut()
-                .expect("object")
-                .entry("children")
-                .or_insert_with(|| json!([]))
-                .as_array_mut()
-                .expect("array")
-                .push(json!(j));
-        }
-    }
+        },
+        "avatar",
+    );
     let inverse_bind: Vec<f32> = world
         .iter()
         .flat_map(|w| Mat4::from(w.inverse().to_affine()).to_cols_array())
         .collect();
     let inverse_bind = buffer.accessor(&inverse_bind, "MAT4", false, None);
-    let mesh_node = nodes.len();
-    nodes.push(json!({ "name": "avatar", "mesh": 0, "skin": 0 }));
-    let roots: Vec<usize> = skeleton
-        .iter()
-        .enumerate()
-        .filter(|(_, j)| j.parent.is_none())
-        .map(|(i, _)| i)
-        .chain([mesh_node])
-        .collect();
 
     // The body model and what evaluation needs.
     let rig_bytes = f3g_rig::file::to_bytes(&avatar.rig).map_err(AvatarError::Invalid)?;

@@ -3,25 +3,7 @@
 
 mod common;
 
-use common::{f3g_in as f3g, ok};
-
-/// A 5-frame synthetic capture `cap` in `d` and `tiny.json`, the tiny configuration with
-/// `steps` for the five stages.
-fn tiny_capture(d: &std::path::Path, steps: [u64; 5]) {
-    ok(&f3g(
-        d,
-        &[
-            "synth",
-            "--out",
-            "cap",
-            "--frames",
-            "5",
-            "--resolution",
-            "128",
-        ],
-    ));
-    std::fs::write(d.join("tiny.json"), common::tiny_config(steps, "")).unwrap();
-}
+use common::{f3g_in as f3g, ok, tiny_capture};
 
 #[test]
 fn train_resume_evaluate_animate_and_export() {

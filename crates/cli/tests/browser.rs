@@ -132,23 +132,7 @@ fn camera_json(eye: [f64; 3], target: [f64; 3], fov: f64, w: u32, h: u32) -> Str
 
 /// A tiny trained run on a 5-frame capture, and its avatar baked with `k` correctives.
 fn avatar(d: &Path, k: &[usize]) {
-    ok(&f3g(
-        d,
-        &[
-            "synth",
-            "--out",
-            "cap",
-            "--frames",
-            "5",
-            "--resolution",
-            "128",
-        ],
-    ));
-    std::fs::write(
-        d.join("tiny.json"),
-        common::tiny_config([3, 6, 1, 6, 1], ""),
-    )
-    .unwrap();
+    common::tiny_capture(d, [3, 6, 1, 6, 1]);
     ok(&f3g(
         d,
         &[

@@ -149,6 +149,48 @@ fn glb_bytes(document: &Value, mut bin: Vec<u8>) -> Vec<u8> {
     out
 }
 
+/// The nodes of a skinned character: one per joint of `skeleton` (its local transform from
+/// `transform`: `translation`, `rotation`, optionally `scale`), children listed, then a node
+/// holding mesh 0 with skin 0; and the scene's root nodes.
+pub fn skinned_nodes(
+    skeleton: &crate::Skeleton,
+    transform: impl Fn(usize) -> Value,
+    mesh_name: &str,
+) -> (Vec<Value>, Vec<usize>) {
+    let joints = skeleton.joints();
+    let mut nodes: Vec<Value> = joints
+        .iter()
+        .enumerate()
+        .map(|(i, joint)| {
+            let mut node = transform(i);
+            node["name"] = json!(joint.name);
+            node
+        })
+        .collect();
+    for (i, joint) in joints.iter().enumerate() {
+        if let Some(p) = joint.parent {
+            nodes[p]
+                .as_object_mut()
+                .expect("a node is an object")
+                .entry("children")
+                .or_insert_with(|| json!([]))
+                .as_array_mut()
+                .expect("children are an array")
+                .push(json!(i));
+        }
+    }
+    let mesh_node = nodes.len();
+    nodes.push(json!({ "name": mesh_name, "mesh": 0, "skin": 0 }));
+    let roots = joints
+        .iter()
+        .enumerate()
+        .filter(|(_, j)| j.parent.is_none())
+        .map(|(i, _)| i)
+        .chain([mesh_node])
+        .collect();
+    (nodes, roots)
+}
+
 /// A binary glTF read back: its JSON document and binary chunk, with typed accessors that
 /// check every offset and count against the buffer (a damaged file is an error, never a
 /// panic or a huge allocation).

@@ -428,35 +428,16 @@ pub fn write(rig: &Rig, path: &Path) -> Result<(), RigError> {
         .flat_map(|a| Mat4::from(*a).to_cols_array())
         .collect();
     let inverse_bind = buffer.accessor(&matrices, "MAT4", false, None);
-    let mut nodes: Vec<serde_json::Value> = joints
-        .iter()
-        .map(|j| {
+    let (nodes, roots) = crate::glb::skinned_nodes(
+        &rig.skeleton,
+        |i| {
             json!({
-                "name": j.name,
-                "translation": j.offset.to_array(),
-                "rotation": j.pre_rotation.to_array(),
+                "translation": joints[i].offset.to_array(),
+                "rotation": joints[i].pre_rotation.to_array(),
             })
-        })
-        .collect();
-    for (i, j) in joints.iter().enumerate() {
-        if let Some(p) = j.parent {
-            let children = nodes[p]
-                .as_object_mut()
-                .expect("object")
-                .entry("children")
-                .or_insert_with(|| json!([]));
-            children.as_array_mut().expect("array").push(json!(i));
-        }
-    }
-    let mesh_node = nodes.len();
-    nodes.push(json!({ "name": rig.name, "mesh": 0, "skin": 0 }));
-    let roots: Vec<usize> = joints
-        .iter()
-        .enumerate()
-        .filter(|(_, j)| j.parent.is_none())
-        .map(|(i, _)| i)
-        .chain([mesh_node])
-        .collect();
+        },
+        &rig.name,
+    );
     let document = json!({
         "asset": { "version": "2.0", "generator": "f3g-avatar" },
         "scene": 0,

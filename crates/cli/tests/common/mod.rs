@@ -36,6 +36,24 @@ pub fn ok(out: &Output) {
     );
 }
 
+/// A 5-frame synthetic capture `cap` (128 px high) in `d` and `tiny.json`, the tiny
+/// configuration with `steps` for the five stages.
+pub fn tiny_capture(d: &Path, steps: [u64; 5]) {
+    ok(&f3g_in(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "5",
+            "--resolution",
+            "128",
+        ],
+    ));
+    std::fs::write(d.join("tiny.json"), tiny_config(steps, "")).unwrap();
+}
+
 /// The cpu preset shrunk so that a step takes a fraction of a second, with `steps` for
 /// pretrain, body, face_pretrain, joint and face_finetune, and `extra` keys (`"key": value`
 /// pairs, each preceded by a comma) appended.
