@@ -47,21 +47,67 @@ pub struct AnimateReport {
     pub seconds_per_frame: f64,
 }
 
-/// Reads a pose sequence for the body model `rig`: an f3g sequence (`.npz` naming its model,
-/// as `f3g synth` and `f3g rig fit` write), or an `smpl_params.npz` for an SMPL-X model.
-pub fn read_motion(path: &Path, rig: &Rig) -> Result<Vec<RigParams>, AvatarError> {
-    let npz = f3g_io::Npz::open(path)?;
-    let frames = if npz.contains("model") {
-        f3g_rig::sequence::read(path, rig)?
-    } else if npz.contains("body_pose") {
-        f3g_rig::smplx::read_params(path)?
-            .frames_for(rig)
-            .map_err(|e| AvatarError::file(path, e))?
-    } else {
-        return Err(AvatarError::file(
-            path,
-            "not a pose sequence: expected an f3g body_params.npz or an smpl_params.npz",
-        ));
+/// A motion read for an avatar.
+pub struct DrivingMotion {
+    pub frames: Vec<RigParams>,
+    /// How a motion of another format was retargeted (None for f3g's own sequences).
+    pub retargeted: Option<f3g_motion::Retargeted>,
+}
+
+/// Reads a motion for the body model `rig`: an f3g sequence of that model (`.npz` naming its
+/// model, as `f3g synth` and `f3g rig fit` write, or a `.json` pose) as it is; one of another
+/// model (which must load) or any format [`f3g_motion`] reads, retargeted onto `rig` with the
+/// shape of `subject` (the avatar's).
+pub fn read_motion(
+    path: &Path,
+    rig: &Rig,
+    subject: &RigParams,
+    options: &f3g_motion::RetargetOptions,
+) -> Result<DrivingMotion, AvatarError> {
+    let own = match path.extension().and_then(|e| e.to_str()) {
+        Some("json") => true,
+        Some("npz") if path.is_file() => f3g_io::Npz::open(path)?.contains("model"),
+        _ => false,
+    };
+    let options = f3g_motion::RetargetOptions {
+        identity: subject.identity.clone(),
+        ..options.clone()
+    };
+    // An f3g sequence that does not fit `rig` may be another body model's.
+    let (own_frames, other_model) = match own {
+        true => match f3g_rig::sequence::read(path, rig) {
+            Ok(frames) => (Some(frames), None),
+            Err(e) => match f3g_rig::sequence::model_of(path) {
+                Ok(model) if model != rig.name => (None, Some(model)),
+                _ => return Err(e.into()),
+            },
+        },
+        false => (None, None),
+    };
+    let (frames, retargeted) = match (own_frames, other_model) {
+        (Some(frames), _) => (frames, None),
+        (None, Some(model)) => {
+            // Another body model's sequence: its joint motion, retargeted.
+            let spec: f3g_rig::ModelSpec = model
+                .parse()
+                .map_err(|e: String| AvatarError::file(path, format!("`model`: {e}")))?;
+            let source = spec.load().map_err(|e| {
+                AvatarError::file(
+                    path,
+                    format!("is a motion of the body model `{model}`, which cannot be loaded to retarget it: {e}"),
+                )
+            })?;
+            let frames = f3g_rig::sequence::read(path, &source)?;
+            let fps = options.fps.unwrap_or(30.0);
+            let motion = f3g_motion::from_rig(&source, &frames, fps)?;
+            let mut r = f3g_motion::retarget(&motion, rig, &options, path)?;
+            (std::mem::take(&mut r.frames), Some(r))
+        }
+        (None, None) => {
+            let motion = f3g_motion::read(path)?;
+            let mut r = f3g_motion::retarget(&motion, rig, &options, path)?;
+            (std::mem::take(&mut r.frames), Some(r))
+        }
     };
     if frames.is_empty() {
         return Err(AvatarError::file(path, "holds no frames"));
@@ -79,7 +125,7 @@ pub fn read_motion(path: &Path, rig: &Rig) -> Result<Vec<RigParams>, AvatarError
             ));
         }
     }
-    Ok(frames)
+    Ok(DrivingMotion { frames, retargeted })
 }
 
 /// The orbit camera of frame `i` of `n` around `centre`.

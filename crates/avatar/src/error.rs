@@ -29,6 +29,8 @@ pub enum AvatarError {
     #[error(transparent)]
     Rig(#[from] f3g_rig::RigError),
     #[error(transparent)]
+    Motion(#[from] f3g_motion::MotionError),
+    #[error(transparent)]
     Nets(#[from] f3g_nets::NetsError),
     #[error(transparent)]
     Splat(#[from] f3g_splat::SplatError),

@@ -212,6 +212,9 @@ pub trait EvalAvatar {
     fn step(&self) -> u64;
     /// Its body model.
     fn rig(&self) -> &f3g_rig::Rig;
+    /// The canonical parameters: the subject's shape, which motions from other skeletons are
+    /// retargeted onto.
+    fn subject(&self) -> &RigParams;
     /// The posed Gaussians of a frame with their colour as seen from `camera` (degree-0
     /// colour, padded to the degree-3 layout), for per-frame `.ply` files.
     fn posed_cloud(
@@ -250,6 +253,9 @@ impl EvalAvatar for TrainedAvatar {
     fn rig(&self) -> &f3g_rig::Rig {
         &self.setup.rig
     }
+    fn subject(&self) -> &RigParams {
+        &self.setup.template.canonical
+    }
     fn posed_cloud(
         &self,
         params: &RigParams,
@@ -287,6 +293,9 @@ impl EvalAvatar for crate::bake::BakedAvatar {
     }
     fn rig(&self) -> &f3g_rig::Rig {
         &self.rig
+    }
+    fn subject(&self) -> &RigParams {
+        &self.canonical
     }
     fn posed_cloud(
         &self,

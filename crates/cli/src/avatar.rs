@@ -410,9 +410,12 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
 pub struct AnimateArgs {
     /// Run folder.
     pub run: PathBuf,
-    /// Pose sequence: an f3g .npz (e.g. a capture's body_params.npz) or smpl_params.npz.
+    /// Motion: an f3g sequence (e.g. a capture's body_params.npz), or AMASS .npz, .smpl,
+    /// smpl_params.npz or BVH, retargeted onto the avatar and resampled to --fps.
     #[arg(long)]
     pub motion: PathBuf,
+    #[command(flatten)]
+    pub retarget: crate::motion::RetargetArgs,
     /// `orbit`, or a camera JSON (`f3g render-ply`'s cam.json format).
     #[arg(long, default_value = "orbit")]
     pub camera: String,
@@ -449,7 +452,19 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
         } else {
             Box::new(TrainedAvatar::load(&a.run, &a.device.open()?)?)
         };
-    let motion = f3g_avatar::animate::read_motion(&a.motion, avatar.rig())?;
+    let motion = f3g_avatar::animate::read_motion(
+        &a.motion,
+        avatar.rig(),
+        avatar.subject(),
+        &a.retarget.options(Some(a.fps))?,
+    )?;
+    if let Some(r) = &motion.retargeted {
+        eprintln!(
+            "{}",
+            crate::motion::describe(&a.motion, r, motion.frames.len())
+        );
+    }
+    let motion = motion.frames;
     let (width, height) = a.size;
     let camera = if a.camera == "orbit" {
         CameraPath::Orbit {
@@ -518,9 +533,12 @@ pub struct ExportPlyArgs {
     /// Frame of the capture (or of --motion) to pose the avatar in.
     #[arg(long, default_value_t = 0)]
     pub frame: usize,
-    /// Pose sequence to take the frame from instead of the capture.
+    /// Motion to take the frame from instead of the capture (any format `--motion` of
+    /// `f3g animate` takes, at its own frame rate).
     #[arg(long)]
     pub motion: Option<PathBuf>,
+    #[command(flatten)]
+    pub retarget: crate::motion::RetargetArgs,
     /// SH degree fitted to the colour network over many view directions, so the file keeps
     /// the avatar's view-dependent colour (0: the mean colour over all directions).
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(0..=3))]
@@ -540,7 +558,13 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
     let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let (params, use_pca) = match &a.motion {
         Some(m) => {
-            let motion = f3g_avatar::animate::read_motion(m, &avatar.setup.rig)?;
+            let motion = f3g_avatar::animate::read_motion(
+                m,
+                &avatar.setup.rig,
+                &avatar.setup.template.canonical,
+                &a.retarget.options(None)?,
+            )?
+            .frames;
             let p = motion.get(a.frame).cloned().with_context(|| {
                 format!(
                     "--frame {}: {} has {} frames",

@@ -160,6 +160,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     animate(&AnimateArgs {
         run: run.clone(),
         motion: capture.join("body_params.npz"),
+        retarget: Default::default(),
         camera: "orbit".into(),
         out: animation.clone(),
         export_ply: false,
@@ -188,6 +189,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     crate::view::view(&crate::view::ViewArgs {
         source: glb.clone(),
         motion: vec![capture.join("body_params.npz")],
+        retarget: Default::default(),
         port: 0,
         host: std::net::IpAddr::from([127, 0, 0, 1]),
         static_dir: Some(out.join("player")),

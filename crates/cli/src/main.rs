@@ -7,6 +7,7 @@ mod data;
 mod demo;
 mod device;
 mod memory;
+mod motion;
 mod nets;
 mod quality;
 mod render_ply;
@@ -51,6 +52,9 @@ enum Command {
     /// Body models: pose and inspect them, convert parameters between them.
     #[command(subcommand)]
     Rig(rig::RigCommand),
+    /// Motions: retarget AMASS, .smpl and BVH motions onto a body model; export f3g's.
+    #[command(subcommand)]
+    Motion(motion::MotionCommand),
     /// Render a synthetic multi-view capture of the built-in human.
     Synth(data::SynthArgs),
     /// Captures: validate them, look at them.
@@ -83,6 +87,7 @@ fn main() -> Result<()> {
         Command::View(args) => view::view(&args),
         Command::RenderPly(args) => render_ply::run(&args),
         Command::Rig(cmd) => rig::run(&cmd),
+        Command::Motion(cmd) => motion::run(&cmd),
         Command::Synth(args) => data::synth(&args),
         Command::Data(cmd) => data::run(&cmd),
         Command::Template(args) => template::run(&args),

@@ -30,10 +30,13 @@ pub struct ViewArgs {
     /// A baked avatar (`.glb`, from `f3g export-avatar`) or a run folder (baked first, and
     /// kept as RUN/avatar-kK.glb for the next time).
     pub source: PathBuf,
-    /// Motion to offer (an f3g `.npz` sequence or an `smpl_params.npz`), repeatable; without
-    /// one: a run's training poses, or the canonical pose.
+    /// Motion to offer, repeatable: an f3g sequence, or AMASS .npz, .smpl, smpl_params.npz or
+    /// BVH (retargeted onto the avatar, resampled to --fps); without one: a run's training
+    /// poses, or the canonical pose.
     #[arg(long)]
     pub motion: Vec<PathBuf>,
+    #[command(flatten)]
+    pub retarget: crate::motion::RetargetArgs,
     /// Port to listen on (0: any free port).
     #[arg(long, default_value_t = 8080)]
     pub port: u16,
@@ -179,7 +182,16 @@ fn files(a: &ViewArgs) -> Result<BTreeMap<String, Vec<u8>>> {
     let (avatar, glb, trained) = avatar_of(a)?;
     let mut motions: Vec<(String, Vec<RigParams>)> = Vec::new();
     for path in &a.motion {
-        let frames = f3g_avatar::animate::read_motion(path, &avatar.rig)?;
+        let motion = f3g_avatar::animate::read_motion(
+            path,
+            &avatar.rig,
+            &avatar.canonical,
+            &a.retarget.options(Some(a.fps))?,
+        )?;
+        if let Some(r) = &motion.retargeted {
+            eprintln!("{}", crate::motion::describe(path, r, motion.frames.len()));
+        }
+        let frames = motion.frames;
         let name = path
             .file_stem()
             .map_or("motion".into(), |s| s.to_string_lossy().into_owned());

@@ -107,6 +107,27 @@ fn train_resume_evaluate_animate_and_export() {
     assert!(d.join("anim/frames/frame_00004.png").exists() && d.join("anim/notes.txt").exists());
     std::fs::rename(d.join("moved/run"), d.join("run")).unwrap();
 
+    // Its training poses go out as BVH, and a BVH motion drives it (retargeted by name).
+    ok(&f3g(d, &["motion", "export", "run", "--out", "train.bvh"]));
+    let out = f3g(
+        d,
+        &[
+            "animate",
+            "run",
+            "--motion",
+            "train.bvh",
+            "--out",
+            "bvh",
+            "--size",
+            "48x64",
+            "--fps",
+            "30",
+        ],
+    );
+    ok(&out);
+    assert!(String::from_utf8_lossy(&out.stderr).contains("retargeted by rotations"));
+    assert!(d.join("bvh/frames/frame_00000.png").exists());
+
     // A capture folder is not overwritten by accident.
     let again = f3g(
         d,

@@ -276,27 +276,20 @@ fn bad_avatar_files_and_motions_are_refused_before_serving() {
     assert!(e.contains("bad.glb") && e.contains("truncated"), "{e}");
     assert!(!d.join("out").exists(), "nothing is written on failure");
 
-    // Motions with NaN, or for another body model, are errors naming the file.
+    // Motions with NaN, or of a body model that cannot be mapped, are errors naming the file.
     avatar(d, &[0]);
     let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
     let mut frame = rig.zero_params();
     frame.pose[7] = f32::NAN;
     f3g_rig::sequence::write(&d.join("nan.npz"), &rig, &[frame]).unwrap();
-    let smpl = f3g_rig::smplx::SmplParams {
-        frames: 1,
-        betas: vec![0.0; 10],
-        global_orient: vec![0.0; 3],
-        transl: vec![0.0; 3],
-        jaw_pose: vec![0.0; 3],
-        leye_pose: vec![0.0; 3],
-        reye_pose: vec![0.0; 3],
-        body_pose: vec![0.0; 63],
-        left_hand_pose: vec![0.0; 45],
-        right_hand_pose: vec![0.0; 45],
-        expression: Vec::new(),
-    };
-    f3g_rig::smplx::write_params(&d.join("smpl_params.npz"), &smpl).unwrap();
-    for (motion, says) in [("nan.npz", "finite"), ("smpl_params.npz", "SMPL-X")] {
+    // A sequence of a body model that cannot be loaded here cannot be retargeted.
+    let mut other = rig.clone();
+    other.name = "smplx:/missing/SMPLX_NEUTRAL.npz".into();
+    if let f3g_rig::Parameterization::Momentum(t) = &mut other.parameterization {
+        t.names[0] = "elsewhere".into();
+    }
+    f3g_rig::sequence::write(&d.join("other.npz"), &other, &[other.zero_params()]).unwrap();
+    for (motion, says) in [("nan.npz", "finite"), ("other.npz", "cannot be loaded")] {
         let out = f3g(
             d,
             &["view", "k0.glb", "--motion", motion, "--static", "out"],

@@ -10,23 +10,26 @@ fn workspace() -> PathBuf {
 }
 
 /// The crates, bottom of the graph first, with the workspace crates each may depend on.
-const LAYERS: [(&str, &[&str]); 10] = [
+const LAYERS: [(&str, &[&str]); 11] = [
     ("io", &[]),
     ("camera", &[]),
     ("testkit", &["io"]),
     ("rig", &["io"]),
+    ("motion", &["io", "rig"]),
     ("splat", &["io", "camera"]),
     ("template", &["io", "camera", "rig"]),
     ("data", &["io", "camera", "rig", "template"]),
     ("nets", &["io"]),
     (
         "avatar",
-        &["io", "camera", "rig", "splat", "template", "data", "nets"],
+        &[
+            "io", "camera", "rig", "motion", "splat", "template", "data", "nets",
+        ],
     ),
     (
         "cli",
         &[
-            "io", "camera", "rig", "splat", "template", "data", "nets", "avatar",
+            "io", "camera", "rig", "motion", "splat", "template", "data", "nets", "avatar",
         ],
     ),
 ];

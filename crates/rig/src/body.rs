@@ -15,12 +15,13 @@
 //! about their forward axis) and the finger parameters ([`Rig::finger_params`]). No code
 //! outside this crate looks a joint up by name.
 
+use glam::{EulerRot, Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
 use crate::RigError;
 use crate::rig::{Parameterization, Rig, RigParams};
 use crate::roles::{Role, RoleMap};
-use crate::skeleton::PARAMS_PER_JOINT;
+use crate::skeleton::{PARAMS_PER_JOINT, Similarity};
 
 /// Angles of the canonical pose.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -92,6 +93,21 @@ impl Rig {
             .collect())
     }
 
+    /// The Momentum parameter that drives exactly one channel of `joint` with weight 1 and
+    /// nothing else, if the model has one.
+    fn channel_parameter(&self, joint: usize, channel: usize) -> Option<usize> {
+        let Parameterization::Momentum(t) = &self.parameterization else {
+            return None;
+        };
+        let row = (joint * PARAMS_PER_JOINT + channel) as u32;
+        t.entries
+            .iter()
+            .find(|e| {
+                e.0 == row && e.2 == 1.0 && t.entries.iter().filter(|o| o.1 == e.1).count() == 1
+            })
+            .map(|e| e.1 as usize)
+    }
+
     /// Sets a rotation channel (`3..6`: rx, ry, rz) of `joint` in `params`: the joint's own
     /// axis-angle component, or the Momentum parameter that drives exactly that channel with
     /// weight 1 and nothing else. A model without such a parameter cannot take the rotation:
@@ -110,24 +126,91 @@ impl Rig {
                 params.pose[3 * joint + channel - 3] = radians;
                 Ok(())
             }
-            Parameterization::Momentum(t) => {
-                let row = (joint * PARAMS_PER_JOINT + channel) as u32;
-                let parameter = t.entries.iter().find(|e| {
-                    e.0 == row && e.2 == 1.0 && t.entries.iter().filter(|o| o.1 == e.1).count() == 1
-                });
-                match parameter {
-                    Some(e) => {
-                        params.pose[e.1 as usize] = radians;
-                        Ok(())
-                    }
-                    None => Err(RigError::Model(format!(
-                        "{}: no pose parameter turns the joint `{name}` alone about its axis {}",
-                        self.name,
-                        crate::params::CHANNELS[channel]
-                    ))),
+            Parameterization::Momentum(_) => match self.channel_parameter(joint, channel) {
+                Some(p) => {
+                    params.pose[p] = radians;
+                    Ok(())
                 }
+                None => Err(RigError::Model(format!(
+                    "{}: no pose parameter turns the joint `{name}` alone about its axis {}",
+                    self.name,
+                    crate::params::CHANNELS[channel]
+                ))),
+            },
+        }
+    }
+
+    /// Sets the whole pose rotation of `joint` (applied after its rest rotation): its
+    /// axis-angle vector, or its Momentum `rx, ry, rz` parameters (`R = Rz·Ry·Rx`). Channels
+    /// the model cannot move are left out; returns the angle (radians) by which the rotation
+    /// set misses `rotation` (0 when every channel is there).
+    pub fn set_joint_rotation(&self, params: &mut RigParams, joint: usize, rotation: Quat) -> f32 {
+        let rotation = rotation.normalize();
+        match &self.parameterization {
+            Parameterization::AxisAngle => {
+                let q = if rotation.w < 0.0 {
+                    -rotation
+                } else {
+                    rotation
+                };
+                let (axis, angle) = q.to_axis_angle();
+                params.pose[3 * joint..3 * joint + 3].copy_from_slice(&(axis * angle).to_array());
+                0.0
+            }
+            Parameterization::Momentum(_) => {
+                // In f64: near ±90° about y, f32's asin loses half its digits.
+                let (z, y, x) = rotation.as_dquat().to_euler(EulerRot::ZYX);
+                let (z, y, x) = (z as f32, y as f32, x as f32);
+                let mut applied = [0.0f32; 3];
+                for (k, angle) in [x, y, z].into_iter().enumerate() {
+                    if let Some(p) = self.channel_parameter(joint, 3 + k) {
+                        params.pose[p] = angle;
+                        applied[k] = angle;
+                    }
+                }
+                let got = crate::skeleton::euler_xyz(applied[0], applied[1], applied[2]);
+                // The angle of the difference, from its sine (acos of a dot product near 1 has
+                // f32 noise of 1e-3).
+                2.0 * (got.conjugate() * rotation).xyz().length().min(1.0).asin()
             }
         }
+    }
+
+    /// Sets the translation of the root joint (world frame, added to its rest position):
+    /// SMPL's `transl`, or the root's Momentum `tx, ty, tz` parameters.
+    pub fn set_root_translation(
+        &self,
+        params: &mut RigParams,
+        translation: Vec3,
+    ) -> Result<(), RigError> {
+        match &self.parameterization {
+            Parameterization::AxisAngle => {
+                let n = params.pose.len();
+                params.pose[n - 3..].copy_from_slice(&translation.to_array());
+                Ok(())
+            }
+            Parameterization::Momentum(_) => {
+                for k in 0..3 {
+                    let p = self.channel_parameter(0, k).ok_or_else(|| {
+                        RigError::Model(format!(
+                            "{}: no pose parameter moves the root joint `{}` along {}",
+                            self.name,
+                            self.skeleton.joints()[0].name,
+                            crate::params::CHANNELS[k]
+                        ))
+                    })?;
+                    params.pose[p] = translation[k];
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// World transforms of the joints for parameters: forward kinematics without the mesh.
+    pub fn joint_world(&self, params: &RigParams) -> Result<Vec<Similarity>, RigError> {
+        let poses = self.joint_poses(&params.pose)?;
+        let offsets = self.shaped_offsets(&params.identity, &params.expression);
+        Ok(self.skeleton.forward(&poses, offsets.as_deref()))
     }
 
     /// The canonical parameters: zero parameters with the hips turned ±`leg_spread` and the

@@ -84,19 +84,25 @@ pub fn import(path: &Path) -> Result<(gltf::Document, Vec<gltf::buffer::Data>), 
     Ok((gltf.document, buffers))
 }
 
-/// Loads a rigged character; `model` is an optional Momentum `.model` file for its parameters.
-pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
-    let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
-    let gltf = parse(&bytes, path)?;
-    let buffers = buffers(&gltf, path)?;
-    let doc = &gltf.document;
-    let node = doc
-        .nodes()
-        .find(|n| n.mesh().is_some() && n.skin().is_some())
-        .ok_or_else(|| RigError::file(path, "no node with a skinned mesh"))?;
-    let skin = node.skin().expect("checked above");
-    let mesh = node.mesh().expect("checked above");
+/// A skin's joints as a skeleton.
+pub struct SkinJoints {
+    /// Parents first (the skin's order breaks ties); rest frames from the nodes, the root's
+    /// including its non-joint ancestors' transforms.
+    pub skeleton: Skeleton,
+    /// The skin joint index of each skeleton joint, and the skeleton joint of each skin joint.
+    pub order: Vec<usize>,
+    pub of_skin: Vec<usize>,
+    /// The node of each skeleton joint, and its scene (world) transform at rest.
+    pub nodes: Vec<usize>,
+    pub world: Vec<Mat4>,
+}
 
+/// The skeleton of `skin` (unit scales only: an error names a scaled joint).
+pub fn skin_joints(
+    doc: &gltf::Document,
+    skin: &gltf::Skin,
+    path: &Path,
+) -> Result<SkinJoints, RigError> {
     // Node parents and world transforms of the whole scene graph.
     let mut parent_of: HashMap<usize, usize> = HashMap::new();
     for n in doc.nodes() {
@@ -116,7 +122,6 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
         m
     };
 
-    // Skeleton, parents first (skin order breaks ties).
     let skin_nodes: Vec<usize> = skin.joints().map(|j| j.index()).collect();
     let joint_parent = |node: usize| {
         let mut i = node;
@@ -187,6 +192,38 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
         });
     }
     let skeleton = Skeleton::new(joints).map_err(|e| RigError::file(path, e))?;
+    let world = order.iter().map(|&k| world(skin_nodes[k])).collect();
+    let nodes = order.iter().map(|&k| skin_nodes[k]).collect();
+    Ok(SkinJoints {
+        skeleton,
+        order,
+        of_skin: ours,
+        nodes,
+        world,
+    })
+}
+
+/// Loads a rigged character; `model` is an optional Momentum `.model` file for its parameters.
+pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
+    let bytes = std::fs::read(path).map_err(|e| RigError::file(path, e))?;
+    let gltf = parse(&bytes, path)?;
+    let buffers = buffers(&gltf, path)?;
+    let doc = &gltf.document;
+    let node = doc
+        .nodes()
+        .find(|n| n.mesh().is_some() && n.skin().is_some())
+        .ok_or_else(|| RigError::file(path, "no node with a skinned mesh"))?;
+    let skin = node.skin().expect("checked above");
+    let mesh = node.mesh().expect("checked above");
+
+    let SkinJoints {
+        skeleton,
+        order,
+        of_skin: ours,
+        world,
+        ..
+    } = skin_joints(doc, &skin, path)?;
+    let skin_nodes: Vec<usize> = skin.joints().map(|j| j.index()).collect();
 
     check_count(
         skin.inverse_bind_matrices(),
@@ -213,9 +250,9 @@ pub fn load(path: &Path, model: Option<&Path>) -> Result<Rig, RigError> {
                 .collect()
         }
         // glTF's default: the joints' scene transforms are the bind pose.
-        None => order
+        None => world
             .iter()
-            .map(|&k| Affine3A::from_mat4(world(skin_nodes[k]).inverse()))
+            .map(|w| Affine3A::from_mat4(w.inverse()))
             .collect(),
     };
 

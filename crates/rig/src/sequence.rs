@@ -113,6 +113,13 @@ fn text(
         .map_err(|e| RigError::field(npz.path(), name, e))
 }
 
+/// The body model an f3g `.npz` sequence was written for (its `model` text, a
+/// [`crate::ModelSpec`] such as `builtin`).
+pub fn model_of(path: &Path) -> Result<String, RigError> {
+    let mut npz = f3g_io::Npz::open(path).map_err(io)?;
+    text(&mut npz, "model")
+}
+
 fn read_npz(path: &Path, rig: &Rig) -> Result<Vec<RigParams>, RigError> {
     let mut npz = f3g_io::Npz::open(path).map_err(io)?;
     let names = text(&mut npz, "pose_names")?;

@@ -470,3 +470,105 @@ pub fn write_params(path: &Path, p: &SmplParams) -> Result<(), RigError> {
     )
     .map_err(io)
 }
+
+/// Parents of SMPL-X's joints.
+const PARENTS: [i8; 55] = [
+    -1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15, 20, 25,
+    26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38, 21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49,
+    50, 21, 52, 53,
+];
+
+/// Rest positions of the left side and the centre of [`schematic_rest`]; the right side
+/// mirrors the left.
+const LEFT_AND_CENTRE: [(&str, [f32; 3]); 31] = [
+    ("pelvis", [0.0, -0.35, 0.01]),
+    ("left_hip", [0.06, -0.44, -0.01]),
+    ("spine1", [0.0, -0.24, -0.02]),
+    ("left_knee", [0.11, -0.82, 0.0]),
+    ("spine2", [0.0, -0.11, 0.0]),
+    ("left_ankle", [0.09, -1.22, -0.04]),
+    ("spine3", [0.0, -0.05, 0.01]),
+    ("left_foot", [0.12, -1.28, 0.08]),
+    ("neck", [0.0, 0.17, -0.03]),
+    ("left_collar", [0.08, 0.09, -0.01]),
+    ("head", [0.0, 0.28, 0.01]),
+    ("left_shoulder", [0.18, 0.12, -0.02]),
+    ("left_elbow", [0.44, 0.10, -0.03]),
+    ("left_wrist", [0.70, 0.10, -0.02]),
+    ("jaw", [0.0, 0.22, 0.02]),
+    ("left_eye", [0.03, 0.33, 0.08]),
+    ("left_index1", [0.80, 0.09, 0.02]),
+    ("left_index2", [0.84, 0.09, 0.02]),
+    ("left_index3", [0.86, 0.09, 0.02]),
+    ("left_middle1", [0.80, 0.09, 0.0]),
+    ("left_middle2", [0.84, 0.09, 0.0]),
+    ("left_middle3", [0.87, 0.09, 0.0]),
+    ("left_pinky1", [0.77, 0.09, -0.04]),
+    ("left_pinky2", [0.80, 0.09, -0.04]),
+    ("left_pinky3", [0.82, 0.09, -0.04]),
+    ("left_ring1", [0.79, 0.09, -0.02]),
+    ("left_ring2", [0.83, 0.09, -0.02]),
+    ("left_ring3", [0.85, 0.09, -0.02]),
+    ("left_thumb1", [0.73, 0.08, 0.03]),
+    ("left_thumb2", [0.76, 0.08, 0.06]),
+    ("left_thumb3", [0.78, 0.08, 0.08]),
+];
+
+/// SMPL-X's rest skeleton, T-pose, world-aligned joint frames: human proportions typed in
+/// here (metres, Y up, facing +Z, left +X; not SMPL-X's data, whose joints the model regresses
+/// from the shape). What drives another body model with SMPL-family rotations needs only its
+/// bone directions and leg length, for which it is within a few centimetres.
+pub fn schematic_rest() -> Skeleton {
+    let position = |name: &str| -> Vec3 {
+        let (key, mirror) = match name.strip_prefix("right_") {
+            Some(rest) => (format!("left_{rest}"), true),
+            None => (name.to_string(), false),
+        };
+        let p = LEFT_AND_CENTRE
+            .iter()
+            .find(|(n, _)| *n == key)
+            .map(|(_, p)| Vec3::from_array(*p))
+            .expect("every SMPL-X joint has a schematic position");
+        if mirror {
+            p * Vec3::new(-1.0, 1.0, 1.0)
+        } else {
+            p
+        }
+    };
+    let joints = JOINT_NAMES
+        .iter()
+        .enumerate()
+        .map(|(j, name)| {
+            let parent = usize::try_from(PARENTS[j]).ok();
+            Joint {
+                name: name.to_string(),
+                parent,
+                offset: position(name) - parent.map_or(Vec3::ZERO, |p| position(JOINT_NAMES[p])),
+                pre_rotation: Quat::IDENTITY,
+            }
+        })
+        .collect();
+    Skeleton::new(joints).expect("the schematic SMPL-X skeleton is valid")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_schematic_skeleton_is_a_t_pose_of_human_proportions() {
+        let s = schematic_rest();
+        let rest = s.rest(None);
+        let at = |n: &str| rest[s.index_of(n).unwrap()].translation;
+        // Arms straight out sideways, legs down, the head above the neck.
+        let arm = at("left_wrist") - at("left_shoulder");
+        assert!(arm.x > 0.45 && arm.y.abs() < 0.05, "{arm}");
+        let leg = at("left_ankle") - at("left_hip");
+        assert!(leg.y < -0.7 && leg.x.abs() < 0.1, "{leg}");
+        assert!(at("head").y > at("neck").y);
+        assert_eq!(
+            at("right_elbow"),
+            at("left_elbow") * Vec3::new(-1.0, 1.0, 1.0)
+        );
+    }
+}

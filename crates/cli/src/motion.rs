@@ -1,0 +1,333 @@
+//! `f3g motion`: motions from other tools onto a body model, and f3g's motions out to them.
+//! `--joint-map` ([`RetargetArgs`]) is flattened into every command that takes `--motion`.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand, ValueEnum};
+use f3g_motion::{RetargetOptions, Retargeted};
+use f3g_rig::{ModelSpec, RoleMap};
+
+/// How a motion of another skeleton maps onto the avatar's body model.
+#[derive(Args, Debug, Clone, Default)]
+pub struct RetargetArgs {
+    /// Roles of the motion's joints, over those inferred from their names: a JSON object from
+    /// roles (pelvis, left_hip, …) to the motion's joint names (`f3g motion convert
+    /// --save-map` writes the inferred one to edit).
+    #[arg(long)]
+    pub joint_map: Option<PathBuf>,
+}
+
+impl RetargetArgs {
+    /// Retargeting options resampling to `fps`.
+    pub fn options(&self, fps: Option<f32>) -> Result<RetargetOptions> {
+        let joint_map = match &self.joint_map {
+            Some(p) => Some(RoleMap::read(p)?),
+            None => None,
+        };
+        Ok(RetargetOptions {
+            joint_map,
+            fps,
+            identity: Vec::new(),
+        })
+    }
+}
+
+/// One line on how a motion was retargeted, and the joints that drive nothing.
+pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
+    let mut text = format!(
+        "{}: {frames} frames at {} fps, retargeted by {} ({} joints correspond",
+        path.display(),
+        r.fps,
+        r.method,
+        r.correspondence.len()
+    );
+    if r.method == "rotations" {
+        text += &format!(", scale {:.3}", r.scale);
+        if r.dropped_degrees > 0.5 {
+            text += &format!(
+                ", up to {:.1}° left out where the body model cannot turn a joint",
+                r.dropped_degrees
+            );
+        }
+    }
+    text += ")";
+    if !r.unmatched_roles.is_empty() {
+        let roles: Vec<String> = r.unmatched_roles.iter().map(|r| r.name()).collect();
+        text += &format!(
+            "\n  roles without a joint in the motion (they keep their rest pose): {} — name them with --joint-map",
+            roles.join(", ")
+        );
+    }
+    text
+}
+
+/// Motions.
+#[derive(Subcommand, Debug)]
+pub enum MotionCommand {
+    /// Retarget a motion (AMASS .npz, .smpl, smpl_params.npz, BVH, glTF) onto a body model and
+    /// write it as an f3g sequence (.npz), printing the joint correspondence.
+    Convert(ConvertArgs),
+    /// Write a motion f3g made (a run's training poses or an f3g sequence) for other tools.
+    Export(ExportArgs),
+    /// A contact sheet of a motion: its skeleton (top row) and the body model it is
+    /// retargeted onto (bottom row), seen from the front at evenly spaced frames.
+    Show(ShowArgs),
+}
+
+/// Options of `f3g motion show`.
+#[derive(Args, Debug)]
+pub struct ShowArgs {
+    /// The motion file.
+    pub input: PathBuf,
+    /// Body model to retarget onto: builtin, smplx:MODEL.npz, mhr:DIR or gltf:FILE.
+    #[arg(long, default_value = "builtin")]
+    pub to: ModelSpec,
+    /// Output PNG.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Frames shown (columns), 1–64.
+    #[arg(long, default_value_t = 8, value_parser = crate::bounds::size::<1, 64>)]
+    pub columns: usize,
+    /// Side of one panel in pixels, 32–1024.
+    #[arg(long, default_value_t = 200, value_parser = crate::bounds::size::<32, 1024>)]
+    pub panel: usize,
+    #[command(flatten)]
+    pub retarget: RetargetArgs,
+}
+
+/// Options of `f3g motion convert`.
+#[derive(Args, Debug)]
+pub struct ConvertArgs {
+    /// The motion file.
+    pub input: PathBuf,
+    /// Body model to drive: builtin, smplx:MODEL.npz, mhr:DIR or gltf:FILE.
+    #[arg(long, default_value = "builtin")]
+    pub to: ModelSpec,
+    /// Output f3g sequence (.npz).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub retarget: RetargetArgs,
+    /// Resample to this frame rate (default: the file's).
+    #[arg(long)]
+    pub fps: Option<f32>,
+    /// Also write the motion's joint roles (inferred, or --joint-map's) as an editable
+    /// --joint-map file.
+    #[arg(long)]
+    pub save_map: Option<PathBuf>,
+    /// Also write the correspondence and retargeting summary as JSON.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+}
+
+/// Formats `f3g motion export` writes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ExportFormat {
+    /// Biovision hierarchy: the body model's skeleton, world-aligned rest frames, metres.
+    Bvh,
+    /// A glTF binary with the skeleton under a skin and one animation (no mesh).
+    Glb,
+}
+
+/// Options of `f3g motion export`.
+#[derive(Args, Debug)]
+pub struct ExportArgs {
+    /// A run folder (its training poses) or an f3g sequence (.npz, naming its body model).
+    pub input: PathBuf,
+    #[arg(long, value_enum, default_value = "bvh")]
+    pub format: ExportFormat,
+    /// Output file.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Frame rate written to the file.
+    #[arg(long, default_value_t = 30.0)]
+    pub fps: f32,
+}
+
+pub fn run(cmd: &MotionCommand) -> Result<()> {
+    match cmd {
+        MotionCommand::Convert(a) => convert(a),
+        MotionCommand::Export(a) => export(a),
+        MotionCommand::Show(a) => show(a),
+    }
+}
+
+fn convert(a: &ConvertArgs) -> Result<()> {
+    let options = a.retarget.options(a.fps)?;
+    let rig = a.to.load()?;
+    let motion = f3g_motion::read(&a.input)?;
+    let r = f3g_motion::retarget(&motion, &rig, &options, &a.input)?;
+    eprintln!("{}", describe(&a.input, &r, r.frames.len()));
+    for c in &r.correspondence {
+        let by = match c.by {
+            f3g_motion::retarget::Matched::Role(role) => role.name(),
+            f3g_motion::retarget::Matched::Name => "same name".into(),
+        };
+        eprintln!("  {:<24} ← {:<28} ({by})", c.target, c.source);
+    }
+    if !r.unmatched_source.is_empty() {
+        eprintln!(
+            "  motion joints that drive nothing: {}",
+            r.unmatched_source.join(", ")
+        );
+    }
+    if let Some(p) = &a.save_map {
+        let json = serde_json::to_string_pretty(&r.source_roles)?;
+        f3g_io::write_atomic(p, format!("{json}\n").as_bytes())?;
+        eprintln!("wrote the joint map {}", p.display());
+    }
+    if let Some(p) = &a.report {
+        let json = serde_json::to_string_pretty(&r)?;
+        f3g_io::write_atomic(p, format!("{json}\n").as_bytes())?;
+    }
+    f3g_rig::sequence::write(&a.out, &rig, &r.frames)?;
+    eprintln!(
+        "wrote {} ({} frames for {})",
+        a.out.display(),
+        r.frames.len(),
+        rig.name
+    );
+    Ok(())
+}
+
+fn export(a: &ExportArgs) -> Result<()> {
+    if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
+        bail!("--fps {}: expected between 0 and 1000", a.fps);
+    }
+    let (rig, frames) = if a.input.is_dir() {
+        let model = a.input.join("body_model.npz");
+        let rig = f3g_rig::file::read(&model).with_context(|| {
+            format!(
+                "{} is not a run folder that stores its body model",
+                a.input.display()
+            )
+        })?;
+        let frames = f3g_rig::sequence::read(&a.input.join("poses.npz"), &rig)?;
+        (rig, frames)
+    } else {
+        let model = sequence_model(&a.input)?;
+        let rig = model.load()?;
+        let frames = f3g_rig::sequence::read(&a.input, &rig)?;
+        (rig, frames)
+    };
+    let motion = f3g_motion::from_rig(&rig, &frames, a.fps)?;
+    match a.format {
+        ExportFormat::Bvh => {
+            let text = f3g_motion::write_bvh(&motion).map_err(anyhow::Error::msg)?;
+            f3g_io::write_atomic(&a.out, text.as_bytes())?;
+        }
+        ExportFormat::Glb => f3g_io::write_atomic(&a.out, &f3g_motion::write_gltf(&motion))?,
+    }
+    eprintln!(
+        "wrote {} ({} frames of {} joints at {} fps)",
+        a.out.display(),
+        frames.len(),
+        rig.skeleton.len(),
+        a.fps
+    );
+    Ok(())
+}
+
+/// The body model an f3g sequence names.
+fn sequence_model(path: &Path) -> Result<ModelSpec> {
+    let text = f3g_rig::sequence::model_of(path).with_context(|| {
+        format!(
+            "{}: not an f3g sequence; export takes a run folder or an f3g .npz",
+            path.display()
+        )
+    })?;
+    text.parse::<ModelSpec>()
+        .map_err(|e| anyhow::anyhow!("{}: `model`: {e}", path.display()))
+}
+
+fn show(a: &ShowArgs) -> Result<()> {
+    let options = a.retarget.options(None)?;
+    let rig = a.to.load()?;
+    let motion = f3g_motion::read(&a.input)?;
+    let r = f3g_motion::retarget(&motion, &rig, &options, &a.input)?;
+    eprintln!("{}", describe(&a.input, &r, r.frames.len()));
+    let n = r.frames.len();
+    let columns = a.columns.min(n);
+    let picked: Vec<usize> = (0..columns)
+        .map(|k| k * (n - 1) / (columns - 1).max(1))
+        .collect();
+    let parents = |s: &f3g_rig::Skeleton| -> Vec<Option<usize>> {
+        s.joints().iter().map(|j| j.parent).collect()
+    };
+    let source: Vec<Vec<glam::Vec3>> = picked.iter().map(|&f| motion.positions(f)).collect();
+    let target: Vec<Vec<glam::Vec3>> = picked
+        .iter()
+        .map(|&f| {
+            rig.joint_world(&r.frames[f])
+                .map(|w| w.iter().map(|s| s.translation).collect())
+        })
+        .collect::<Result<_, _>>()?;
+    let side = a.panel;
+    let mut sheet = f3g_io::Image::filled(side * picked.len(), 2 * side, 3, 1.0);
+    for (row, (poses, parents, colour)) in [
+        (&source, parents(&motion.skeleton), [0.15, 0.3, 0.75]),
+        (&target, parents(&rig.skeleton), [0.85, 0.4, 0.1]),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        // One scale per row (its largest pose), so the panels compare; x and y of the front
+        // view, each pose centred in its panel.
+        let extent = poses
+            .iter()
+            .map(|pose| {
+                let (a, b) = front_bounds(pose);
+                (b - a).max_element()
+            })
+            .fold(1e-6f32, f32::max);
+        let scale = 0.9 * side as f32 / extent;
+        for (column, pose) in poses.iter().enumerate() {
+            let (a, b) = front_bounds(pose);
+            let centre = 0.5 * (a + b);
+            let to_pixel = |p: glam::Vec3| {
+                let q = (p.truncate() - centre) * scale;
+                glam::Vec2::new(
+                    (column * side) as f32 + 0.5 * side as f32 + q.x,
+                    (row * side) as f32 + 0.5 * side as f32 - q.y,
+                )
+            };
+            for (j, parent) in parents.iter().enumerate() {
+                if let Some(p) = parent {
+                    draw_line(&mut sheet, to_pixel(pose[*p]), to_pixel(pose[j]), colour);
+                }
+            }
+        }
+    }
+    f3g_io::write_png(&a.out, &sheet)?;
+    eprintln!(
+        "wrote {} (frames {:?}; top: the motion's skeleton, bottom: {})",
+        a.out.display(),
+        picked,
+        rig.name
+    );
+    Ok(())
+}
+
+/// The corners of a pose's bounding box in the front view (x, y).
+fn front_bounds(pose: &[glam::Vec3]) -> (glam::Vec2, glam::Vec2) {
+    pose.iter().fold(
+        (glam::Vec2::splat(f32::MAX), glam::Vec2::splat(f32::MIN)),
+        |(a, b), p| (a.min(p.truncate()), b.max(p.truncate())),
+    )
+}
+
+/// A two-pixel-wide line.
+fn draw_line(img: &mut f3g_io::Image, a: glam::Vec2, b: glam::Vec2, colour: [f32; 3]) {
+    let steps = (a.distance(b) * 2.0).ceil().max(1.0) as usize;
+    for k in 0..=steps {
+        let p = a.lerp(b, k as f32 / steps as f32);
+        for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            let (x, y) = (p.x as isize + dx, p.y as isize + dy);
+            if x >= 0 && y >= 0 && (x as usize) < img.width && (y as usize) < img.height {
+                img.pixel_mut(x as usize, y as usize)
+                    .copy_from_slice(&colour);
+            }
+        }
+    }
+}

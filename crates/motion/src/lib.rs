@@ -1,0 +1,265 @@
+//! Motions from other tools, and retargeting onto a body model.
+//!
+//! Every reader gives one [`Motion`]: a skeleton (names, parents, rest offsets, rest
+//! rotations), each frame's local joint rotations and root translation, the frame rate, and
+//! the units and up axis *as read* — nothing is converted on reading. [`retarget`] then drives
+//! any body model ([`f3g_rig::Rig`]) with it through the body-model contract's joint roles.
+//!
+//! Formats ([`Format`], chosen by content first, then by extension):
+//! - AMASS `.npz` (`poses`, `trans`, `betas`, `mocap_framerate` or `mocap_frame_rate`; SMPL,
+//!   SMPL-H or SMPL-X layouts by the width of `poses`), Z up, metres;
+//! - Meshcapade's `.smpl` (an `.npz` in the `smplcodec` layout: `bodyPose`, `bodyTranslation`,
+//!   `frameRate`, …), Y up, metres;
+//! - `smpl_params.npz` (AvatarReX / THuman4.0), Y up, metres;
+//! - BVH (`.bvh`), any channel order, units and up axis inferred from the rest skeleton;
+//! - glTF animations (`.glb`, `.gltf`): a skin's joints driven by the first animation, Y up,
+//!   metres.
+//!
+//! Conventions: a joint's local transform is `T(offset + t) · R_rest · R` as in
+//! [`f3g_rig::skeleton`]; only the root has a translation `t`. Rotations are unit quaternions.
+
+mod bvh;
+mod error;
+mod export;
+mod gltf;
+pub mod retarget;
+mod smpl;
+
+use std::path::Path;
+
+use glam::{Quat, Vec3};
+
+use f3g_rig::{Similarity, Skeleton};
+
+pub use bvh::{parse_bvh, write_bvh};
+pub use error::MotionError;
+pub use export::from_rig;
+pub use gltf::{read_gltf, write_gltf};
+pub use retarget::{Correspondence, RetargetOptions, Retargeted, retarget};
+pub use smpl::{SmplFamily, SmplMotion};
+
+/// Frame counts above this are refused before anything is allocated for them (a day at
+/// 120 fps): a damaged header cannot ask for terabytes.
+pub const MAX_FRAMES: usize = 10_368_000;
+/// Joint counts above this are refused.
+pub const MAX_JOINTS: usize = 4096;
+
+/// The world axis that points up in a file.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub enum Up {
+    Y,
+    Z,
+}
+
+/// A motion as read from a file.
+#[derive(Clone, Debug)]
+pub struct Motion {
+    pub skeleton: Skeleton,
+    /// `[frames · joints]` local rotations, applied after each joint's rest rotation.
+    pub rotations: Vec<Quat>,
+    /// `[frames]` translation of the root, added to its rest offset (file units).
+    pub root_translation: Vec<Vec3>,
+    /// Frames per second.
+    pub fps: f32,
+    /// Metres per file unit (0.01 for centimetres).
+    pub metres_per_unit: f32,
+    pub up: Up,
+    /// The parameters as read, when the file is of the SMPL family: a body model of the same
+    /// family takes them parameter for parameter.
+    pub smpl: Option<SmplMotion>,
+}
+
+impl Motion {
+    pub fn frames(&self) -> usize {
+        self.root_translation.len()
+    }
+
+    /// The local rotations of frame `f`.
+    pub fn frame(&self, f: usize) -> &[Quat] {
+        let j = self.skeleton.len();
+        &self.rotations[f * j..(f + 1) * j]
+    }
+
+    /// World transforms of every joint at frame `f` (file units and axes).
+    pub fn world(&self, f: usize) -> Vec<Similarity> {
+        let poses: Vec<f3g_rig::JointPose> = self
+            .frame(f)
+            .iter()
+            .enumerate()
+            .map(|(j, &rotation)| f3g_rig::JointPose {
+                translation: if j == 0 {
+                    self.root_translation[f]
+                } else {
+                    Vec3::ZERO
+                },
+                rotation,
+                log2_scale: 0.0,
+            })
+            .collect();
+        self.skeleton.forward(&poses, None)
+    }
+
+    /// Joint positions of frame `f` in metres, +Y up (the file's units and up axis undone).
+    pub fn positions(&self, f: usize) -> Vec<Vec3> {
+        let upright = match self.up {
+            Up::Y => Quat::IDENTITY,
+            Up::Z => Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2),
+        };
+        self.world(f)
+            .iter()
+            .map(|s| upright * (s.translation * self.metres_per_unit))
+            .collect()
+    }
+
+    /// The same motion at `fps`: rotations by spherical interpolation, the root linearly;
+    /// `path` names the file in errors.
+    pub fn resampled(&self, fps: f32, path: &Path) -> Result<Motion, MotionError> {
+        let n = self.frames();
+        if n < 2 || fps == self.fps {
+            return Ok(Motion {
+                fps,
+                ..self.clone()
+            });
+        }
+        let duration = (n - 1) as f64 / self.fps as f64;
+        let count = ((duration * fps as f64).floor() as usize + 1).min(MAX_FRAMES);
+        ensure_memory(count, self.skeleton.len(), path)?;
+        let j = self.skeleton.len();
+        let mut rotations = Vec::with_capacity(count * j);
+        let mut root = Vec::with_capacity(count);
+        for i in 0..count {
+            let x = i as f64 / fps as f64 * self.fps as f64;
+            let a = (x.floor() as usize).min(n - 1);
+            let b = (a + 1).min(n - 1);
+            let t = (x - a as f64) as f32;
+            for k in 0..j {
+                rotations.push(self.frame(a)[k].slerp(self.frame(b)[k], t).normalize());
+            }
+            root.push(self.root_translation[a].lerp(self.root_translation[b], t));
+        }
+        Ok(Motion {
+            skeleton: self.skeleton.clone(),
+            rotations,
+            root_translation: root,
+            fps,
+            metres_per_unit: self.metres_per_unit,
+            up: self.up,
+            smpl: self
+                .smpl
+                .as_ref()
+                .map(|s| s.resampled(self.fps, fps, count)),
+        })
+    }
+}
+
+/// The motion file formats f3g reads.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Format {
+    Amass,
+    SmplCodec,
+    SmplParams,
+    Bvh,
+    Gltf,
+}
+
+/// The formats, as error messages list them.
+pub const FORMATS: &str = "AMASS .npz (poses, trans, mocap_framerate), Meshcapade .smpl, \
+     smpl_params.npz (AvatarReX / THuman4.0), BVH (.bvh), glTF animations (.glb, .gltf), or \
+     f3g's own body_params.npz";
+
+/// Which format `path` holds, by content (an `.npz`'s arrays) or extension.
+pub fn detect(path: &Path) -> Result<Format, MotionError> {
+    let extension = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    if !path.is_file() {
+        return Err(MotionError::file(
+            path,
+            format!("no such motion file (f3g reads {FORMATS})"),
+        ));
+    }
+    match extension.as_deref() {
+        Some("bvh") => return Ok(Format::Bvh),
+        Some("glb" | "gltf") => return Ok(Format::Gltf),
+        Some("npz" | "smpl") => {}
+        _ => {
+            return Err(MotionError::file(
+                path,
+                format!("not a motion file f3g knows: it reads {FORMATS}"),
+            ));
+        }
+    }
+    let npz = f3g_io::Npz::open(path)
+        .map_err(|e| MotionError::file(path, format!("{} (f3g reads {FORMATS})", e.reason)))?;
+    if npz.contains("bodyPose") {
+        Ok(Format::SmplCodec)
+    } else if npz.contains("poses") && npz.contains("trans") {
+        Ok(Format::Amass)
+    } else if npz.contains("global_orient") && npz.contains("body_pose") {
+        Ok(Format::SmplParams)
+    } else {
+        Err(MotionError::file(
+            path,
+            format!(
+                "an .npz with none of the arrays of a motion format (it has {}); f3g reads {FORMATS}",
+                npz.names().join(", ")
+            ),
+        ))
+    }
+}
+
+/// Reads a motion of any [`Format`].
+pub fn read(path: &Path) -> Result<Motion, MotionError> {
+    match detect(path)? {
+        Format::Bvh => {
+            let bytes = std::fs::read(path).map_err(|e| MotionError::file(path, e))?;
+            parse_bvh(&bytes, path)
+        }
+        Format::Amass => smpl::read_amass(path),
+        Format::SmplCodec => smpl::read_smpl_codec(path),
+        Format::SmplParams => smpl::read_smpl_params(path),
+        Format::Gltf => gltf::read_gltf(path, None),
+    }
+}
+
+/// Refuses a motion of `frames` × `joints` rotations that the memory budget cannot hold,
+/// before it is allocated.
+pub(crate) fn ensure_memory(frames: usize, joints: usize, path: &Path) -> Result<(), MotionError> {
+    let bytes = (frames as u64)
+        .saturating_mul(joints as u64)
+        .saturating_mul(16);
+    f3g_io::memory::ensure_available(bytes, &format!("{frames} frames of {joints} joints"))
+        .map_err(|e| MotionError::file(path, e))
+}
+
+/// Checks that every value of a motion is finite, naming the frame and joint that is not.
+pub(crate) fn check_finite(motion: &Motion, path: &Path) -> Result<(), MotionError> {
+    let j = motion.skeleton.len();
+    if let Some(i) = motion.rotations.iter().position(|q| !q.is_finite()) {
+        return Err(MotionError::file(
+            path,
+            format!(
+                "frame {}: the rotation of joint `{}` is not finite",
+                i / j,
+                motion.skeleton.joints()[i % j].name
+            ),
+        ));
+    }
+    if let Some(f) = motion.root_translation.iter().position(|t| !t.is_finite()) {
+        return Err(MotionError::file(
+            path,
+            format!("frame {f}: the root translation is not finite"),
+        ));
+    }
+    if !(motion.fps.is_finite() && motion.fps > 0.0 && motion.fps <= 10_000.0) {
+        return Err(MotionError::file(
+            path,
+            format!(
+                "frame rate {} is not between 0 and 10 000 frames per second",
+                motion.fps
+            ),
+        ));
+    }
+    Ok(())
+}

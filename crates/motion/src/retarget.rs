@@ -1,0 +1,528 @@
+//! Retargeting: a motion of any skeleton drives a body model.
+//!
+//! The rules, in order:
+//! 1. **Same family, same parameters.** An SMPL-family motion (AMASS, `.smpl`,
+//!    `smpl_params.npz`) on an SMPL-X body model maps parameter for parameter (the global
+//!    orientation and translation turned from the file's up axis to +Y).
+//! 2. **Correspondence.** Otherwise joints correspond by role: the target's roles are the body
+//!    model's ([`f3g_rig::Rig::roles`]); the source's are inferred from its joint names
+//!    ([`f3g_rig::Roles::infer`]: prefixes, side markers and synonyms), overridden by a
+//!    `--joint-map` ([`f3g_rig::RoleMap`], role → source joint name). Joints without a role
+//!    correspond when their names are equal. The pelvis and both hips must correspond.
+//! 3. **Axes and units.** The source is scaled to metres, turned from its up axis to +Y and
+//!    turned about +Y so that its rest pose faces the target's (left hip to right hip).
+//! 4. **Rest-pose alignment.** Each corresponding joint's rotation is taken relative to its own
+//!    skeleton's rest pose: the target joint turns by the source joint's world rotation since
+//!    rest, after first turning its rest frame onto the source's — the whole body by its up
+//!    (pelvis to neck) and left (hip to hip) axes, then each limb joint's bone onto the source's
+//!    rest bone (toward the next corresponding joint down the arm or leg). So a T-pose source drives an
+//!    A-pose target: at the source's rest, the target's arms are raised into a T. Joints
+//!    without a correspondent keep their rest rotation relative to their parent; fingers and
+//!    face follow the hands and head.
+//! 5. **Root.** The target's pelvis follows the source's, scaled by the ratio of leg lengths
+//!    (hip to knee to ankle at rest), its height measured from the lowest joint — the
+//!    target's at rest, the source's over the whole motion (where a foot is on the ground) —
+//!    so feet stay on the ground and strides fit the legs. The target's own skeleton (every
+//!    joint by name, in place) carries its root over unchanged.
+//!
+//! Channels a body model lacks (a knee that only bends) are left out; the largest angle lost
+//! is reported.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use glam::{Quat, Vec3};
+use serde::Serialize;
+
+use f3g_rig::{Rig, RigParams, Role, RoleMap, Roles};
+
+use crate::{Motion, MotionError, Up};
+
+/// What retargeting needs beyond the motion and the body model.
+#[derive(Clone, Debug, Default)]
+pub struct RetargetOptions {
+    /// Source roles by joint name, over the inferred ones.
+    pub joint_map: Option<RoleMap>,
+    /// Resample to this frame rate.
+    pub fps: Option<f32>,
+    /// The target's shape parameters (the avatar's subject); empty for the model's template.
+    pub identity: Vec<f32>,
+}
+
+/// How a target joint found its source joint.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Matched {
+    Role(Role),
+    Name,
+}
+
+/// One corresponding pair.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Correspondence {
+    pub target: String,
+    pub source: String,
+    pub by: Matched,
+}
+
+/// A retargeted motion and how it was made.
+#[derive(Clone, Debug, Serialize)]
+pub struct Retargeted {
+    #[serde(skip)]
+    pub frames: Vec<RigParams>,
+    pub fps: f32,
+    /// "parameters" (same family) or "rotations".
+    pub method: &'static str,
+    pub correspondence: Vec<Correspondence>,
+    /// The source's roles, as a `--joint-map` file holds them.
+    pub source_roles: RoleMap,
+    /// Source joints that drive nothing.
+    pub unmatched_source: Vec<String>,
+    /// Roles of the target with no source joint.
+    pub unmatched_roles: Vec<Role>,
+    /// Target metres per source metre (leg lengths).
+    pub scale: f32,
+    /// Largest rotation (degrees) left out because the body model cannot turn a joint so.
+    pub dropped_degrees: f32,
+}
+
+/// The rotation taking +Z-up coordinates to +Y-up ones (`x, y, z → x, z, −y`).
+fn up_to_y(up: Up) -> Quat {
+    match up {
+        Up::Y => Quat::IDENTITY,
+        Up::Z => Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2),
+    }
+}
+
+/// Whether `rig` is an SMPL-X model (its joints and parameterisation).
+fn is_smplx(rig: &Rig) -> bool {
+    rig.parameterization == f3g_rig::Parameterization::AxisAngle
+        && rig
+            .skeleton
+            .joints()
+            .iter()
+            .map(|j| j.name.as_str())
+            .eq(f3g_rig::smplx::JOINT_NAMES)
+}
+
+/// Retargets `motion` (read from `path`, named in errors) onto `rig` (module docs).
+pub fn retarget(
+    motion: &Motion,
+    rig: &Rig,
+    options: &RetargetOptions,
+    path: &Path,
+) -> Result<Retargeted, MotionError> {
+    if motion.frames() == 0 {
+        return Err(MotionError::file(path, "holds no frames"));
+    }
+    let resampled;
+    let motion = match options.fps {
+        Some(fps) if fps != motion.fps => {
+            if !(fps.is_finite() && fps > 0.0 && fps <= 1000.0) {
+                return Err(MotionError::file(
+                    path,
+                    format!("--fps {fps}: expected between 0 and 1000"),
+                ));
+            }
+            resampled = motion.resampled(fps, path)?;
+            &resampled
+        }
+        _ => motion,
+    };
+    let mut base = rig.zero_params();
+    if !options.identity.is_empty() {
+        if options.identity.len() != base.identity.len() {
+            return Err(MotionError::retarget(
+                path,
+                format!(
+                    "{} identity values for the body model `{}`, which has {}",
+                    options.identity.len(),
+                    rig.name,
+                    base.identity.len()
+                ),
+            ));
+        }
+        base.identity = options.identity.clone();
+    }
+    match &motion.smpl {
+        Some(smpl) if is_smplx(rig) && options.joint_map.is_none() => {
+            same_family(motion, smpl, rig, &base, path)
+        }
+        _ => by_rotations(motion, rig, options, &base, path),
+    }
+}
+
+/// Rule 1.
+fn same_family(
+    motion: &Motion,
+    smpl: &crate::SmplMotion,
+    rig: &Rig,
+    base: &RigParams,
+    path: &Path,
+) -> Result<Retargeted, MotionError> {
+    let turn = up_to_y(motion.up);
+    let params = smpl.params(motion);
+    let rest_pelvis = rig.joint_world(base)?[0].translation;
+    let mut frames = params
+        .frames_for(rig)
+        .map_err(|e| MotionError::retarget(path, e))?;
+    for (f, p) in frames.iter_mut().enumerate() {
+        p.identity.clone_from(&base.identity);
+        let global = f3g_rig::rig::axis_angle(Vec3::from_slice(&p.pose[0..3]));
+        rig.set_joint_rotation(p, 0, turn * global);
+        let t = Vec3::from_slice(&params.transl[3 * f..3 * f + 3]);
+        rig.set_root_translation(p, turn * (rest_pelvis + t) - rest_pelvis)?;
+    }
+    let names: Vec<String> = rig
+        .skeleton
+        .joints()
+        .iter()
+        .map(|j| j.name.clone())
+        .collect();
+    Ok(Retargeted {
+        frames,
+        fps: motion.fps,
+        method: "parameters",
+        correspondence: names
+            .iter()
+            .map(|n| Correspondence {
+                target: n.clone(),
+                source: n.clone(),
+                by: Matched::Name,
+            })
+            .collect(),
+        source_roles: RoleMap::default(),
+        unmatched_source: Vec::new(),
+        unmatched_roles: Vec::new(),
+        scale: 1.0,
+        dropped_degrees: 0.0,
+    })
+}
+
+/// The role whose joint a limb role's bone points to. Torso and head bones are not aligned
+/// one by one: how a skeleton splits its spine (and tilts its short pelvis bone) is modelling,
+/// not pose, so they take the whole body's alignment.
+fn bone_end(role: Role) -> &'static [Role] {
+    use Role::*;
+    match role {
+        LeftClavicle => &[LeftShoulder],
+        RightClavicle => &[RightShoulder],
+        LeftShoulder => &[LeftElbow],
+        RightShoulder => &[RightElbow],
+        LeftElbow => &[LeftWrist],
+        RightElbow => &[RightWrist],
+        LeftHip => &[LeftKnee],
+        RightHip => &[RightKnee],
+        LeftKnee => &[LeftAnkle],
+        RightKnee => &[RightAnkle],
+        _ => &[],
+    }
+}
+
+/// Hip to knee to ankle at rest (or the pelvis height above the lowest joint), with the
+/// joint of each role given by `joint`.
+fn leg_length(joint: impl Fn(Role) -> Option<usize>, rest: &[Vec3], floor: f32) -> f32 {
+    let at = |r: Role| joint(r).map(|j| rest[j]);
+    match (at(Role::LeftHip), at(Role::LeftKnee), at(Role::LeftAnkle)) {
+        (Some(h), Some(k), Some(a)) => h.distance(k) + k.distance(a),
+        _ => at(Role::Pelvis).map_or(1.0, |p| p.y - floor),
+    }
+}
+
+/// Roles the names left out, from the skeleton's shape: the pelvis is where the two legs
+/// meet, the chest where the two arms meet (when it is not the spine's joint), and the chain
+/// that leaves the chest toward neither arm runs neck to head (Blender's `spine.004` to
+/// `spine.006`). A spine that is the pelvis's own joint is moved up the chain.
+pub fn complete_by_topology(skeleton: &f3g_rig::Skeleton, roles: Roles) -> Roles {
+    let joints = skeleton.joints();
+    let mut map: BTreeMap<Role, usize> = roles.iter().collect();
+    let ancestors = |j: usize| -> Vec<usize> {
+        std::iter::successors(Some(j), |&k| joints[k].parent).collect()
+    };
+    let meet = |a: usize, b: usize| -> Option<usize> {
+        let up = ancestors(b);
+        ancestors(a).into_iter().find(|k| up.contains(k))
+    };
+    let sided =
+        |l: Role, r: Role, map: &BTreeMap<Role, usize>| Some((*map.get(&l)?, *map.get(&r)?));
+    if !map.contains_key(&Role::Pelvis)
+        && let Some((l, r)) = sided(Role::LeftHip, Role::RightHip, &map)
+        && let Some(m) = meet(l, r)
+    {
+        map.insert(Role::Pelvis, m);
+    }
+    let arms = sided(Role::LeftClavicle, Role::RightClavicle, &map)
+        .or_else(|| sided(Role::LeftShoulder, Role::RightShoulder, &map));
+    if let Some((l, r)) = arms
+        && let Some(chest) = meet(l, r)
+    {
+        if map.get(&Role::Spine) == map.get(&Role::Pelvis) {
+            map.remove(&Role::Spine);
+            // The joint after the pelvis on the way to the chest.
+            if let Some(&pelvis) = map.get(&Role::Pelvis) {
+                let path = ancestors(chest);
+                if let Some(i) = path.iter().position(|&k| k == pelvis)
+                    && i >= 1
+                {
+                    map.insert(Role::Spine, path[i - 1]);
+                }
+            }
+        }
+        if !map.contains_key(&Role::Chest) && map.get(&Role::Spine) != Some(&chest) {
+            map.insert(Role::Chest, chest);
+        }
+        // The chain that leaves the chest toward neither arm: neck … head.
+        let toward_arm =
+            |c: usize| skeleton.is_ancestor_or_self(c, l) || skeleton.is_ancestor_or_self(c, r);
+        let mut chain = Vec::new();
+        let mut at = chest;
+        while let Some(next) =
+            (0..joints.len()).find(|&c| joints[c].parent == Some(at) && !toward_arm(c))
+        {
+            chain.push(next);
+            at = next;
+        }
+        if let Some(&head) = chain.last()
+            && !map.contains_key(&Role::Head)
+        {
+            map.insert(Role::Head, head);
+            if chain.len() >= 2 {
+                map.entry(Role::Neck).or_insert(chain[0]);
+            }
+        }
+    }
+    Roles::from_pairs(map)
+}
+
+/// Rules 2 to 5.
+fn by_rotations(
+    motion: &Motion,
+    rig: &Rig,
+    options: &RetargetOptions,
+    base: &RigParams,
+    path: &Path,
+) -> Result<Retargeted, MotionError> {
+    let source = &motion.skeleton;
+    let target = &rig.skeleton;
+    let mut source_roles = complete_by_topology(source, Roles::infer(source));
+    if let Some(map) = &options.joint_map {
+        source_roles = source_roles
+            .with_map(source, map)
+            .map_err(|e| MotionError::retarget(path, format!("--joint-map: {e}")))?;
+    }
+    let roles_of = |roles: &Roles, n: usize| -> Vec<Option<Role>> {
+        let mut v = vec![None; n];
+        for (r, j) in roles.iter() {
+            v[j] = Some(r);
+        }
+        v
+    };
+    let target_role = roles_of(&rig.roles, target.len());
+    let source_role = roles_of(&source_roles, source.len());
+
+    // Rule 2: correspondence, by name first (the same name is the same joint), then by role.
+    let mut pair: Vec<Option<usize>> = target
+        .joints()
+        .iter()
+        .map(|j| source.index_of(&j.name))
+        .collect();
+    let mut by: Vec<Option<Matched>> = pair.iter().map(|p| p.map(|_| Matched::Name)).collect();
+    for t in 0..target.len() {
+        if let (None, Some(r)) = (pair[t], target_role[t])
+            && let Some(s) = source_roles.get(r)
+            && !pair.contains(&Some(s))
+        {
+            pair[t] = Some(s);
+            by[t] = Some(Matched::Role(r));
+        }
+    }
+    let correspondence: Vec<Correspondence> = (0..target.len())
+        .filter_map(|t| {
+            Some(Correspondence {
+                target: target.joints()[t].name.clone(),
+                source: source.joints()[pair[t]?].name.clone(),
+                by: by[t]?,
+            })
+        })
+        .collect();
+    let source_of = |r: Role| rig.roles.get(r).and_then(|t| pair[t]);
+    let unmatched_roles: Vec<Role> = rig
+        .roles
+        .iter()
+        .map(|(r, _)| r)
+        .filter(|&r| source_of(r).is_none())
+        .collect();
+    let unmatched_source: Vec<String> = (0..source.len())
+        .filter(|s| !pair.contains(&Some(*s)))
+        .map(|s| source.joints()[s].name.clone())
+        .collect();
+    for needed in [Role::Pelvis, Role::LeftHip, Role::RightHip] {
+        if rig.roles.get(needed).is_some() && source_of(needed).is_none() {
+            let without: Vec<&str> = (0..source.len())
+                .filter(|&s| source_role[s].is_none())
+                .map(|s| source.joints()[s].name.as_str())
+                .collect();
+            return Err(MotionError::retarget(
+                path,
+                format!(
+                    "no joint of the motion's skeleton takes the role `{}`: name it in a \
+                     --joint-map file (JSON, role → joint, e.g. {{\"{}\": \"Hips\"}}); the \
+                     joints without a role are: {}",
+                    needed.name(),
+                    needed.name(),
+                    without.join(", ")
+                ),
+            ));
+        }
+    }
+    let source_role_map = RoleMap(
+        source_roles
+            .iter()
+            .map(|(r, j)| (r, source.joints()[j].name.clone()))
+            .collect::<BTreeMap<_, _>>(),
+    );
+
+    // Rule 3: the source's world in the target's.
+    let unit = motion.metres_per_unit;
+    let upright = up_to_y(motion.up);
+    let source_rest = source.rest(None);
+    let target_rest = rig.joint_world(base)?;
+    let horizontal = |v: Vec3| {
+        let v = Vec3::new(v.x, 0.0, v.z);
+        (v.length() > 1e-6).then(|| v.normalize())
+    };
+    let source_left = source_of(Role::LeftHip)
+        .zip(source_of(Role::RightHip))
+        .and_then(|(l, r)| {
+            horizontal(upright * (source_rest[l].translation - source_rest[r].translation))
+        });
+    let target_left = rig
+        .roles
+        .get(Role::LeftHip)
+        .zip(rig.roles.get(Role::RightHip))
+        .and_then(|(l, r)| horizontal(target_rest[l].translation - target_rest[r].translation));
+    let facing = match (source_left, target_left) {
+        (Some(s), Some(t)) => Quat::from_rotation_arc(s, t),
+        _ => Quat::IDENTITY,
+    };
+    let turn = (facing * upright).normalize();
+    let place = |p: Vec3| turn * (p * unit);
+
+    // Rule 4: rest-pose alignment. The whole body first (its up and left axes at rest: a
+    // source whose rest lies in its file's world, as AMASS's does, stands up), then each
+    // corresponding joint's bone onto the source's, toward the corresponding joint of the
+    // next role down its chain.
+    let placed_rest: Vec<Vec3> = source_rest.iter().map(|s| place(s.translation)).collect();
+    let target_positions: Vec<Vec3> = target_rest.iter().map(|s| s.translation).collect();
+    let body = |joint: &dyn Fn(Role) -> Option<usize>, at: &[Vec3]| -> Option<Quat> {
+        let pelvis = at[joint(Role::Pelvis)?];
+        let top = [Role::Neck, Role::Head, Role::Chest, Role::Spine]
+            .into_iter()
+            .find_map(joint)?;
+        let up = (at[top] - pelvis).normalize_or_zero();
+        let left = at[joint(Role::LeftHip)?] - at[joint(Role::RightHip)?];
+        let left = (left - up * left.dot(up)).normalize_or_zero();
+        (up != Vec3::ZERO && left != Vec3::ZERO)
+            .then(|| Quat::from_mat3(&glam::Mat3::from_cols(left, up, left.cross(up))))
+    };
+    let whole = match (
+        body(&source_of, &placed_rest),
+        body(&|r| rig.roles.get(r), &target_positions),
+    ) {
+        (Some(s), Some(t)) => (s * t.conjugate()).normalize(),
+        _ => Quat::IDENTITY,
+    };
+    let bone = |t: usize, s: usize| -> Option<(Vec3, Vec3)> {
+        bone_end(target_role[t]?).iter().find_map(|&end| {
+            let c = rig.roles.get(end)?;
+            let sc = pair[c]?;
+            let tv = whole * (target_positions[c] - target_positions[t]);
+            let sv = placed_rest[sc] - placed_rest[s];
+            (tv.length() > 1e-6 && sv.length() > 1e-6).then(|| (tv.normalize(), sv.normalize()))
+        })
+    };
+    let mut align = vec![whole; target.len()];
+    for t in 0..target.len() {
+        let inherited = target.joints()[t].parent.map_or(whole, |p| align[p]);
+        align[t] = match pair[t].and_then(|s| bone(t, s)) {
+            Some((tv, sv)) => (Quat::from_rotation_arc(tv, sv) * whole).normalize(),
+            None => inherited,
+        };
+    }
+
+    // Rule 5: the root, measured from the lowest joint: the target's at rest, the source's
+    // over the whole motion (where a foot touches the ground), or at rest when the source is
+    // the target's own skeleton in place.
+    let lowest = |at: &[Vec3]| at.iter().map(|p| p.y).fold(f32::MAX, f32::min);
+    let own_skeleton = correspondence.len() == target.len()
+        && (0..target.len())
+            .all(|t| pair[t].is_some_and(|s| placed_rest[s].distance(target_positions[t]) < 1e-3));
+    let target_floor = lowest(&target_positions);
+    let source_floor = if own_skeleton {
+        lowest(&placed_rest)
+    } else {
+        (0..motion.frames())
+            .map(|f| {
+                let w: Vec<Vec3> = motion
+                    .world(f)
+                    .iter()
+                    .map(|s| place(s.translation))
+                    .collect();
+                lowest(&w)
+            })
+            .fold(f32::MAX, f32::min)
+    };
+    let scale = leg_length(|r| rig.roles.get(r), &target_positions, target_floor)
+        / leg_length(source_of, &placed_rest, lowest(&placed_rest)).max(1e-6);
+    let target_pelvis = rig.roles.get(Role::Pelvis).unwrap_or(0);
+    let source_pelvis = pair[target_pelvis].unwrap_or(0);
+
+    let joints = target.joints();
+    let mut dropped = 0.0f32;
+    let mut frames = Vec::with_capacity(motion.frames());
+    let mut world = vec![Quat::IDENTITY; target.len()];
+    for f in 0..motion.frames() {
+        let posed = motion.world(f);
+        let mut p = base.clone();
+        for t in 0..target.len() {
+            let parent = joints[t].parent.map_or(Quat::IDENTITY, |q| world[q]);
+            world[t] = match pair[t] {
+                Some(s) => {
+                    let delta = turn
+                        * posed[s].rotation
+                        * source_rest[s].rotation.conjugate()
+                        * turn.conjugate();
+                    (delta * align[t] * target_rest[t].rotation).normalize()
+                }
+                None => {
+                    let rest_parent = joints[t]
+                        .parent
+                        .map_or(Quat::IDENTITY, |q| target_rest[q].rotation);
+                    (parent * rest_parent.conjugate() * target_rest[t].rotation).normalize()
+                }
+            };
+            let local = joints[t].pre_rotation.conjugate() * parent.conjugate() * world[t];
+            dropped = dropped.max(rig.set_joint_rotation(&mut p, t, local));
+        }
+        let src = place(posed[source_pelvis].translation);
+        let want = Vec3::new(
+            src.x * scale,
+            target_floor + (src.y - source_floor) * scale,
+            src.z * scale,
+        );
+        let at = rig.joint_world(&p)?[target_pelvis].translation;
+        rig.set_root_translation(&mut p, want - at)?;
+        frames.push(p);
+    }
+    Ok(Retargeted {
+        frames,
+        fps: motion.fps,
+        method: "rotations",
+        correspondence,
+        source_roles: source_role_map,
+        unmatched_source,
+        unmatched_roles,
+        scale,
+        dropped_degrees: dropped.to_degrees(),
+    })
+}

@@ -1,0 +1,233 @@
+#!/usr/bin/env python3
+"""Motion files of the formats `f3g motion` reads, made here from scratch (numpy only), for the
+README's pictures and BENCHMARKS (no third-party motion data is redistributed):
+
+- `walk_mixamo.bvh`: a walk on a Mixamo-named skeleton (`mixamorig:` prefixes), centimetres,
+  T-pose rest, Y up, 30 fps;
+- `walk_cmu.bvh`: the same walk under CMU names (`LHipJoint`, `LowerBack`, ...), ZXY channels;
+- `walk_amass.npz`: an AMASS SMPL-H layout walk (`poses` F×156, `trans`, `betas`,
+  `mocap_framerate`, `gender` as a string array), Z up, 120 fps;
+- `walk.smpl`: the same walk in the `smplcodec` layout (`bodyPose` F×22×3, ...), Y up, 30 fps;
+- `amass_10k.npz` (with `--long`): 10 000 frames of the AMASS walk, for `f3g motion convert`'s
+  timing.
+
+Usage: python3 tools/make_motions.py OUT_DIR [--long]
+"""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def quat_axis(axis, angle):
+    axis = np.asarray(axis, float)
+    h = 0.5 * angle
+    return np.concatenate([[np.cos(h)], np.sin(h) * axis])
+
+
+def quat_mul(a, b):
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return np.array([
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    ])
+
+
+def axis_angle(q):
+    q = q if q[0] >= 0 else -q
+    s = np.linalg.norm(q[1:])
+    if s < 1e-12:
+        return np.zeros(3)
+    return q[1:] / s * 2 * np.arctan2(s, q[0])
+
+
+def euler_zyx_degrees(q):
+    """(z, y, x) in degrees with R = Rz·Ry·Rx."""
+    w, x, y, z = q
+    ez = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    ey = np.arcsin(np.clip(2 * (w * y - z * x), -1, 1))
+    ex = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    return np.degrees([ez, ey, ex])
+
+
+X, Y, Z = [1, 0, 0], [0, 1, 0], [0, 0, 1]
+
+
+def walk_rotations(t):
+    """Local rotations (quaternions) of a walk at time t, by generic joint, T-pose rest."""
+    s = np.sin(2 * np.pi * 0.9 * t)
+    c = np.cos(2 * np.pi * 0.9 * t)
+    return {
+        "hips": quat_axis(Y, 0.08 * s),
+        "chest": quat_axis(X, 0.05 + 0.03 * c),
+        "neck": quat_axis(Y, -0.1 * s),
+        "l_arm": quat_mul(quat_axis(Z, -1.25), quat_axis(Y, -0.45 * s)),
+        "r_arm": quat_mul(quat_axis(Z, 1.25), quat_axis(Y, -0.45 * s)),
+        "l_forearm": quat_axis(Y, 0.35 + 0.15 * max(0, -s)),
+        "r_forearm": quat_axis(Y, -0.35 - 0.15 * max(0, s)),
+        "l_upleg": quat_axis(X, -0.45 * s),
+        "r_upleg": quat_axis(X, 0.45 * s),
+        "l_leg": quat_axis(X, 0.8 * max(0, c)),
+        "r_leg": quat_axis(X, 0.8 * max(0, -c)),
+    }
+
+
+def walk_root(t):
+    """Pelvis offset from standing, metres (Y up, walking toward +Z)."""
+    return np.array([0.0, 0.02 * abs(np.sin(2 * np.pi * 0.9 * t)), 1.1 * t])
+
+
+# The BVH layout: key, parent key, position (cm, T-pose, Y up, facing +Z, left +X).
+LAYOUT = [
+    ("hips", None, (0, 95, 0)), ("spine", "hips", (0, 105, -1)), ("spine1", "spine", (0, 118, -1)),
+    ("chest", "spine1", (0, 132, 0)), ("neck", "chest", (0, 150, -2)), ("head", "neck", (0, 160, 1)),
+    ("l_clavicle", "chest", (4, 145, -2)), ("l_arm", "l_clavicle", (17, 145, -3)),
+    ("l_forearm", "l_arm", (44, 145, -3)), ("l_hand", "l_forearm", (70, 145, -3)),
+    ("r_clavicle", "chest", (-4, 145, -2)), ("r_arm", "r_clavicle", (-17, 145, -3)),
+    ("r_forearm", "r_arm", (-44, 145, -3)), ("r_hand", "r_forearm", (-70, 145, -3)),
+    ("l_upleg", "hips", (9, 90, 0)), ("l_leg", "l_upleg", (9, 49, 1)), ("l_foot", "l_leg", (9, 8, -3)),
+    ("l_toe", "l_foot", (9, 1, 10)),
+    ("r_upleg", "hips", (-9, 90, 0)), ("r_leg", "r_upleg", (-9, 49, 1)), ("r_foot", "r_leg", (-9, 8, -3)),
+    ("r_toe", "r_foot", (-9, 1, 10)),
+]
+
+MIXAMO = {
+    "hips": "Hips", "spine": "Spine", "spine1": "Spine1", "chest": "Spine2", "neck": "Neck",
+    "head": "Head", "clavicle": "Shoulder", "arm": "Arm", "forearm": "ForeArm", "hand": "Hand",
+    "upleg": "UpLeg", "leg": "Leg", "foot": "Foot", "toe": "ToeBase",
+}
+CMU = dict(MIXAMO, spine="LowerBack", spine1="Spine", chest="Spine1")
+
+
+def name(key, family):
+    side, base = (key[:2], key[2:]) if key[:2] in ("l_", "r_") else ("", key)
+    if family == "cmu" and base == "upleg":
+        # CMU's hip joint sits between the hips and the thigh; here it is the thigh itself.
+        return {"l_": "LeftUpLeg", "r_": "RightUpLeg"}[side]
+    text = (MIXAMO if family == "mixamo" else CMU)[base]
+    text = {"l_": "Left", "r_": "Right", "": ""}[side] + text
+    return "mixamorig:" + text if family == "mixamo" else text
+
+
+def write_bvh(path, family, frames, fps, order):
+    pos = {k: np.array(p, float) for k, _, p in LAYOUT}
+    children = {k: [c for c, p, _ in LAYOUT if p == k] for k, _, _ in LAYOUT}
+    lines = ["HIERARCHY"]
+    sequence = []
+
+    def joint(key, depth):
+        pad = "  " * depth
+        parent = dict((k, p) for k, p, _ in LAYOUT)[key]
+        offset = pos[key] - (pos[parent] if parent else 0)
+        lines.append(f"{pad}{'ROOT' if parent is None else 'JOINT'} {name(key, family)}")
+        lines.append(pad + "{")
+        lines.append(f"{pad}  OFFSET {offset[0]:.4f} {offset[1]:.4f} {offset[2]:.4f}")
+        rot = " ".join(f"{a}rotation" for a in order)
+        if parent is None:
+            lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition {rot}")
+        else:
+            lines.append(f"{pad}  CHANNELS 3 {rot}")
+        sequence.append(key)
+        for c in children[key]:
+            joint(c, depth + 1)
+        if not children[key]:
+            lines.extend([pad + "  End Site", pad + "  {", pad + "    OFFSET 0 5 0", pad + "  }"])
+        lines.append(pad + "}")
+
+    joint("hips", 0)
+    lines.extend(["MOTION", f"Frames: {frames}", f"Frame Time: {1 / fps:.7f}"])
+    for f in range(frames):
+        t = f / fps
+        rots = walk_rotations(t)
+        root = pos["hips"] + 100 * walk_root(t)
+        values = [f"{v:.4f}" for v in root]
+        for key in sequence:
+            q = rots.get(key, np.array([1.0, 0, 0, 0]))
+            values += [f"{v:.5f}" for v in euler_degrees(q, order)]
+        lines.append(" ".join(values))
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def euler_degrees(q, order):
+    """Angles for channels in `order` (e.g. "ZXY": R = Rz·Rx·Ry), degrees."""
+    m = rotation_matrix(q)
+    if order == "ZYX":
+        return euler_zyx_degrees(q)
+    if order == "ZXY":
+        # R = Rz(a)·Rx(b)·Ry(c): m[2][1] = sin b.
+        b = np.arcsin(np.clip(m[2][1], -1, 1))
+        a = np.arctan2(-m[0][1], m[1][1])
+        c = np.arctan2(-m[2][0], m[2][2])
+        return np.degrees([a, b, c])
+    raise ValueError(order)
+
+
+def rotation_matrix(q):
+    w, x, y, z = q
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+# SMPL joint indices of the generic keys (body_pose rows are joints 1..21).
+SMPL = {"hips": 0, "l_upleg": 1, "r_upleg": 2, "spine1": 3, "l_leg": 4, "r_leg": 5, "spine2": 6,
+        "chest": 9, "neck": 12, "l_clavicle": 13, "r_clavicle": 14, "head": 15, "l_arm": 16,
+        "r_arm": 17, "l_forearm": 18, "r_forearm": 19}
+
+
+def smpl_poses(frames, fps, z_up):
+    poses = np.zeros((frames, 52, 3), np.float32)
+    trans = np.zeros((frames, 3), np.float32)
+    up = quat_axis(X, np.pi / 2) if z_up else np.array([1.0, 0, 0, 0])
+    for f in range(frames):
+        t = f / fps
+        rots = walk_rotations(t)
+        for key, q in rots.items():
+            j = SMPL[key]
+            if j == 0:
+                q = quat_mul(up, q)
+            poses[f, j] = axis_angle(q)
+        if "hips" not in rots:
+            poses[f, 0] = axis_angle(up)
+        r = walk_root(t) + np.array([0, 0.9, 0])
+        trans[f] = rotation_matrix(up) @ r
+    return poses, trans
+
+
+def write_amass(path, frames):
+    fps = 120.0
+    poses, trans = smpl_poses(frames, fps, z_up=True)
+    np.savez(path, poses=poses.reshape(frames, 156), trans=trans, betas=np.zeros(16, np.float32),
+             mocap_framerate=np.array(fps), gender=np.array("neutral"))
+
+
+def write_smpl(path, frames):
+    fps = 30.0
+    poses, trans = smpl_poses(frames, fps, z_up=False)
+    np.savez(path, codecVersion=np.int32(1), smplVersion=np.int32(2), gender=np.int32(0),
+             shapeParameters=np.zeros(10, np.float32), frameCount=np.int32(frames),
+             frameRate=np.float32(fps), bodyTranslation=trans, bodyPose=poses[:, :22],
+             headPose=np.zeros((frames, 3, 3), np.float32), leftHandPose=poses[:, 22:37],
+             rightHandPose=poses[:, 37:52])
+    Path(str(path) + ".npz").rename(path)
+
+
+def main():
+    out = Path(sys.argv[1])
+    out.mkdir(parents=True, exist_ok=True)
+    write_bvh(out / "walk_mixamo.bvh", "mixamo", 60, 30.0, "ZYX")
+    write_bvh(out / "walk_cmu.bvh", "cmu", 60, 30.0, "ZXY")
+    write_amass(out / "walk_amass.npz", 240)
+    write_smpl(out / "walk.smpl", 60)
+    if "--long" in sys.argv:
+        write_amass(out / "amass_10k.npz", 10_000)
+
+
+if __name__ == "__main__":
+    main()
