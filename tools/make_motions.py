@@ -5,6 +5,7 @@ README's pictures and BENCHMARKS (no third-party motion data is redistributed):
 - `walk_mixamo.bvh`: a walk on a Mixamo-named skeleton (`mixamorig:` prefixes), centimetres,
   T-pose rest, Y up, 30 fps;
 - `walk_cmu.bvh`: the same walk under CMU names (`LHipJoint`, `LowerBack`, ...), ZXY channels;
+- `walk_mixamo.fbx`: the Mixamo walk as an ASCII FBX 7.4 file (bones, one animation stack);
 - `walk_amass.npz`: an AMASS SMPL-H layout walk (`poses` F×156, `trans`, `betas`,
   `mocap_framerate`, `gender` as a string array), Z up, 120 fps;
 - `walk.smpl`: the same walk in the `smplcodec` layout (`bodyPose` F×22×3, ...), Y up, 30 fps;
@@ -12,6 +13,8 @@ README's pictures and BENCHMARKS (no third-party motion data is redistributed):
   timing.
 
 Usage: python3 tools/make_motions.py OUT_DIR [--long]
+(The README's motion pictures: `f3g animate runs/demo/run --motion OUT_DIR/FILE --out DIR
+--size 288x384 --fps 8 --turns 0.25` for each file, one frame of each.)
 """
 
 import sys
@@ -175,6 +178,64 @@ def rotation_matrix(q):
     ])
 
 
+KTIME = 46186158000  # FBX ticks per second
+
+
+def write_fbx(path, frames, fps):
+    """The Mixamo walk as ASCII FBX: Y up, centimetres, Euler XYZ (R = Rz·Ry·Rx) in degrees."""
+    pos = {k: np.array(p, float) for k, _, p in LAYOUT}
+    parents = {k: p for k, p, _ in LAYOUT}
+    objects, links = [], []
+    ids = iter(range(100001, 10**7))
+    stack, layer = next(ids), next(ids)
+    stop = round((frames - 1) / fps * KTIME)
+    objects.append(f'\tAnimationStack: {stack}, "AnimStack::Take 001", "" {{\n\t\tProperties70:  {{\n'
+                   f'\t\t\tP: "LocalStart", "KTime", "Time", "",0\n\t\t\tP: "LocalStop", "KTime", "Time", "",{stop}\n'
+                   f'\t\t}}\n\t}}\n\tAnimationLayer: {layer}, "AnimLayer::BaseLayer", "" {{\n\t}}')
+    links.append(f'\tC: "OO",{layer},{stack}')
+    times = ",".join(str(round(f / fps * KTIME)) for f in range(frames))
+    model_of = {}
+    for key, parent, _ in LAYOUT:
+        model, attr = next(ids), next(ids)
+        model_of[key] = model
+        o = pos[key] - (pos[parent] if parent else 0)
+        objects.append(f'\tNodeAttribute: {attr}, "NodeAttribute::", "LimbNode" {{\n\t\tTypeFlags: "Skeleton"\n\t}}\n'
+                       f'\tModel: {model}, "Model::{name(key, "mixamo")}", "LimbNode" {{\n\t\tVersion: 232\n'
+                       f'\t\tProperties70:  {{\n\t\t\tP: "Lcl Translation", "Lcl Translation", "", "A",{o[0]},{o[1]},{o[2]}\n\t\t}}\n\t}}')
+        links.append(f'\tC: "OO",{attr},{model}')
+        links.append(f'\tC: "OO",{model},{model_of[parent] if parent else 0}')
+        rot = np.array([euler_zyx_degrees(walk_rotations(f / fps).get(key, np.array([1.0, 0, 0, 0])))[::-1]
+                        for f in range(frames)])
+        channels = [("R", "Lcl Rotation", rot)]
+        if parent is None:
+            channels.append(("T", "Lcl Translation",
+                             np.array([pos[key] + 100 * walk_root(f / fps) for f in range(frames)])))
+        for kind, prop, values in channels:
+            node = next(ids)
+            objects.append(f'\tAnimationCurveNode: {node}, "AnimCurveNode::{kind}", "" {{\n\t}}')
+            links.append(f'\tC: "OO",{node},{layer}')
+            links.append(f'\tC: "OP",{node},{model}, "{prop}"')
+            for k, axis in enumerate(["d|X", "d|Y", "d|Z"]):
+                curve = next(ids)
+                keys = ",".join(f"{v:.6f}" for v in values[:, k])
+                objects.append(f'\tAnimationCurve: {curve}, "AnimCurve::", "" {{\n\t\tDefault: 0\n\t\tKeyVer: 4009\n'
+                               f'\t\tKeyTime: *{frames} {{\n\t\t\ta: {times}\n\t\t}}\n'
+                               f'\t\tKeyValueFloat: *{frames} {{\n\t\t\ta: {keys}\n\t\t}}\n'
+                               f'\t\tKeyAttrFlags: *1 {{\n\t\t\ta: 24836\n\t\t}}\n'
+                               f'\t\tKeyAttrDataFloat: *4 {{\n\t\t\ta: 0,0,0,0\n\t\t}}\n'
+                               f'\t\tKeyAttrRefCount: *1 {{\n\t\t\ta: {frames}\n\t\t}}\n\t}}')
+                links.append(f'\tC: "OP",{curve},{node}, "{axis}"')
+    header = ('; FBX 7.4.0 project file\nFBXHeaderExtension:  {\n\tFBXHeaderVersion: 1003\n\tFBXVersion: 7400\n}\n'
+              'GlobalSettings:  {\n\tVersion: 1000\n\tProperties70:  {\n'
+              '\t\tP: "UpAxis", "int", "Integer", "",1\n\t\tP: "UpAxisSign", "int", "Integer", "",1\n'
+              '\t\tP: "FrontAxis", "int", "Integer", "",2\n\t\tP: "FrontAxisSign", "int", "Integer", "",1\n'
+              '\t\tP: "CoordAxis", "int", "Integer", "",0\n\t\tP: "CoordAxisSign", "int", "Integer", "",1\n'
+              '\t\tP: "UnitScaleFactor", "double", "Number", "",1\n'
+              f'\t\tP: "TimeMode", "enum", "", "",14\n\t\tP: "CustomFrameRate", "double", "Number", "",{fps}\n\t}}\n}}\n')
+    Path(path).write_text(header + "Objects:  {\n" + "\n".join(objects) + "\n}\nConnections:  {\n"
+                          + "\n".join(links) + "\n}\n")
+
+
 # SMPL joint indices of the generic keys (body_pose rows are joints 1..21).
 SMPL = {"hips": 0, "l_upleg": 1, "r_upleg": 2, "spine1": 3, "l_leg": 4, "r_leg": 5, "spine2": 6,
         "chest": 9, "neck": 12, "l_clavicle": 13, "r_clavicle": 14, "head": 15, "l_arm": 16,
@@ -223,6 +284,7 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     write_bvh(out / "walk_mixamo.bvh", "mixamo", 60, 30.0, "ZYX")
     write_bvh(out / "walk_cmu.bvh", "cmu", 60, 30.0, "ZXY")
+    write_fbx(out / "walk_mixamo.fbx", 60, 30.0)
     write_amass(out / "walk_amass.npz", 240)
     write_smpl(out / "walk.smpl", 60)
     if "--long" in sys.argv:

@@ -411,7 +411,7 @@ pub struct AnimateArgs {
     /// Run folder.
     pub run: PathBuf,
     /// Motion: an f3g sequence (e.g. a capture's body_params.npz), or AMASS .npz, .smpl,
-    /// smpl_params.npz or BVH, retargeted onto the avatar and resampled to --fps.
+    /// smpl_params.npz, BVH, glTF or FBX, retargeted onto the avatar and resampled to --fps.
     #[arg(long)]
     pub motion: PathBuf,
     #[command(flatten)]

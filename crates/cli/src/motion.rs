@@ -65,13 +65,13 @@ pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
 /// Motions.
 #[derive(Subcommand, Debug)]
 pub enum MotionCommand {
-    /// Retarget a motion (AMASS .npz, .smpl, smpl_params.npz, BVH, glTF) onto a body model and
+    /// Retarget a motion (AMASS .npz, .smpl, smpl_params.npz, BVH, glTF, FBX) onto a body model and
     /// write it as an f3g sequence (.npz), printing the joint correspondence.
     Convert(ConvertArgs),
     /// Write a motion f3g made (a run's training poses or an f3g sequence) for other tools.
     Export(ExportArgs),
     /// A contact sheet of a motion: its skeleton (top row) and the body model it is
-    /// retargeted onto (bottom row), seen from the front at evenly spaced frames.
+    /// retargeted onto (bottom row), seen from the side or front at evenly spaced frames.
     Show(ShowArgs),
 }
 
@@ -92,8 +92,28 @@ pub struct ShowArgs {
     /// Side of one panel in pixels, 32–1024.
     #[arg(long, default_value_t = 200, value_parser = crate::bounds::size::<32, 1024>)]
     pub panel: usize,
+    /// Seen from the front (x, y) or from the left side (z, y: strides and bends).
+    #[arg(long, value_enum, default_value = "side")]
+    pub view: View,
     #[command(flatten)]
     pub retarget: RetargetArgs,
+}
+
+/// Where `f3g motion show` looks from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum View {
+    Front,
+    Side,
+}
+
+impl View {
+    /// A point's (right, up) on the sheet.
+    fn project(self, p: glam::Vec3) -> glam::Vec2 {
+        match self {
+            View::Front => glam::Vec2::new(p.x, p.y),
+            View::Side => glam::Vec2::new(p.z, p.y),
+        }
+    }
 }
 
 /// Options of `f3g motion convert`.
@@ -128,6 +148,8 @@ pub enum ExportFormat {
     Bvh,
     /// A glTF binary with the skeleton under a skin and one animation (no mesh).
     Glb,
+    /// An ASCII FBX 7.4 file: the skeleton as bones and one animation stack.
+    Fbx,
 }
 
 /// Options of `f3g motion export`.
@@ -218,6 +240,10 @@ fn export(a: &ExportArgs) -> Result<()> {
             f3g_io::write_atomic(&a.out, text.as_bytes())?;
         }
         ExportFormat::Glb => f3g_io::write_atomic(&a.out, &f3g_motion::write_gltf(&motion))?,
+        ExportFormat::Fbx => {
+            let text = f3g_motion::write_fbx(&motion).map_err(anyhow::Error::msg)?;
+            f3g_io::write_atomic(&a.out, text.as_bytes())?;
+        }
     }
     eprintln!(
         "wrote {} ({} frames of {} joints at {} fps)",
@@ -272,21 +298,21 @@ fn show(a: &ShowArgs) -> Result<()> {
     .into_iter()
     .enumerate()
     {
-        // One scale per row (its largest pose), so the panels compare; x and y of the front
-        // view, each pose centred in its panel.
+        // One scale per row (its largest pose), so the panels compare; each pose centred in
+        // its panel.
         let extent = poses
             .iter()
             .map(|pose| {
-                let (a, b) = front_bounds(pose);
+                let (a, b) = bounds(pose, a.view);
                 (b - a).max_element()
             })
             .fold(1e-6f32, f32::max);
         let scale = 0.9 * side as f32 / extent;
         for (column, pose) in poses.iter().enumerate() {
-            let (a, b) = front_bounds(pose);
-            let centre = 0.5 * (a + b);
+            let (lo, hi) = bounds(pose, a.view);
+            let centre = 0.5 * (lo + hi);
             let to_pixel = |p: glam::Vec3| {
-                let q = (p.truncate() - centre) * scale;
+                let q = (a.view.project(p) - centre) * scale;
                 glam::Vec2::new(
                     (column * side) as f32 + 0.5 * side as f32 + q.x,
                     (row * side) as f32 + 0.5 * side as f32 - q.y,
@@ -309,11 +335,11 @@ fn show(a: &ShowArgs) -> Result<()> {
     Ok(())
 }
 
-/// The corners of a pose's bounding box in the front view (x, y).
-fn front_bounds(pose: &[glam::Vec3]) -> (glam::Vec2, glam::Vec2) {
+/// The corners of a pose's bounding box in `view`.
+fn bounds(pose: &[glam::Vec3], view: View) -> (glam::Vec2, glam::Vec2) {
     pose.iter().fold(
         (glam::Vec2::splat(f32::MAX), glam::Vec2::splat(f32::MIN)),
-        |(a, b), p| (a.min(p.truncate()), b.max(p.truncate())),
+        |(a, b), p| (a.min(view.project(*p)), b.max(view.project(*p))),
     )
 }
 

@@ -30,9 +30,9 @@ pub struct ViewArgs {
     /// A baked avatar (`.glb`, from `f3g export-avatar`) or a run folder (baked first, and
     /// kept as RUN/avatar-kK.glb for the next time).
     pub source: PathBuf,
-    /// Motion to offer, repeatable: an f3g sequence, or AMASS .npz, .smpl, smpl_params.npz or
-    /// BVH (retargeted onto the avatar, resampled to --fps); without one: a run's training
-    /// poses, or the canonical pose.
+    /// Motion to offer, repeatable: an f3g sequence, or AMASS .npz, .smpl, smpl_params.npz,
+    /// BVH, glTF or FBX (retargeted onto the avatar, resampled to --fps); without one: a run's
+    /// training poses, or the canonical pose.
     #[arg(long)]
     pub motion: Vec<PathBuf>,
     #[command(flatten)]

@@ -173,6 +173,27 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     avatar(d, &[0, 16]);
+    // A motion f3g exports as a glTF animation passes the validator without a warning.
+    ok(&f3g(
+        d,
+        &[
+            "motion",
+            "export",
+            "run",
+            "--format",
+            "glb",
+            "--out",
+            "poses.glb",
+        ],
+    ));
+    let out = Command::new("node")
+        .arg(scripts().join("validate.mjs"))
+        .arg(d.join("poses.glb"))
+        .output()
+        .unwrap();
+    ok(&out);
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["warnings"].as_array().unwrap().len(), 0, "{report}");
     let (eye, target, fov, w, h) = ([0.5, 0.4, 2.6], [0.0, 0.3, 0.0], 30.0, 320, 240);
     std::fs::write(d.join("cam.json"), camera_json(eye, target, fov, w, h)).unwrap();
     let view = format!(

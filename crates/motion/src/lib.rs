@@ -13,7 +13,9 @@
 //! - `smpl_params.npz` (AvatarReX / THuman4.0), Y up, metres;
 //! - BVH (`.bvh`), any channel order, units and up axis inferred from the rest skeleton;
 //! - glTF animations (`.glb`, `.gltf`): a skin's joints driven by the first animation, Y up,
-//!   metres.
+//!   metres;
+//! - FBX animation stacks (`.fbx`): the bone nodes driven by the first stack, the file's units
+//!   and up axis.
 //!
 //! Conventions: a joint's local transform is `T(offset + t) · R_rest · R` as in
 //! [`f3g_rig::skeleton`]; only the root has a translation `t`. Rotations are unit quaternions.
@@ -21,6 +23,7 @@
 mod bvh;
 mod error;
 mod export;
+mod fbx;
 mod gltf;
 pub mod retarget;
 mod smpl;
@@ -34,6 +37,7 @@ use f3g_rig::{Similarity, Skeleton};
 pub use bvh::{parse_bvh, write_bvh};
 pub use error::MotionError;
 pub use export::from_rig;
+pub use fbx::{parse_fbx, write_fbx};
 pub use gltf::{read_gltf, write_gltf};
 pub use retarget::{Correspondence, RetargetOptions, Retargeted, retarget};
 pub use smpl::{SmplFamily, SmplMotion};
@@ -160,12 +164,13 @@ pub enum Format {
     SmplParams,
     Bvh,
     Gltf,
+    Fbx,
 }
 
 /// The formats, as error messages list them.
 pub const FORMATS: &str = "AMASS .npz (poses, trans, mocap_framerate), Meshcapade .smpl, \
-     smpl_params.npz (AvatarReX / THuman4.0), BVH (.bvh), glTF animations (.glb, .gltf), or \
-     f3g's own body_params.npz";
+     smpl_params.npz (AvatarReX / THuman4.0), BVH (.bvh), glTF animations (.glb, .gltf), FBX \
+     animation stacks (.fbx), or f3g's own body_params.npz";
 
 /// Which format `path` holds, by content (an `.npz`'s arrays) or extension.
 pub fn detect(path: &Path) -> Result<Format, MotionError> {
@@ -182,6 +187,7 @@ pub fn detect(path: &Path) -> Result<Format, MotionError> {
     match extension.as_deref() {
         Some("bvh") => return Ok(Format::Bvh),
         Some("glb" | "gltf") => return Ok(Format::Gltf),
+        Some("fbx") => return Ok(Format::Fbx),
         Some("npz" | "smpl") => {}
         _ => {
             return Err(MotionError::file(
@@ -220,6 +226,10 @@ pub fn read(path: &Path) -> Result<Motion, MotionError> {
         Format::SmplCodec => smpl::read_smpl_codec(path),
         Format::SmplParams => smpl::read_smpl_params(path),
         Format::Gltf => gltf::read_gltf(path, None),
+        Format::Fbx => {
+            let bytes = std::fs::read(path).map_err(|e| MotionError::file(path, e))?;
+            parse_fbx(&bytes, path)
+        }
     }
 }
 

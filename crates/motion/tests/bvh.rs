@@ -155,3 +155,26 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn an_fbx_animation_stack_reads_to_the_same_joint_positions() {
+    let walk = common::walk(0, 12);
+    let text = f3g_motion::write_fbx(&walk).unwrap();
+    let m = f3g_motion::parse_fbx(text.as_bytes(), Path::new("walk.fbx")).unwrap();
+    assert_eq!((m.frames(), m.fps, m.up), (12, 30.0, Up::Y));
+    assert!((m.metres_per_unit - 0.01).abs() < 1e-6);
+    assert_eq!(m.skeleton.joints()[0].name, "mixamorig:Hips");
+    assert_eq!(m.skeleton.len(), walk.skeleton.len());
+    for i in 0..walk.frames() {
+        let (a, b) = (walk.world(i), m.world(i));
+        for (j, joint) in walk.skeleton.joints().iter().enumerate() {
+            let k = m.skeleton.index_of(&joint.name).unwrap();
+            let d = a[j].translation.distance(b[k].translation);
+            assert!(d < 1e-2, "frame {i}, `{}`: {d} cm", joint.name);
+        }
+    }
+    let e = f3g_motion::parse_fbx(b"; FBX 7.4.0 project file\nnot fbx", Path::new("bad.fbx"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("bad.fbx"), "{e}");
+}

@@ -1,12 +1,14 @@
 //! Fuzzing the motion readers with damaged files: for thousands of mutations of a valid BVH,
-//! AMASS `.npz` and `.smpl` each reader returns a motion whose values are finite or an error
+//! glTF animation, ASCII FBX, AMASS `.npz` and `.smpl` each reader returns a motion whose values are finite or an error
 //! naming the file — no panic, no single allocation above 256 MiB.
 
 mod common;
 
 use std::path::Path;
 
-use f3g_testkit::{AllocationGuard, Array, config, mutated_arrays, mutated_text, write_arrays};
+use f3g_testkit::{
+    AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, write_arrays,
+};
 use proptest::prelude::*;
 
 #[global_allocator]
@@ -64,6 +66,19 @@ proptest! {
     #[test]
     fn mutated_bvh_parses_or_errors(text in mutated_text(&bvh())) {
         check(f3g_motion::parse_bvh(text.as_bytes(), Path::new("m.bvh")), "m.bvh")?;
+    }
+
+    #[test]
+    fn mutated_gltf_reads_or_errors(bytes in mutated(f3g_motion::write_gltf(&common::walk(0, 3)))) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.glb");
+        std::fs::write(&path, &bytes).unwrap();
+        check(f3g_motion::read(&path), "m.glb")?;
+    }
+
+    #[test]
+    fn mutated_fbx_parses_or_errors(text in mutated_text(&f3g_motion::write_fbx(&common::walk(2, 3)).unwrap())) {
+        check(f3g_motion::parse_fbx(text.as_bytes(), Path::new("m.fbx")), "m.fbx")?;
     }
 
     #[test]

@@ -102,6 +102,29 @@ fn an_f3g_sequence_survives_gltf_joint_for_joint() {
 }
 
 #[test]
+fn an_f3g_sequence_survives_fbx_joint_for_joint() {
+    let rig = builtin();
+    let frames = without_expressions(f3g_rig::choreography::motion(&rig, 12, 5));
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("seq.fbx");
+    let text = f3g_motion::write_fbx(&from_rig(&rig, &frames, 24.0).unwrap()).unwrap();
+    std::fs::write(&path, text).unwrap();
+    let back = read(&path).unwrap();
+    assert_eq!((back.frames(), back.fps), (12, 24.0));
+    let options = RetargetOptions {
+        identity: frames[0].identity.clone(),
+        ..Default::default()
+    };
+    let r = retarget(&back, &rig, &options, &path).unwrap();
+    let all: Vec<usize> = (0..rig.skeleton.len()).collect();
+    let error = largest_distance(
+        &positions(&rig, &frames, &all),
+        &positions(&rig, &r.frames, &all),
+    );
+    assert!(error < 1e-4, "joints moved by up to {error} m");
+}
+
+#[test]
 fn t_pose_and_a_pose_sources_drive_the_same_pose() {
     let rig = builtin();
     let t_pose = common::walk(0, 20);
