@@ -5,7 +5,7 @@
 //! the units and up axis *as read* — nothing is converted on reading. [`retarget`] then drives
 //! any body model ([`f3g_rig::Rig`]) with it through the body-model contract's joint roles.
 //!
-//! Formats ([`Format`], chosen by content first, then by extension):
+//! Formats ([`Format`], by extension, and an `.npz` by the arrays it holds):
 //! - AMASS `.npz` (`poses`, `trans`, `betas`, `mocap_framerate` or `mocap_frame_rate`; SMPL,
 //!   SMPL-H or SMPL-X layouts by the width of `poses`), Z up, metres;
 //! - Meshcapade's `.smpl` (an `.npz` in the `smplcodec` layout: `bodyPose`, `bodyTranslation`,

@@ -169,7 +169,7 @@ fn same_family(
     for (f, p) in frames.iter_mut().enumerate() {
         p.identity.clone_from(&base.identity);
         let global = f3g_rig::rig::axis_angle(Vec3::from_slice(&p.pose[0..3]));
-        rig.set_joint_rotation(p, 0, turn * global);
+        let _ = rig.set_joint_rotation(p, 0, turn * global);
         let t = Vec3::from_slice(&params.transl[3 * f..3 * f + 3]);
         rig.set_root_translation(p, turn * (rest_pelvis + t) - rest_pelvis)?;
     }
@@ -502,7 +502,12 @@ fn by_rotations(
                 }
             };
             let local = joints[t].pre_rotation.conjugate() * parent.conjugate() * world[t];
-            dropped = dropped.max(rig.set_joint_rotation(&mut p, t, local));
+            let set = rig.set_joint_rotation(&mut p, t, local);
+            // The angle of what could not be set, from its sine (acos of a dot product near 1
+            // has f32 noise of 1e-3); the children continue from where the joint really is.
+            let missed = 2.0 * (set.conjugate() * local).xyz().length().min(1.0).asin();
+            dropped = dropped.max(missed);
+            world[t] = (parent * joints[t].pre_rotation * set).normalize();
         }
         let src = place(posed[source_pelvis].translation);
         let want = Vec3::new(

@@ -142,9 +142,9 @@ impl Rig {
 
     /// Sets the whole pose rotation of `joint` (applied after its rest rotation): its
     /// axis-angle vector, or its Momentum `rx, ry, rz` parameters (`R = Rz·Ry·Rx`). Channels
-    /// the model cannot move are left out; returns the angle (radians) by which the rotation
-    /// set misses `rotation` (0 when every channel is there).
-    pub fn set_joint_rotation(&self, params: &mut RigParams, joint: usize, rotation: Quat) -> f32 {
+    /// the model cannot move are left out; returns the rotation set (`rotation` itself when
+    /// every channel is there).
+    pub fn set_joint_rotation(&self, params: &mut RigParams, joint: usize, rotation: Quat) -> Quat {
         let rotation = rotation.normalize();
         match &self.parameterization {
             Parameterization::AxisAngle => {
@@ -155,7 +155,7 @@ impl Rig {
                 };
                 let (axis, angle) = q.to_axis_angle();
                 params.pose[3 * joint..3 * joint + 3].copy_from_slice(&(axis * angle).to_array());
-                0.0
+                q
             }
             Parameterization::Momentum(_) => {
                 // In f64: near ±90° about y, f32's asin loses half its digits.
@@ -168,10 +168,7 @@ impl Rig {
                         applied[k] = angle;
                     }
                 }
-                let got = crate::skeleton::euler_xyz(applied[0], applied[1], applied[2]);
-                // The angle of the difference, from its sine (acos of a dot product near 1 has
-                // f32 noise of 1e-3).
-                2.0 * (got.conjugate() * rotation).xyz().length().min(1.0).asin()
+                crate::skeleton::euler_xyz(applied[0], applied[1], applied[2])
             }
         }
     }

@@ -184,3 +184,36 @@ fn a_rig_file_holds_the_whole_model() {
     let (a, b) = (rig.pose(&frame).unwrap(), back.pose(&frame).unwrap());
     assert_eq!(a.vertices, b.vertices);
 }
+
+/// `set_joint_rotation` sets what the model can turn and says what it set: a whole rotation on
+/// a joint with all three channels, only the bend on a joint with one; the joint poses the rig
+/// then computes are exactly what it returned. And the root goes where it is told.
+#[test]
+fn joint_rotations_and_the_root_are_set_as_said() {
+    use glam::{Quat, Vec3};
+    let rig = builtin();
+    let names = rig.pose_param_names();
+    let full = rig.skeleton.index_of("lowerarm01.L").unwrap();
+    let single = (0..rig.skeleton.len())
+        .find(|&j| {
+            let n = &rig.skeleton.joints()[j].name;
+            let channels = ["rx", "ry", "rz"].map(|c| names.contains(&format!("{n}_{c}")));
+            channels == [true, false, false]
+        })
+        .expect("a joint with only rx");
+    let rotation = Quat::from_euler(glam::EulerRot::XYZ, 0.4, -0.3, 0.7);
+    let mut p = rig.zero_params();
+    let set_full = rig.set_joint_rotation(&mut p, full, rotation);
+    let set_single = rig.set_joint_rotation(&mut p, single, rotation);
+    rig.set_root_translation(&mut p, Vec3::new(0.1, -0.2, 0.3))
+        .unwrap();
+    let poses = rig.joint_poses(&p.pose).unwrap();
+    let close = |a: Quat, b: Quat| (a - b).length().min((a + b).length()) < 1e-5;
+    assert!(close(set_full, rotation) && close(poses[full].rotation, rotation));
+    assert!(close(poses[single].rotation, set_single) && !close(set_single, rotation));
+    // What is left of the rotation about x is the bend the joint can make.
+    assert!((set_single.to_axis_angle().0 - Vec3::X).length() < 1e-4);
+    let root = rig.joint_world(&p).unwrap()[0].translation;
+    let rest = rig.joint_world(&rig.zero_params()).unwrap()[0].translation;
+    assert!((root - rest - Vec3::new(0.1, -0.2, 0.3)).length() < 1e-5);
+}
