@@ -275,6 +275,21 @@ async function main() {
   const center = new THREE.Vector3(), scales = new THREE.Vector3();
   const quaternion = new THREE.Quaternion(), color = new THREE.Color();
 
+  // The camera follows the root across the floor (a walk leaves the view otherwise): moved by
+  // the root's horizontal displacement each frame, centred on it when a motion starts. Not
+  // while a script holds an exact view (`setView`).
+  let followed = null;
+  function follow(row) {
+    const root = new THREE.Vector3(row[12], row[13], row[14]);
+    if (controls.enabled) {
+      const d = root.clone().sub(followed ?? controls.target);
+      d.y = 0;
+      camera.position.add(d);
+      controls.target.add(d);
+    }
+    followed = root;
+  }
+
   let motion = null, frames = 0, stride = 0;
   async function loadMotion(index) {
     const m = motions[index];
@@ -285,6 +300,7 @@ async function main() {
     }
     motion = { ...m, data };
     frames = m.frames;
+    followed = null;
     const slider = document.getElementById("frame");
     slider.max = String(Math.max(frames - 1, 0));
     showFrame(0);
@@ -294,6 +310,7 @@ async function main() {
     f = Math.min(Math.max(Math.round(f), 0), Math.max(frames - 1, 0));
     state.frame = f;
     const row = motion.data.subarray(f * stride, (f + 1) * stride);
+    follow(row);
     const bones = [];
     for (let j = 0; j < avatar.joints; j++) {
       const m = new THREE.Matrix4().fromArray(row, 16 * j).multiply(restInverse[j]);
