@@ -53,7 +53,14 @@ pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
     }
     text += ")";
     if !r.unmatched_roles.is_empty() {
-        let roles: Vec<String> = r.unmatched_roles.iter().map(|r| r.name()).collect();
+        let roles: Vec<String> = r
+            .unmatched_roles
+            .iter()
+            .map(|(role, closest)| match closest.is_empty() {
+                true => role.name(),
+                false => format!("{} (closest: {})", role.name(), closest.join(", ")),
+            })
+            .collect();
         text += &format!(
             "\n  roles without a joint in the motion (they keep their rest pose): {} — name them with --joint-map",
             roles.join(", ")

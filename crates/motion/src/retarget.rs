@@ -78,8 +78,9 @@ pub struct Retargeted {
     pub source_roles: RoleMap,
     /// Source joints that drive nothing.
     pub unmatched_source: Vec<String>,
-    /// Roles of the target with no source joint.
-    pub unmatched_roles: Vec<Role>,
+    /// Roles of the target with no source joint, each with the motion's unmatched joints
+    /// whose names are closest to it (a start for a `--joint-map`).
+    pub unmatched_roles: Vec<(Role, Vec<String>)>,
     /// Target metres per source metre (leg lengths).
     pub scale: f32,
     /// Largest rotation (degrees) left out because the body model cannot turn a joint so.
@@ -294,6 +295,53 @@ pub fn complete_by_topology(skeleton: &f3g_rig::Skeleton, roles: Roles) -> Roles
     Roles::from_pairs(map)
 }
 
+/// Up to three of `names` closest to `role`'s name: edit distance between the lowercase
+/// letters and digits of each (`mixamorig:LeftStrut` → `mixamorigleftstrut` against
+/// `lefthip`), with the role's side word required when it has one.
+fn closest_names(role: Role, names: &[&str]) -> Vec<String> {
+    let key = |s: &str| -> Vec<char> {
+        s.chars()
+            .filter(char::is_ascii_alphanumeric)
+            .map(|c| c.to_ascii_lowercase())
+            .collect()
+    };
+    let target = key(&role.name());
+    let side = ["left", "right"]
+        .into_iter()
+        .find(|s| role.name().starts_with(s));
+    let distance = |a: &[char], b: &[char]| -> usize {
+        // Levenshtein, one row; `b` may contain `a` anywhere at no cost for the rest.
+        let mut row: Vec<usize> = vec![0; b.len() + 1];
+        for (i, ca) in a.iter().enumerate() {
+            let mut previous = row[0];
+            row[0] = i + 1;
+            for (j, cb) in b.iter().enumerate() {
+                let substitute = previous + usize::from(ca != cb);
+                previous = row[j + 1];
+                row[j + 1] = substitute.min(row[j] + 1).min(row[j + 1] + 1);
+            }
+        }
+        row.into_iter().min().unwrap_or(a.len())
+    };
+    let mut scored: Vec<(usize, &str)> = names
+        .iter()
+        .filter(|n| {
+            side.is_none_or(|s| {
+                let k: String = key(n).into_iter().collect();
+                k.contains(s) || k.ends_with(&s[..1]) || k.starts_with(&s[..1])
+            })
+        })
+        .map(|n| (distance(&target, &key(n)), *n))
+        .filter(|(d, _)| 2 * *d <= target.len())
+        .collect();
+    scored.sort();
+    scored
+        .into_iter()
+        .take(3)
+        .map(|(_, n)| n.to_string())
+        .collect()
+}
+
 /// Rules 2 to 5.
 fn by_rotations(
     motion: &Motion,
@@ -346,31 +394,38 @@ fn by_rotations(
         })
         .collect();
     let source_of = |r: Role| rig.roles.get(r).and_then(|t| pair[t]);
-    let unmatched_roles: Vec<Role> = rig
-        .roles
-        .iter()
-        .map(|(r, _)| r)
-        .filter(|&r| source_of(r).is_none())
-        .collect();
     let unmatched_source: Vec<String> = (0..source.len())
         .filter(|s| !pair.contains(&Some(*s)))
         .map(|s| source.joints()[s].name.clone())
         .collect();
+    let without_role: Vec<&str> = (0..source.len())
+        .filter(|&s| source_role[s].is_none() && !pair.contains(&Some(s)))
+        .map(|s| source.joints()[s].name.as_str())
+        .collect();
+    let unmatched_roles: Vec<(Role, Vec<String>)> = rig
+        .roles
+        .iter()
+        .map(|(r, _)| r)
+        .filter(|&r| source_of(r).is_none())
+        .map(|r| (r, closest_names(r, &without_role)))
+        .collect();
     for needed in [Role::Pelvis, Role::LeftHip, Role::RightHip] {
-        if rig.roles.get(needed).is_some() && source_of(needed).is_none() {
-            let without: Vec<&str> = (0..source.len())
-                .filter(|&s| source_role[s].is_none())
-                .map(|s| source.joints()[s].name.as_str())
-                .collect();
+        if let Some((_, closest)) = unmatched_roles.iter().find(|(r, _)| *r == needed) {
+            let guess = closest.first().map_or("Hips", String::as_str);
             return Err(MotionError::retarget(
                 path,
                 format!(
-                    "no joint of the motion's skeleton takes the role `{}`: name it in a \
-                     --joint-map file (JSON, role → joint, e.g. {{\"{}\": \"Hips\"}}); the \
-                     joints without a role are: {}",
+                    "no joint of the motion's skeleton takes the role `{}` (closest names: \
+                     {}): name it in a --joint-map file (JSON, role → joint, e.g. \
+                     {{\"{}\": \"{guess}\"}}); the joints without a role are: {}",
                     needed.name(),
+                    if closest.is_empty() {
+                        "none".into()
+                    } else {
+                        closest.join(", ")
+                    },
                     needed.name(),
-                    without.join(", ")
+                    without_role.join(", ")
                 ),
             ));
         }
@@ -530,4 +585,27 @@ fn by_rotations(
         scale,
         dropped_degrees: dropped.to_degrees(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_closest_names_to_a_role_are_offered() {
+        let names = [
+            "mixamorig:RightStrut",
+            "Bone_007",
+            "mixamorig:LeftStrut",
+            "LeftEar",
+        ];
+        let left = closest_names(Role::LeftHip, &names);
+        assert!(left.iter().any(|n| n == "mixamorig:LeftStrut"), "{left:?}");
+        assert!(!left.iter().any(|n| n.contains("Right")), "{left:?}");
+        assert!(closest_names(Role::Pelvis, &names).is_empty());
+        assert_eq!(
+            closest_names(Role::Head, &["HeadTop", "Bone_007"]),
+            ["HeadTop"]
+        );
+    }
 }

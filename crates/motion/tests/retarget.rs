@@ -182,7 +182,7 @@ fn mixamo_cmu_and_blender_names_map_without_a_joint_map() {
         assert!(
             r.unmatched_roles
                 .iter()
-                .all(|r| matches!(r, Role::Jaw | Role::LeftEye | Role::RightEye)),
+                .all(|(r, _)| matches!(r, Role::Jaw | Role::LeftEye | Role::RightEye)),
             "{:?}",
             r.unmatched_roles
         );
