@@ -223,7 +223,6 @@ fn exclusive_scan_matches_a_running_sum() {
 
 #[test]
 fn radix_sort_is_stable_and_sorts_by_the_low_bits() {
-    let device = device();
     for (n, bits) in [
         (1usize, 4u32),
         (37, 8),
@@ -232,44 +231,83 @@ fn radix_sort_is_stable_and_sorts_by_the_low_bits() {
         (5000, 20),
         (70_000, 32),
     ] {
-        // Keys with many repeats (so stability matters) and bits above `bits` that the sort
-        // must ignore; values are the original positions. (Below 2³¹: the upload goes
-        // through Cube's i32.)
-        let keys: Vec<u32> = (0..n as u64)
-            .map(|i| ((i * 2_654_435_761) % 4_294_967_291) as u32 % 97 * 22_111_479)
-            .collect();
-        let mask = if bits == 32 {
-            u32::MAX
-        } else {
-            (1 << bits) - 1
-        };
-        let values: Vec<i32> = (0..n as i32).collect();
-        let k = Cube::int_from_data(TensorData::new(keys.clone(), [n]), &device);
-        let k = Cube::int_cast(k, burn::tensor::IntDType::U32);
-        let v = Cube::int_from_data(TensorData::new(values, [n]), &device);
-        let (sk, sv) = cube::sort_pairs(k, v, bits);
-        let got_values = ints(sv);
-        let got_keys: Vec<u32> = {
-            let data = burn::tensor::read_sync(Cube::int_into_data(sk)).unwrap();
-            data.convert::<u32>().try_into_vec::<u32>().unwrap()
-        };
-        let mut want: Vec<(u32, i32)> = keys
-            .iter()
-            .enumerate()
-            .map(|(i, &k)| (k, i as i32))
-            .collect();
-        want.sort_by_key(|&(k, _)| k & mask); // std's sort is stable
-        assert_eq!(
-            got_values,
-            want.iter().map(|p| p.1).collect::<Vec<_>>(),
-            "n = {n}, bits = {bits}"
-        );
-        assert_eq!(
-            got_keys,
-            want.iter().map(|p| p.0).collect::<Vec<_>>(),
-            "n = {n}, bits = {bits}"
-        );
+        check_sort(n, bits, None);
     }
+}
+
+/// Past 65 535 cubes the grid has more than one row and its last row runs past the work: the
+/// kernels must ignore those cubes (the histogram kernel once wrote their zeros into the next
+/// bin's counts, corrupting the sort above ~67 M pairs). Grids of 3 cubes per row make the
+/// same shape from 10 blocks, and 7 per row make the scan recurse over several rows too.
+#[test]
+fn sort_and_scan_ignore_the_cubes_past_the_work_of_a_multi_row_grid() {
+    for (n, bits, row) in [(10 * 1024, 12u32, 3usize), (9_000, 32, 7), (70_000, 16, 5)] {
+        check_sort(n, bits, Some(row));
+    }
+    let device = device();
+    for (n, row) in [(2_500usize, 3usize), (70_000, 4)] {
+        let values: Vec<i32> = (0..n).map(|i| ((i * 31) % 7) as i32).collect();
+        let t = Cube::int_from_data(TensorData::new(values.clone(), [n]), &device);
+        let (scanned, total) = cube::exclusive_scan_in_rows(t, row);
+        assert_eq!(
+            ints(total),
+            [values.iter().sum::<i32>()],
+            "n = {n}, row = {row}"
+        );
+        let got = ints(scanned);
+        let mut sum = 0;
+        for (i, v) in values.iter().enumerate() {
+            assert_eq!(got[i], sum, "n = {n}, row = {row}, at {i}");
+            sum += v;
+        }
+    }
+}
+
+/// Sorts `n` keys with many repeats by their low `bits` bits (on grids of `row` cubes per row
+/// when given) and checks the order and its stability against std's stable sort.
+fn check_sort(n: usize, bits: u32, row: Option<usize>) {
+    let device = device();
+    // Keys with many repeats (so stability matters) and bits above `bits` that the sort must
+    // ignore; values are the original positions. (Below 2³¹: the upload goes through Cube's
+    // i32.)
+    let keys: Vec<u32> = (0..n as u64)
+        .map(|i| ((i * 2_654_435_761) % 4_294_967_291) as u32 % 97 * 22_111_479)
+        .collect();
+    let mask = if bits == 32 {
+        u32::MAX
+    } else {
+        (1 << bits) - 1
+    };
+    let values: Vec<i32> = (0..n as i32).collect();
+    let k = Cube::int_from_data(TensorData::new(keys.clone(), [n]), &device);
+    let k = Cube::int_cast(k, burn::tensor::IntDType::U32);
+    let v = Cube::int_from_data(TensorData::new(values, [n]), &device);
+    let (sk, sv) = match row {
+        Some(row) => cube::sort_pairs_in_rows(k, v, bits, row),
+        None => cube::sort_pairs(k, v, bits),
+    };
+    let got_values = ints(sv);
+    let got_keys: Vec<u32> = {
+        let data = burn::tensor::read_sync(Cube::int_into_data(sk)).unwrap();
+        data.convert::<u32>().try_into_vec::<u32>().unwrap()
+    };
+    let mut want: Vec<(u32, i32)> = keys
+        .iter()
+        .enumerate()
+        .map(|(i, &k)| (k, i as i32))
+        .collect();
+    want.sort_by_key(|&(k, _)| k & mask); // std's sort is stable
+    assert_eq!(got_values.len(), n);
+    // The first pair out of place, not 10⁴ numbers.
+    let wrong = (0..n).find(|&i| (got_keys[i], got_values[i]) != want[i]);
+    assert!(
+        wrong.is_none(),
+        "n = {n}, bits = {bits}, row = {row:?}: from slot {}, {} pairs out of place",
+        wrong.unwrap_or(0),
+        (0..n)
+            .filter(|&i| (got_keys[i], got_values[i]) != want[i])
+            .count()
+    );
 }
 
 /// A render and its gradients (loss = Σ weights · outputs) on `device`.

@@ -17,7 +17,7 @@ use super::bin::{TileBins, bin_tiles, depth_order, read_count};
 use super::project::{Projection, project};
 use super::project_backward::project_backward;
 use super::raster::{Accumulation, rasterize, rasterize_backward};
-use super::scan::grid;
+use super::scan::{MAX_ROW, grid};
 use crate::op::{
     GaussianTensors, RasterState, SplatBackend, SplatForward, check_background_shape,
     check_gaussian_shapes, rejected,
@@ -145,7 +145,7 @@ impl SplatBackend for Cube {
             if len > 0 {
                 kernels::flag_non_finite::launch(
                     &client,
-                    grid(len.div_ceil(UNITS)),
+                    grid(len.div_ceil(UNITS), MAX_ROW),
                     CubeDim::new_1d(UNITS as u32),
                     t.clone().into_tensor_arg(),
                     flag.clone().into_tensor_arg(),

@@ -24,7 +24,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
 use super::project::Projection;
-use super::scan::{exclusive_scan, grid};
+use super::scan::{MAX_ROW, exclusive_scan, grid};
 use super::sort::sort_pairs;
 use crate::semantics::TILE_SIZE;
 
@@ -171,7 +171,7 @@ pub fn depth_order(projection: &Projection) -> DepthOrder {
             total: empty(0, DType::I32),
         };
     }
-    let cubes = grid(n.div_ceil(UNITS));
+    let cubes = grid(n.div_ceil(UNITS), MAX_ROW);
     let (keys, ids) = (empty(n, DType::U32), empty(n, DType::I32));
     kernels::depth_keys::launch(
         &client,
@@ -244,7 +244,7 @@ pub fn bin_tiles(
     let n = depth.order.meta.shape()[0];
     kernels::intersect::launch(
         &client,
-        grid(n.div_ceil(UNITS)),
+        grid(n.div_ceil(UNITS), MAX_ROW),
         CubeDim::new_1d(UNITS as u32),
         into_contiguous(projection.rects.clone()).into_tensor_arg(),
         depth.order.clone().into_tensor_arg(),
@@ -257,7 +257,7 @@ pub fn bin_tiles(
     let (tile_of, ids) = sort_pairs(tile_of, gaussian_of, tile_bits.max(1));
     kernels::tile_offsets::launch(
         &client,
-        grid(count.div_ceil(UNITS)),
+        grid(count.div_ceil(UNITS), MAX_ROW),
         CubeDim::new_1d(UNITS as u32),
         tile_of.into_tensor_arg(),
         offsets.clone().into_tensor_arg(),

@@ -22,5 +22,5 @@ pub use bin::{DepthOrder, TileBins, bin_tiles, depth_order};
 pub use project::{Projection, project};
 pub use project_backward::project_backward;
 pub use raster::{Accumulation, Raster, rasterize, rasterize_backward};
-pub use scan::exclusive_scan;
-pub use sort::sort_pairs;
+pub use scan::{exclusive_scan, exclusive_scan_in_rows};
+pub use sort::{sort_pairs, sort_pairs_in_rows};

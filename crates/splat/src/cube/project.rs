@@ -18,7 +18,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
-use super::scan::grid;
+use super::scan::{MAX_ROW, grid};
 use crate::Camera;
 use crate::op::{GaussianTensors, SCREEN_FLOATS};
 use crate::semantics::{ALPHA_MIN, EXTENT_MAX_SIGMAS, LOW_PASS, TILE_SIZE};
@@ -312,7 +312,7 @@ pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
     if n > 0 {
         kernels::project::launch(
             &client,
-            grid(n.div_ceil(UNITS as usize)),
+            grid(n.div_ceil(UNITS as usize), MAX_ROW),
             CubeDim::new_1d(UNITS),
             means.into_tensor_arg(),
             contiguous(&inputs.log_scales).into_tensor_arg(),

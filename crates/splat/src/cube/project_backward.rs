@@ -15,7 +15,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
 use super::project::camera_constants;
-use super::scan::grid;
+use super::scan::{MAX_ROW, grid};
 use crate::Camera;
 use crate::op::GaussianTensors;
 use crate::semantics::LOW_PASS;
@@ -420,7 +420,7 @@ pub fn project_backward(
         let cam = Cube::float_from_data(TensorData::new(constants, [len]), &device);
         kernels::project_backward::launch(
             &client,
-            grid(n.div_ceil(UNITS)),
+            grid(n.div_ceil(UNITS), MAX_ROW),
             CubeDim::new_1d(UNITS as u32),
             means.into_tensor_arg(),
             contiguous(&inputs.log_scales).into_tensor_arg(),

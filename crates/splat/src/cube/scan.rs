@@ -51,7 +51,8 @@ mod kernels {
         if g < n {
             out[g] = shared[t] - x;
         }
-        if t == block - 1 {
+        // A grid rounded up to whole rows has cubes past the last block: they write nothing.
+        if t == block - 1 && CUBE_POS < totals.len() {
             totals[CUBE_POS] = shared[t];
         }
     }
@@ -70,15 +71,28 @@ mod kernels {
     }
 }
 
-/// A 2-D grid of `cubes` cubes (wgpu allows at most 65 535 per dimension).
-pub(crate) fn grid(cubes: usize) -> CubeCount {
-    let cubes = cubes.max(1) as u32;
-    CubeCount::Static(cubes.min(65_535), cubes.div_ceil(65_535), 1)
+/// Cubes per grid row: wgpu allows at most 65 535 per dimension.
+pub(crate) const MAX_ROW: usize = 65_535;
+
+/// A 2-D grid of at least `cubes` cubes, `row` per row: the last row is filled up to `row`,
+/// so every kernel launched on it must ignore the cubes (or units) past its work.
+pub(crate) fn grid(cubes: usize, row: usize) -> CubeCount {
+    let (cubes, row) = (cubes.max(1) as u32, row.clamp(1, MAX_ROW) as u32);
+    CubeCount::Static(cubes.min(row), cubes.div_ceil(row), 1)
 }
 
 /// Exclusive prefix sum of the 1-D i32 tensor `values`, and the sum of all of them (`[1]`; an
 /// empty input sums to an empty tensor).
 pub fn exclusive_scan(values: IntTensor<Cube>) -> (IntTensor<Cube>, IntTensor<Cube>) {
+    exclusive_scan_in_rows(values, MAX_ROW)
+}
+
+/// [`exclusive_scan`] on grids of at most `row` cubes per row (tests force several rows, and
+/// so cubes past the work, with a small `row`).
+pub fn exclusive_scan_in_rows(
+    values: IntTensor<Cube>,
+    row: usize,
+) -> (IntTensor<Cube>, IntTensor<Cube>) {
     let values = into_contiguous(values);
     let n = values.meta.shape()[0];
     let (client, device) = (values.client.clone(), values.device.clone());
@@ -90,7 +104,7 @@ pub fn exclusive_scan(values: IntTensor<Cube>) -> (IntTensor<Cube>, IntTensor<Cu
     let totals = empty_device_dtype(client.clone(), device, Shape::new([blocks]), DType::I32);
     kernels::scan_blocks::launch(
         &client,
-        grid(blocks),
+        grid(blocks, row),
         CubeDim::new_1d(BLOCK as u32),
         values.into_tensor_arg(),
         out.clone().into_tensor_arg(),
@@ -100,10 +114,10 @@ pub fn exclusive_scan(values: IntTensor<Cube>) -> (IntTensor<Cube>, IntTensor<Cu
     if blocks == 1 {
         return (out, totals);
     }
-    let (offsets, total) = exclusive_scan(totals);
+    let (offsets, total) = exclusive_scan_in_rows(totals, row);
     kernels::add_block_offsets::launch(
         &client,
-        grid(blocks),
+        grid(blocks, row),
         CubeDim::new_1d(BLOCK as u32),
         out.clone().into_tensor_arg(),
         offsets.into_tensor_arg(),

@@ -12,7 +12,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
-use super::scan::{exclusive_scan, grid};
+use super::scan::{MAX_ROW, exclusive_scan_in_rows, grid};
 
 /// Units per cube.
 const UNITS: usize = 256;
@@ -83,7 +83,9 @@ mod kernels {
             sync_cube();
             stride *= 2;
         }
-        if t < 16 {
+        // A grid rounded up to whole rows has cubes past the last block: their zeros would
+        // land in the next bin's counts.
+        if t < 16 && block < usize::cast_from(blocks) {
             hist[t * usize::cast_from(blocks) + block] = counts[t * units];
         }
     }
@@ -158,6 +160,17 @@ pub fn sort_pairs(
     values: IntTensor<Cube>,
     bits: u32,
 ) -> (IntTensor<Cube>, IntTensor<Cube>) {
+    sort_pairs_in_rows(keys, values, bits, MAX_ROW)
+}
+
+/// [`sort_pairs`] on grids of at most `row` cubes per row (tests force several rows, and so
+/// cubes past the last block, with a small `row`).
+pub fn sort_pairs_in_rows(
+    keys: IntTensor<Cube>,
+    values: IntTensor<Cube>,
+    bits: u32,
+    row: usize,
+) -> (IntTensor<Cube>, IntTensor<Cube>) {
     let mut keys = into_contiguous(keys);
     let mut values = into_contiguous(values);
     let n = keys.meta.shape()[0];
@@ -174,7 +187,7 @@ pub fn sort_pairs(
         let hist = empty(16 * blocks, DType::I32);
         kernels::count::launch(
             &client,
-            grid(blocks),
+            grid(blocks, row),
             CubeDim::new_1d(UNITS as u32),
             keys.clone().into_tensor_arg(),
             hist.clone().into_tensor_arg(),
@@ -183,11 +196,11 @@ pub fn sort_pairs(
             UNITS,
             PER_UNIT,
         );
-        let (offsets, _) = exclusive_scan(hist);
+        let (offsets, _) = exclusive_scan_in_rows(hist, row);
         let (keys_out, values_out) = (empty(n, DType::U32), empty(n, DType::I32));
         kernels::scatter::launch(
             &client,
-            grid(blocks),
+            grid(blocks, row),
             CubeDim::new_1d(UNITS as u32),
             keys.into_tensor_arg(),
             values.into_tensor_arg(),
