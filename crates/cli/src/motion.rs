@@ -146,6 +146,14 @@ pub struct ConvertArgs {
     /// Also write the correspondence and retargeting summary as JSON.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Retarget onto this body model first (e.g. smplx:SMPLX_NEUTRAL.npz for an AMASS file:
+    /// parameter for parameter), then fit --to's model to its posed vertices frame by frame,
+    /// as `f3g rig fit` does: slower, but the body's surface is matched, not only its joints.
+    #[arg(long)]
+    pub via: Option<ModelSpec>,
+    /// Levenberg–Marquardt iterations per frame of the --via fit, 1–1000.
+    #[arg(long, default_value_t = 50, value_parser = crate::bounds::size::<1, 1000>)]
+    pub iterations: usize,
 }
 
 /// Formats `f3g motion export` writes.
@@ -185,8 +193,9 @@ pub fn run(cmd: &MotionCommand) -> Result<()> {
 fn convert(a: &ConvertArgs) -> Result<()> {
     let options = a.retarget.options(a.fps)?;
     let rig = a.to.load()?;
+    let via = a.via.as_ref().map(|m| m.load()).transpose()?;
     let motion = f3g_motion::read(&a.input)?;
-    let r = f3g_motion::retarget(&motion, &rig, &options, &a.input)?;
+    let r = f3g_motion::retarget(&motion, via.as_ref().unwrap_or(&rig), &options, &a.input)?;
     eprintln!("{}", describe(&a.input, &r, r.frames.len()));
     for c in &r.correspondence {
         let by = match c.by {
@@ -210,14 +219,57 @@ fn convert(a: &ConvertArgs) -> Result<()> {
         let json = serde_json::to_string_pretty(&r)?;
         f3g_io::write_atomic(p, format!("{json}\n").as_bytes())?;
     }
-    f3g_rig::sequence::write(&a.out, &rig, &r.frames)?;
+    let frames = match &via {
+        Some(source) => fit_onto(source, &r.frames, &rig, a.iterations)?,
+        None => r.frames,
+    };
+    f3g_rig::sequence::write(&a.out, &rig, &frames)?;
     eprintln!(
         "wrote {} ({} frames for {})",
         a.out.display(),
-        r.frames.len(),
+        frames.len(),
         rig.name
     );
     Ok(())
+}
+
+/// `model`'s parameters fitted to `source` posed by each of `frames` (`motion convert --via`).
+fn fit_onto(
+    source: &f3g_rig::Rig,
+    frames: &[f3g_rig::RigParams],
+    model: &f3g_rig::Rig,
+    iterations: usize,
+) -> Result<Vec<f3g_rig::RigParams>> {
+    use f3g_rig::fit::{Correspondence, FitOptions, fit_sequence};
+    let correspondence = Correspondence::between(source, model);
+    eprintln!(
+        "fitting {} to {} frame by frame ({} correspondence)",
+        model.name,
+        source.name,
+        correspondence.describe()
+    );
+    let bar = indicatif::ProgressBar::new(frames.len() as u64).with_style(
+        indicatif::ProgressStyle::with_template(
+            "{bar:30} {pos}/{len} frames {msg} [{elapsed} < {eta}]",
+        )?,
+    );
+    let options = FitOptions {
+        max_iterations: iterations,
+        ..Default::default()
+    };
+    let fitted = fit_sequence(source, frames, model, &correspondence, &options, |r| {
+        bar.set_message(format!("vertex RMS {:.1} mm", r.vertex_rms * 1e3));
+        bar.inc(1);
+    })
+    .context("fitting the --via model's vertices")?;
+    bar.finish_and_clear();
+    eprintln!(
+        "  residuals: mean vertex RMS {:.2} mm, worst {:.2} mm (frame {})",
+        fitted.mean_vertex_rms * 1e3,
+        fitted.worst.0 * 1e3,
+        fitted.worst.1
+    );
+    Ok(fitted.frames)
 }
 
 fn export(a: &ExportArgs) -> Result<()> {

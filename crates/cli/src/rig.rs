@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use f3g_rig::fit::{Correspondence, FitOptions, FitTarget, default_joint_map, fit};
+use f3g_rig::fit::{Correspondence, FitOptions, default_joint_map, fit_sequence};
 use f3g_rig::{ModelSpec, sequence};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -74,7 +74,7 @@ pub struct FitArgs {
 pub fn run(cmd: &RigCommand) -> Result<()> {
     match cmd {
         RigCommand::Show(a) => show(a),
-        RigCommand::Fit(a) => fit_sequence(a),
+        RigCommand::Fit(a) => fit_params(a),
     }
 }
 
@@ -143,7 +143,7 @@ fn parse_range(text: &str, len: usize) -> Result<std::ops::Range<usize>> {
     Ok(start..end)
 }
 
-fn fit_sequence(a: &FitArgs) -> Result<()> {
+fn fit_params(a: &FitArgs) -> Result<()> {
     let source = a.from.load()?;
     let model = a.to.load()?;
     let frames = sequence::read(&a.params, &source)?;
@@ -180,72 +180,45 @@ fn fit_sequence(a: &FitArgs) -> Result<()> {
                 weights: bary.chunks_exact(3).map(|w| [w[0], w[1], w[2]]).collect(),
             }
         }
-        None if source.mesh.vertices.len() == model.mesh.vertices.len()
-            && source.mesh.triangles == model.mesh.triangles =>
-        {
-            Correspondence::Identity
-        }
-        None => Correspondence::Nearest,
+        None => Correspondence::between(&source, &model),
     };
-    let joint_map = default_joint_map(&source, &model);
     println!(
         "fitting {} frames of {} to {} ({} joint pairs, {} correspondence)",
         range.len(),
         source.name,
         model.name,
-        joint_map.len(),
-        match correspondence {
-            Correspondence::Identity => "same-topology",
-            Correspondence::Barycentric { .. } => "barycentric",
-            Correspondence::Nearest => "nearest-vertex",
-        }
+        default_joint_map(&source, &model).len(),
+        correspondence.describe()
     );
     let bar = ProgressBar::new(range.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames {msg} [{elapsed} < {eta}]",
     )?);
-    let mut current = model.zero_params();
-    let mut out = Vec::with_capacity(range.len());
-    let mut worst = (0.0f32, 0usize);
-    let mut rms_sum = 0.0f32;
-    for (k, f) in range.clone().enumerate() {
-        let posed = source
-            .pose(&frames[f])
-            .with_context(|| format!("posing source frame {f}"))?;
-        let joints: Vec<_> = joint_map
-            .iter()
-            .map(|&(m, s)| (m, posed.joints[s].translation))
-            .collect();
-        let target = FitTarget {
-            vertices: &posed.vertices,
-            joints: &joints,
-        };
-        // The identity is fitted on the first frame and then held.
-        let options = FitOptions {
-            joint_weight: a.joint_weight,
-            max_iterations: a.iterations,
-            fit_identity: k == 0,
-            fit_expression: a.fit_expression,
-            ..Default::default()
-        };
-        let result = fit(&model, &target, &correspondence, &current, &options)
-            .with_context(|| format!("fitting frame {f}"))?;
-        bar.set_message(format!("vertex RMS {:.1} mm", result.vertex_rms * 1e3));
-        rms_sum += result.vertex_rms;
-        if result.vertex_rms > worst.0 {
-            worst = (result.vertex_rms, f);
-        }
-        current = result.params.clone();
-        out.push(result.params);
-        bar.inc(1);
-    }
+    let options = FitOptions {
+        joint_weight: a.joint_weight,
+        max_iterations: a.iterations,
+        fit_expression: a.fit_expression,
+        ..Default::default()
+    };
+    let fitted = fit_sequence(
+        &source,
+        &frames[range.clone()],
+        &model,
+        &correspondence,
+        &options,
+        |r| {
+            bar.set_message(format!("vertex RMS {:.1} mm", r.vertex_rms * 1e3));
+            bar.inc(1);
+        },
+    )
+    .context("fitting")?;
     bar.finish_and_clear();
-    sequence::write(&a.out, &model, &out)?;
+    sequence::write(&a.out, &model, &fitted.frames)?;
     println!(
         "residuals: mean vertex RMS {:.2} mm, worst {:.2} mm (frame {}); wrote {} frames to {}",
-        rms_sum / range.len().max(1) as f32 * 1e3,
-        worst.0 * 1e3,
-        worst.1,
-        out.len(),
+        fitted.mean_vertex_rms * 1e3,
+        fitted.worst.0 * 1e3,
+        range.start + fitted.worst.1,
+        fitted.frames.len(),
         a.out.display()
     );
     Ok(())

@@ -93,6 +93,44 @@ fn a_capture_motion_goes_out_as_bvh_and_back() {
             "map.json",
         ],
     ));
+
+    // Through a body model's vertices: fitting the human to itself posed by the same motion
+    // gives the pose the rotations gave.
+    let out = f3g(
+        d,
+        &[
+            "motion",
+            "convert",
+            "cap.bvh",
+            "--fps",
+            "30",
+            "--via",
+            "builtin",
+            "--iterations",
+            "20",
+            "--out",
+            "fitted.npz",
+        ],
+    );
+    ok(&out);
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(said.contains("same-topology correspondence"), "{said}");
+    let joints = |file: &str| -> Vec<glam::Vec3> {
+        f3g_rig::sequence::read(&d.join(file), &rig)
+            .unwrap()
+            .iter()
+            .flat_map(|p| rig.joint_world(p).unwrap())
+            .map(|s| s.translation)
+            .collect()
+    };
+    let (rotated, fitted) = (joints("back.npz"), joints("fitted.npz"));
+    assert_eq!(rotated.len(), fitted.len());
+    let worst = rotated
+        .iter()
+        .zip(&fitted)
+        .map(|(a, b)| a.distance(*b))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 0.005, "joints {worst} m apart");
 }
 
 #[test]

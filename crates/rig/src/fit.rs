@@ -36,6 +36,29 @@ pub enum Correspondence {
     Nearest,
 }
 
+impl Correspondence {
+    /// [`Correspondence::Identity`] when the two meshes share their topology, otherwise
+    /// [`Correspondence::Nearest`].
+    pub fn between(source: &Rig, model: &Rig) -> Self {
+        if source.mesh.vertices.len() == model.mesh.vertices.len()
+            && source.mesh.triangles == model.mesh.triangles
+        {
+            Correspondence::Identity
+        } else {
+            Correspondence::Nearest
+        }
+    }
+
+    /// How it is described to a user.
+    pub fn describe(&self) -> &'static str {
+        match self {
+            Correspondence::Identity => "same-topology",
+            Correspondence::Barycentric { .. } => "barycentric",
+            Correspondence::Nearest => "nearest-vertex",
+        }
+    }
+}
+
 /// Settings of a fit.
 #[derive(Clone, Debug)]
 pub struct FitOptions {
@@ -519,38 +542,8 @@ fn fit_stage(
     })
 }
 
-/// SMPL-X joints and the built-in human's joints at the same anatomical places (the joint
-/// centres are defined differently, so this pairs them approximately).
-pub const SMPLX_TO_BUILTIN: [(&str, &str); 25] = [
-    ("pelvis", "spine05"),
-    ("left_hip", "upperleg01.L"),
-    ("right_hip", "upperleg01.R"),
-    ("spine1", "spine04"),
-    ("spine2", "spine03"),
-    ("spine3", "spine02"),
-    ("left_knee", "lowerleg01.L"),
-    ("right_knee", "lowerleg01.R"),
-    ("left_ankle", "foot.L"),
-    ("right_ankle", "foot.R"),
-    ("neck", "neck01"),
-    ("head", "head"),
-    ("jaw", "jaw"),
-    ("left_eye", "eye.L"),
-    ("right_eye", "eye.R"),
-    ("left_collar", "clavicle.L"),
-    ("right_collar", "clavicle.R"),
-    ("left_shoulder", "upperarm01.L"),
-    ("right_shoulder", "upperarm01.R"),
-    ("left_elbow", "lowerarm01.L"),
-    ("right_elbow", "lowerarm01.R"),
-    ("left_wrist", "wrist.L"),
-    ("right_wrist", "wrist.R"),
-    ("left_index1", "finger2-1.L"),
-    ("right_index1", "finger2-1.R"),
-];
-
 /// `(model joint, source joint)` pairs: by identical names when the models share joint names,
-/// the SMPL-X → built-in table for that pair, otherwise none.
+/// otherwise by the joint roles of the body-model contract ([`Rig::roles`]).
 pub fn default_joint_map(source: &Rig, model: &Rig) -> Vec<(usize, usize)> {
     let by_name: Vec<(usize, usize)> = model
         .skeleton
@@ -562,10 +555,67 @@ pub fn default_joint_map(source: &Rig, model: &Rig) -> Vec<(usize, usize)> {
     if !by_name.is_empty() {
         return by_name;
     }
-    SMPLX_TO_BUILTIN
+    model
+        .roles
         .iter()
-        .filter_map(|(s, m)| Some((model.skeleton.index_of(m)?, source.skeleton.index_of(s)?)))
+        .filter_map(|(role, m)| Some((m, source.roles.get(role)?)))
         .collect()
+}
+
+/// A fitted sequence and its residuals.
+#[derive(Clone, Debug)]
+pub struct SequenceFit {
+    pub frames: Vec<RigParams>,
+    /// Mean over frames of the vertex RMS (metres).
+    pub mean_vertex_rms: f32,
+    /// The largest vertex RMS and its frame.
+    pub worst: (f32, usize),
+}
+
+/// Fits `model` to `source` posed by each of `frames` (vertices through `correspondence`,
+/// joints through [`default_joint_map`]). Each frame starts from the previous frame's result;
+/// the identity is fitted on the first frame and then held (`options.fit_identity` is ignored).
+/// `progress` sees each frame's result.
+pub fn fit_sequence(
+    source: &Rig,
+    frames: &[RigParams],
+    model: &Rig,
+    correspondence: &Correspondence,
+    options: &FitOptions,
+    mut progress: impl FnMut(&FitResult),
+) -> Result<SequenceFit, RigError> {
+    let joint_map = default_joint_map(source, model);
+    let mut current = model.zero_params();
+    let mut fitted = Vec::with_capacity(frames.len());
+    let (mut sum, mut worst) = (0.0f32, (0.0f32, 0usize));
+    for (f, params) in frames.iter().enumerate() {
+        let posed = source.pose(params)?;
+        let joints: Vec<_> = joint_map
+            .iter()
+            .map(|&(m, s)| (m, posed.joints[s].translation))
+            .collect();
+        let target = FitTarget {
+            vertices: &posed.vertices,
+            joints: &joints,
+        };
+        let options = FitOptions {
+            fit_identity: f == 0,
+            ..options.clone()
+        };
+        let result = fit(model, &target, correspondence, &current, &options)?;
+        progress(&result);
+        sum += result.vertex_rms;
+        if result.vertex_rms > worst.0 {
+            worst = (result.vertex_rms, f);
+        }
+        current = result.params.clone();
+        fitted.push(result.params);
+    }
+    Ok(SequenceFit {
+        mean_vertex_rms: sum / frames.len().max(1) as f32,
+        frames: fitted,
+        worst,
+    })
 }
 
 #[cfg(test)]
