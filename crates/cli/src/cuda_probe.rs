@@ -20,7 +20,7 @@ use std::fmt;
 use std::path::PathBuf;
 
 /// A CUDA version, as `cuDriverGetVersion` encodes it (`1000 · major + 10 · minor`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 pub struct CudaVersion {
     pub major: u32,
     pub minor: u32,
@@ -33,6 +33,11 @@ impl CudaVersion {
             major: v / 1000,
             minor: (v % 1000) / 10,
         }
+    }
+
+    /// The encoding [`CudaVersion::from_encoded`] reads.
+    pub fn encoded(self) -> u32 {
+        1000 * self.major + 10 * self.minor
     }
 
     /// The oldest Linux driver release that supports this CUDA version, where known.
@@ -66,7 +71,7 @@ pub struct Wanted {
 }
 
 /// A library that loaded, and the version it reported.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct Found {
     pub file: String,
     pub version: Option<CudaVersion>,
@@ -177,9 +182,10 @@ impl Findings {
     /// what to install or set. Empty when a CUDA device can be created.
     pub fn problems(&self, wanted: &Wanted) -> Vec<String> {
         let mut problems = Vec::new();
-        let built = wanted
-            .built_for
-            .map_or_else(|| "this build's CUDA version".into(), |v| format!("CUDA {v}"));
+        let built = wanted.built_for.map_or_else(
+            || "this build's CUDA version".into(),
+            |v| format!("CUDA {v}"),
+        );
         let driver_release = wanted
             .built_for
             .and_then(CudaVersion::minimum_driver)
@@ -196,10 +202,9 @@ impl Findings {
                         d.file
                     )),
                     (Some(have), Some(need)) if have < need => problems.push(format!(
-                        "the NVIDIA driver ({}) supports CUDA {have}, older than the {built} this f3g was built for: install a driver{driver_release}, or rebuild with CUDARC_CUDA_VERSION={}{}0",
+                        "the NVIDIA driver ({}) supports CUDA {have}, older than the {built} this f3g was built for: install a driver{driver_release}, or rebuild with CUDARC_CUDA_VERSION={}",
                         d.file,
-                        have.major,
-                        have.minor
+                        have.encoded()
                     )),
                     _ => {}
                 }
@@ -254,7 +259,7 @@ impl Findings {
             }) => format!("{what}: {file}, version unknown"),
             None => format!("{what}: not found"),
         };
-        let mut lines = vec![
+        let mut lines = [
             library(&self.driver, "driver (CUDA version it supports)"),
             library(&self.nvrtc, "NVRTC"),
             match &self.include {
@@ -317,7 +322,10 @@ mod tests {
     fn wanted(dir: &Path, driver: &str, nvrtc: &str, nccl: &str) -> Wanted {
         Wanted {
             built_for: Some(CudaVersion::from_encoded(13000)),
-            driver: vec![dir.join("absent.so").to_str().unwrap().into(), driver.into()],
+            driver: vec![
+                dir.join("absent.so").to_str().unwrap().into(),
+                driver.into(),
+            ],
             nvrtc: vec![nvrtc.into()],
             nccl: vec![nccl.into()],
             cuda_path: Some(dir.to_path_buf()),
@@ -333,7 +341,11 @@ mod tests {
             d,
             &driver(d, "cuda13", 13000, true),
             &nvrtc(d, "nvrtc13", 13, 0),
-            &fake_library(d, "nccl", "int ncclGetVersion(int* v) { *v = 22703; return 0; }"),
+            &fake_library(
+                d,
+                "nccl",
+                "int ncclGetVersion(int* v) { *v = 22703; return 0; }",
+            ),
         );
         let found = probe(&w);
         assert_eq!(found.problems(&w), Vec::<String>::new());
@@ -345,7 +357,10 @@ mod tests {
             })
         );
         let text = found.describe();
-        assert!(text.contains("cuda13.so, 13.0") && text.contains("NVRTC: "), "{text}");
+        assert!(
+            text.contains("cuda13.so, 13.0") && text.contains("NVRTC: "),
+            "{text}"
+        );
         assert!(text.contains("NCCL: ") && text.contains(", 2.27"), "{text}");
         assert!(text.contains(&d.join("include").display().to_string()));
     }
@@ -372,7 +387,11 @@ mod tests {
             "{}",
             problems[0]
         );
-        assert!(problems[1].contains("cuEventElapsedTime_v2"), "{}", problems[1]);
+        assert!(
+            problems[1].contains("cuEventElapsedTime_v2"),
+            "{}",
+            problems[1]
+        );
         assert!(
             problems[2].contains("NVRTC 13.1") && problems[2].contains("CUDA 12.4"),
             "{}",
@@ -390,7 +409,9 @@ mod tests {
         };
         let problems = probe(&none).problems(&none);
         assert_eq!(problems.len(), 3, "{problems:#?}");
-        assert!(problems[0].contains("libcuda-absent.so.1") && problems[0].contains("LD_LIBRARY_PATH"));
+        assert!(
+            problems[0].contains("libcuda-absent.so.1") && problems[0].contains("LD_LIBRARY_PATH")
+        );
         assert!(problems[1].contains("libnvrtc-absent.so.13"));
         assert!(problems[2].contains("CUDA_PATH is unset"));
     }
@@ -404,7 +425,9 @@ mod tests {
         let w = wanted(d, &other, &other, &other);
         let problems = probe(&w).problems(&w);
         assert!(
-            problems.iter().any(|p| p.contains("not a working NVIDIA driver"))
+            problems
+                .iter()
+                .any(|p| p.contains("not a working NVIDIA driver"))
                 && problems.iter().any(|p| p.contains("not a working NVRTC")),
             "{problems:#?}"
         );

@@ -20,6 +20,8 @@ use anyhow::bail;
 use burn::tensor::Device;
 use f3g_avatar::train::AllReduce;
 
+use crate::cuda_probe::{self, CudaVersion, Wanted};
+
 /// `--device`, as every command that computes declares it (flattened into its arguments).
 #[derive(clap::Args, Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DeviceArg {
@@ -218,13 +220,14 @@ fn open_wgpu(_index: Option<usize>) -> Result<Device> {
 #[cfg(feature = "cuda")]
 fn open_cuda(index: usize) -> Result<Device> {
     use anyhow::bail;
-    use cudarc::driver::CudaContext;
 
-    // SAFETY: only probes whether the driver library can be loaded.
-    if !unsafe { cudarc::driver::sys::is_culib_present() } {
+    let wanted = cuda_wanted();
+    let problems = cuda_probe::probe(&wanted).problems(&wanted);
+    if !problems.is_empty() {
         bail!(
-            "cuda:{index} was asked for, but the NVIDIA driver library (libcuda.so.1) is not \
-             installed on this machine; use --device cpu{}",
+            "cuda:{index} was asked for, but this machine cannot run CUDA kernels yet (`f3g devices` \
+             shows what it has):\n- {}\nuse --device cpu{} meanwhile",
+            problems.join("\n- "),
             if cfg!(feature = "gpu") {
                 " or --device wgpu"
             } else {
@@ -232,29 +235,180 @@ fn open_cuda(index: usize) -> Result<Device> {
             }
         );
     }
-    let count = CudaContext::device_count()
-        .map_err(|e| anyhow::anyhow!("asking the CUDA driver for its devices: {e}"))?;
-    let count = usize::try_from(count).unwrap_or(0);
-    if index >= count {
-        let listing = (0..count)
-            .map(|i| {
-                let name = CudaContext::new(i)
-                    .and_then(|c| c.name())
-                    .unwrap_or_else(|e| format!("unnamed ({e})"));
-                format!("  cuda:{i}  {name}")
-            })
-            .collect::<Vec<_>>()
-            .join("\n");
+    let devices = cuda_devices()?;
+    if index >= devices.len() {
         bail!(
             "there is no cuda:{index}; the CUDA devices of this machine are:\n{}",
-            if count == 0 {
+            if devices.is_empty() {
                 "  (none)".into()
             } else {
-                listing
+                devices
+                    .iter()
+                    .map(|d| format!("  {d}"))
+                    .collect::<Vec<_>>()
+                    .join("\n")
             }
         );
     }
     Ok(Device::cuda(index))
+}
+
+/// One line per CUDA device: `cuda:N  name (compute capability, memory)`.
+#[cfg(feature = "cuda")]
+fn cuda_devices() -> Result<Vec<String>> {
+    use cudarc::driver::CudaContext;
+
+    let count = CudaContext::device_count()
+        .map_err(|e| anyhow::anyhow!("asking the CUDA driver for its devices: {e}"))?;
+    Ok((0..usize::try_from(count).unwrap_or(0))
+        .map(|i| match CudaContext::new(i) {
+            Ok(c) => {
+                let name = c.name().unwrap_or_else(|e| format!("unnamed ({e})"));
+                let (major, minor) = c.compute_capability().unwrap_or((0, 0));
+                let gib = c.total_mem().unwrap_or(0) as f64 / (1u64 << 30) as f64;
+                format!("cuda:{i}  {name} (sm_{major}{minor}, {gib:.0} GiB)")
+            }
+            Err(e) => format!("cuda:{i}  cannot be opened: {e}"),
+        })
+        .collect())
+}
+
+#[cfg(not(feature = "cuda"))]
+fn cuda_devices() -> Result<Vec<String>> {
+    Ok(Vec::new())
+}
+
+/// What this binary's CUDA support loads: cudarc's library names, the CUDA version its bindings
+/// were built for and cubecl-cuda's CUDA installation.
+#[cfg(feature = "cuda")]
+fn cuda_wanted() -> Wanted {
+    Wanted {
+        built_for: built_for(),
+        driver: cudarc::get_lib_name_candidates("cuda"),
+        nvrtc: cudarc::get_lib_name_candidates("nvrtc"),
+        nccl: cudarc::get_lib_name_candidates("nccl"),
+        cuda_path: cubecl_cuda::install::cuda_path(),
+    }
+}
+
+/// What a `cuda` build for CUDA 13.0 (the README's) would load: cudarc's Linux file names and
+/// cubecl-cuda's search for a CUDA installation, neither of which this build links.
+#[cfg(not(feature = "cuda"))]
+fn cuda_wanted() -> Wanted {
+    let names = |lib: &str| -> Vec<String> {
+        ["", ".13", ".12", ".1"]
+            .iter()
+            .map(|v| format!("lib{lib}.so{v}"))
+            .collect()
+    };
+    let exists = |p: &str| std::path::Path::new(p).exists();
+    let cuda_path = std::env::var_os("CUDA_PATH")
+        .map(std::path::PathBuf::from)
+        .or_else(|| {
+            ["/usr/local/cuda", "/opt/cuda"]
+                .into_iter()
+                .find(|p| exists(p))
+                .or(exists("/usr/bin/nvcc").then_some("/usr"))
+                .map(std::path::PathBuf::from)
+        });
+    Wanted {
+        built_for: Some(CudaVersion::from_encoded(13000)),
+        driver: names("cuda"),
+        nvrtc: names("nvrtc"),
+        nccl: names("nccl"),
+        cuda_path,
+    }
+}
+
+/// `CUDARC_CUDA_VERSION` as this binary was built with (13000 = 13.0); `None` when cudarc took
+/// the version from an installed toolkit instead.
+#[cfg(feature = "cuda")]
+fn built_for() -> Option<CudaVersion> {
+    option_env!("CUDARC_CUDA_VERSION")
+        .and_then(|v| v.parse().ok())
+        .map(CudaVersion::from_encoded)
+}
+
+/// Options of `f3g devices`.
+#[derive(clap::Args, Debug)]
+pub struct DevicesArgs {
+    /// Print what was found as JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `f3g devices`: what this binary can compute on, and what CUDA needs from this machine.
+pub fn devices(a: &DevicesArgs) -> Result<()> {
+    let wanted = cuda_wanted();
+    let found = cuda_probe::probe(&wanted);
+    let problems = found.problems(&wanted);
+    let built = cfg!(feature = "cuda");
+    let cuda = if built && problems.is_empty() {
+        cuda_devices()?
+    } else {
+        Vec::new()
+    };
+    let wgpu = wgpu_listing();
+    let threads = rayon::current_num_threads();
+    if a.json {
+        let json = serde_json::json!({
+            "cpu": { "threads": threads },
+            "wgpu": wgpu,
+            "cuda": {
+                "built": built,
+                "built_for": wanted.built_for.map(|v| v.to_string()),
+                "driver": found.driver,
+                "nvrtc": found.nvrtc,
+                "include": found.include,
+                "nccl": found.nccl,
+                "problems": problems,
+                "devices": cuda,
+            },
+        });
+        println!("{}", serde_json::to_string_pretty(&json)?);
+        return Ok(());
+    }
+    println!("cpu  Burn Flex, {threads} threads");
+    match wgpu {
+        Some(adapters) if adapters.is_empty() => println!("wgpu  no adapter"),
+        Some(adapters) => adapters.iter().for_each(|a| println!("{a}")),
+        None => println!("wgpu  not built in (cargo build --release -p f3g-cli --features gpu)"),
+    }
+    match (built, wanted.built_for) {
+        (true, Some(v)) => println!("CUDA  built for CUDA {v}"),
+        (true, None) => println!("CUDA  built for the CUDA toolkit of the build machine"),
+        (false, _) => println!(
+            "CUDA  not built in (CUDARC_CUDA_VERSION=13000 cargo build --release -p f3g-cli \
+             --features cuda); what such a build would find here:"
+        ),
+    }
+    for line in found.describe().lines() {
+        println!("  {line}");
+    }
+    for p in &problems {
+        println!("  missing: {p}");
+    }
+    cuda.iter().for_each(|d| println!("{d}"));
+    Ok(())
+}
+
+/// The wgpu adapters as `--device` names them, or `None` without the `gpu` feature.
+#[cfg(feature = "gpu")]
+fn wgpu_listing() -> Option<Vec<String>> {
+    let adapters = wgpu_adapters();
+    Some(if adapters.is_empty() {
+        Vec::new()
+    } else {
+        adapter_listing(&adapters)
+            .lines()
+            .map(|l| l.trim_start().to_string())
+            .collect()
+    })
+}
+
+#[cfg(not(feature = "gpu"))]
+fn wgpu_listing() -> Option<Vec<String>> {
+    None
 }
 
 #[cfg(not(feature = "cuda"))]

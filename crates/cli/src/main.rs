@@ -3,6 +3,7 @@
 mod avatar;
 mod bench;
 mod bounds;
+mod cuda_probe;
 mod data;
 mod demo;
 mod device;
@@ -73,6 +74,9 @@ enum Command {
     /// Performance benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
+    /// The devices this binary can compute on, and what CUDA needs from this machine (driver,
+    /// NVRTC, include directory, NCCL) with what is missing.
+    Devices(device::DevicesArgs),
 }
 
 fn main() -> Result<()> {
@@ -99,6 +103,7 @@ fn main() -> Result<()> {
         Command::Bench(bench::BenchCommand::Quality(args)) => quality::quality(&args),
         Command::Metrics(args) => nets::metrics(&args),
         Command::Weights(cmd) => nets::weights(&cmd),
+        Command::Devices(args) => device::devices(&args),
     }
 }
 

@@ -276,3 +276,76 @@ fn every_file_is_written_atomically_but_the_training_log() {
         "write through f3g_io::write_atomic: {broken:#?}"
     );
 }
+
+/// The `[features]` of a crate's manifest (one line each): name → entries.
+fn features(krate: &str) -> std::collections::BTreeMap<String, Vec<String>> {
+    let text =
+        std::fs::read_to_string(workspace().join("crates").join(krate).join("Cargo.toml")).unwrap();
+    let mut section = String::new();
+    let mut out = std::collections::BTreeMap::new();
+    for line in text.lines().map(str::trim) {
+        if line.starts_with('[') {
+            section = line.to_string();
+        } else if section == "[features]"
+            && !line.starts_with('#')
+            && let Some((name, list)) = line.split_once('=')
+        {
+            let entries = list
+                .trim()
+                .trim_start_matches('[')
+                .trim_end_matches(']')
+                .split(',')
+                .map(|e| e.trim().trim_matches('"').to_string())
+                .filter(|e| !e.is_empty())
+                .collect();
+            out.insert(name.trim().to_string(), entries);
+        }
+    }
+    out
+}
+
+/// A `cuda` feature builds what it says: kernels compile with NVRTC (cubecl-cuda's `cpp`
+/// compiler; the LLVM one is a stub here), and it reaches every crate below that has GPU code.
+#[test]
+fn every_cuda_feature_compiles_with_nvrtc_and_reaches_the_crates_below() {
+    let root = std::fs::read_to_string(workspace().join("Cargo.toml")).unwrap();
+    let entry = root
+        .lines()
+        .find(|l| l.starts_with("cubecl-cuda "))
+        .expect("the workspace names cubecl-cuda");
+    assert!(entry.contains("\"cpp\""), "{entry}");
+    let cuda = |krate: &str| features(krate).get("cuda").cloned();
+    let mut broken = Vec::new();
+    for (krate, _) in LAYERS {
+        let Some(own) = cuda(krate) else { continue };
+        if own.iter().any(|e| e == "burn/cuda") && !own.iter().any(|e| e == "dep:cubecl-cuda") {
+            broken.push(format!(
+                "crates/{krate}: `cuda` turns on burn/cuda without dep:cubecl-cuda"
+            ));
+        }
+        // The crates this feature reaches, through the `cuda` features it turns on.
+        let mut reached = BTreeSet::new();
+        let mut todo = vec![own];
+        while let Some(list) = todo.pop() {
+            for dep in list
+                .iter()
+                .filter_map(|e| e.strip_prefix("f3g-")?.strip_suffix("/cuda"))
+            {
+                if reached.insert(dep.to_string()) {
+                    todo.extend(cuda(dep));
+                }
+            }
+        }
+        for dep in dependencies(krate) {
+            let Some(dep) = dep.strip_prefix("f3g-") else {
+                continue;
+            };
+            if cuda(dep).is_some() && !reached.contains(dep) {
+                broken.push(format!(
+                    "crates/{krate}: `cuda` does not turn on f3g-{dep}/cuda"
+                ));
+            }
+        }
+    }
+    assert!(broken.is_empty(), "{broken:#?}");
+}

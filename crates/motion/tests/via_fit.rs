@@ -59,7 +59,10 @@ fn regress(p: Vec3, vertices: &[Vec3]) -> [(usize, f32); 4] {
     let column = |i: usize| DVec4::from((v(i).as_dvec3(), 1.0));
     let m = DMat4::from_cols(column(a), column(b), column(c), column(d));
     let w = m.inverse() * DVec4::from((p.as_dvec3(), 1.0));
-    assert!(w.is_finite(), "a joint's regressor tetrahedron is degenerate");
+    assert!(
+        w.is_finite(),
+        "a joint's regressor tetrahedron is degenerate"
+    );
     [
         (a, w.x as f32),
         (b, w.y as f32),
@@ -94,23 +97,30 @@ fn write_smplx_like_the_human(path: &std::path::Path, human: &Rig) {
 
     // The schematic joints scaled and moved onto the raised human's (by role, least squares);
     // the mesh then moved so the pelvis sits where SMPL-X's does, near the origin.
-    let schematic_at: Vec<Vec3> = schematic
-        .rest(None)
-        .iter()
-        .map(|s| s.translation)
-        .collect();
+    let schematic_at: Vec<Vec3> = schematic.rest(None).iter().map(|s| s.translation).collect();
     let source_roles = Roles::infer(&schematic);
     let pairs: Vec<(Vec3, Vec3)> = Role::ALL
         .iter()
-        .filter_map(|&r| Some((schematic_at[source_roles.get(r)?], bones[human.roles.get(r)?])))
+        .filter_map(|&r| {
+            Some((
+                schematic_at[source_roles.get(r)?],
+                bones[human.roles.get(r)?],
+            ))
+        })
         .collect();
     let n = pairs.len() as f32;
     let (sc, hc) = pairs
         .iter()
         .fold((Vec3::ZERO, Vec3::ZERO), |(a, b), (s, h)| (a + *s, b + *h));
     let (sc, hc) = (sc / n, hc / n);
-    let scale = (pairs.iter().map(|(_, h)| (*h - hc).length_squared()).sum::<f32>()
-        / pairs.iter().map(|(s, _)| (*s - sc).length_squared()).sum::<f32>())
+    let scale = (pairs
+        .iter()
+        .map(|(_, h)| (*h - hc).length_squared())
+        .sum::<f32>()
+        / pairs
+            .iter()
+            .map(|(s, _)| (*s - sc).length_squared())
+            .sum::<f32>())
     .sqrt();
     let shift = hc - scale * sc;
     let joints: Vec<Vec3> = schematic_at.iter().map(|p| scale * *p).collect();
@@ -125,7 +135,10 @@ fn write_smplx_like_the_human(path: &std::path::Path, human: &Rig) {
             let children: Vec<usize> = (0..J).filter(|&c| parents[c] == Some(j)).collect();
             match children.is_empty() {
                 true => vec![(j, joints[j], joints[j])],
-                false => children.iter().map(|&c| (j, joints[j], joints[c])).collect(),
+                false => children
+                    .iter()
+                    .map(|&c| (j, joints[j], joints[c]))
+                    .collect(),
             }
         })
         .collect();
@@ -207,7 +220,7 @@ fn amass_motion(path: &std::path::Path, frames: usize) {
         set(f, "right_knee", [0.3 * t, 0.0, 0.0]);
         set(f, "spine1", [0.15 * t, 0.1 * t, 0.0]);
         set(f, "spine3", [0.1 * t, 0.0, 0.05 * t]);
-        set(f, "left_shoulder", [0.0, 0.2 * t, -1.0 * t]);
+        set(f, "left_shoulder", [0.0, 0.2 * t, -t]);
         set(f, "right_shoulder", [0.0, -0.3 * t, 0.7 * t]);
         set(f, "left_elbow", [0.0, -1.1 * t, 0.0]);
         set(f, "right_elbow", [0.0, 0.6 * t, 0.0]);

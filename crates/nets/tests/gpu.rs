@@ -1,14 +1,30 @@
-//! The networks on a wgpu device (Mesa lavapipe in CI) compute what they compute on the CPU:
-//! same seed, same weights, same outputs and gradients within float tolerance. Run with
-//! `cargo test --release -p f3g-nets --features gpu --test gpu`.
-#![cfg(feature = "gpu")]
+//! The networks on a GPU compute what they compute on the CPU: same seed, same weights, same
+//! outputs and gradients within float tolerance. On a wgpu device (Mesa lavapipe in CI):
+//! `cargo test --release -p f3g-nets --features gpu --test gpu`; on the first CUDA GPU:
+//! `F3G_TEST_DEVICE=cuda cargo test --release -p f3g-nets --features cuda --test gpu`.
+#![cfg(any(feature = "gpu", feature = "cuda"))]
 
 mod common;
 
 use burn::module::Module;
-use burn::tensor::{Device, DeviceKind, Tensor};
+use burn::tensor::{Device, Tensor};
 use common::ramp;
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
+
+/// The device under test: wgpu's default adapter, or the first CUDA GPU when
+/// `F3G_TEST_DEVICE=cuda` (build with `--features cuda`).
+fn test_device() -> Device {
+    if std::env::var("F3G_TEST_DEVICE").as_deref() == Ok("cuda") {
+        #[cfg(feature = "cuda")]
+        return Device::cuda(0usize);
+        #[cfg(not(feature = "cuda"))]
+        panic!("F3G_TEST_DEVICE=cuda needs the `cuda` feature");
+    }
+    #[cfg(feature = "gpu")]
+    return Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+    #[cfg(not(feature = "gpu"))]
+    panic!("without the `gpu` feature, set F3G_TEST_DEVICE=cuda");
+}
 
 fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
@@ -49,8 +65,8 @@ fn body_net(device: &Device) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
 }
 
 #[test]
-fn the_body_network_matches_the_cpu_on_wgpu() {
-    let gpu = Device::wgpu(DeviceKind::DefaultDevice);
+fn the_body_network_matches_the_cpu_on_the_gpu() {
+    let gpu = test_device();
     let (front_gpu, grad_gpu, loss_gpu) = body_net(&gpu);
     let (front_cpu, grad_cpu, loss_cpu) = body_net(&Device::flex());
     assert_close(&front_gpu, &front_cpu, 1e-4, "front output");
@@ -59,13 +75,13 @@ fn the_body_network_matches_the_cpu_on_wgpu() {
 }
 
 #[test]
-fn the_discriminator_matches_the_cpu_on_wgpu() {
+fn the_discriminator_matches_the_cpu_on_the_gpu() {
     let run = |device: &Device| {
         let config = DiscriminatorConfig::cpu(64);
         let d = config.init(5, device).unwrap();
         values(d.forward(ramp([2, 3, 64, 64], device)).unwrap())
     };
-    let gpu = Device::wgpu(DeviceKind::DefaultDevice);
+    let gpu = test_device();
     assert_close(
         &run(&gpu),
         &run(&Device::flex()),
