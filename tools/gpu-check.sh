@@ -1,0 +1,160 @@
+#!/usr/bin/env bash
+# The GPU check, in two halves: `pack` on a CPU machine with cargo, `run` on the GPU machine.
+#
+#   tools/gpu-check.sh pack [DIR]          # default DIR: target/gpu-check
+#   tools/gpu-check.sh run  [DIR] [OUT]    # default OUT: DIR/results
+#
+# pack builds, with CUDARC_CUDA_VERSION (default 13000: driver >= 580), the f3g binary with
+# `cuda,autotune` and one with `cuda` alone, the CUDA parity test binaries of f3g-splat and
+# f3g-nets, and downloads gsplat 1.5.3 (pure Python) and its small pure-Python dependencies
+# from PyPI; it strips the binaries, compresses them (xz) and refuses a package of 64 MiB or
+# more (what the GPU machine is given).
+#
+# run needs nothing but the package, python3 with PyTorch (CUDA) and the CUDA toolkit on the
+# GPU machine (nvcc, for gsplat's first use; compute-sanitizer if present). Within about 9
+# minutes it runs, each step under its own time limit and none stopping the others:
+#   1. `f3g devices --json`                  what the machine has (driver, NVRTC, include, NCCL)
+#   2. the parity tests on cuda:0            splat kernels and networks against the CPU
+#   3. compute-sanitizer racecheck, synccheck, initcheck on one splat test (the whole op,
+#      forward and backward, on random scenes), when the tool is there
+#   4. `f3g bench splat --device cuda`       against tools/bench_gsplat.py on the same kind of scene
+#   5. `f3g bench nets --device cuda` cold (first process) and warm (second), without and with
+#      autotune, against tools/bench_nets_torch.py
+#   6. `f3g bench train --preset paper`      20 steps
+# and writes OUT/summary.json (each step: command, exit code, seconds, its JSON where it makes
+# one) and OUT/summary.md, with each step's output in OUT/<step>.log.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+
+mode=${1:-}
+dir=${2:-target/gpu-check}
+
+pack() {
+    set -e
+    export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
+    rm -rf "$dir" && mkdir -p "$dir/bin" "$dir/tests" "$dir/wheels" "$dir/tools"
+    cargo build --release --locked -p f3g-cli --features cuda
+    cp target/release/f3g "$dir/bin/f3g-cuda"
+    cargo build --release --locked -p f3g-cli --features cuda,autotune
+    cp target/release/f3g "$dir/bin/f3g-cuda-autotune"
+    # The test binaries, by name: `cargo test --no-run` prints where it put them.
+    cargo test --release --locked --no-run -p f3g-splat -p f3g-nets \
+        --features f3g-splat/cuda,f3g-nets/cuda --test gpu --message-format=json \
+        | python3 -c '
+import json, shutil, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["name"] == "gpu":
+        crate = m["package_id"].split("#")[0].rsplit("/", 1)[-1]
+        shutil.copy(m["executable"], sys.argv[1] + "/tests/" + crate.split("@")[0] + "-gpu")
+' "$dir"
+    ls "$dir/tests/f3g-splat-gpu" "$dir/tests/f3g-nets-gpu" >/dev/null
+    strip "$dir"/bin/* "$dir"/tests/*
+    xz -T0 -6 "$dir"/bin/* "$dir"/tests/*
+    pip download --quiet --no-deps -d "$dir/wheels" gsplat==1.5.3 jaxtyping wadler-lindig \
+        rich markdown-it-py mdurl pygments
+    cp tools/bench_gsplat.py tools/bench_nets_torch.py "$dir/tools/"
+    cp "$0" "$dir/gpu-check.sh"
+    local size
+    size=$(du -sb "$dir" | cut -f1)
+    echo "package $dir: $((size / 1024 / 1024)) MiB ($size bytes)"
+    du -sh "$dir"/bin/* "$dir"/tests/* "$dir/wheels"
+    if [ "$size" -ge $((64 * 1024 * 1024)) ]; then
+        echo "the package is 64 MiB or more: the GPU machine is given at most 64 MiB" >&2
+        exit 1
+    fi
+}
+
+run() {
+    local out=${3:-$dir/results}
+    mkdir -p "$out" "$dir/unpacked"
+    for f in "$dir"/bin/*.xz "$dir"/tests/*.xz; do
+        xz -dc "$f" >"$dir/unpacked/$(basename "${f%.xz}")"
+        chmod +x "$dir/unpacked/$(basename "${f%.xz}")"
+    done
+    mkdir -p "$dir/python"
+    for w in "$dir"/wheels/*.whl; do python3 -m zipfile -e "$w" "$dir/python"; done
+    export PYTHONPATH="$PWD/$dir/python${PYTHONPATH:+:$PYTHONPATH}"
+    local bin=$dir/unpacked
+    local f3g=$bin/f3g-cuda-autotune
+    local started=$SECONDS
+    : >"$out/steps.jsonl"
+    # step NAME LIMIT_S JSON_OR_- COMMAND...: runs it, logs it, records it.
+    # Each step's limit is cut to what is left of the whole check's budget (F3G_GPU_CHECK_BUDGET
+    # seconds, default 520: under 9 minutes); a step with under 10 s left is skipped (exit 125).
+    local budget=${F3G_GPU_CHECK_BUDGET:-520}
+    step() {
+        local name=$1 limit=$2 json=$3
+        shift 3
+        local left=$((budget - (SECONDS - started)))
+        [ "$limit" -gt "$left" ] && limit=$left
+        echo "== $name (at most ${limit} s): $*"
+        local t0=$SECONDS rc=125
+        if [ "$limit" -ge 10 ]; then
+            timeout "$limit" "$@" >"$out/$name.log" 2>&1
+            rc=$?
+        else
+            echo "skipped: the check's budget is spent" >"$out/$name.log"
+        fi
+        tail -n 5 "$out/$name.log"
+        python3 - "$name" "$rc" "$((SECONDS - t0))" "$json" "$*" >>"$out/steps.jsonl" <<'PY'
+import json, os, sys
+name, rc, secs, js, cmd = sys.argv[1:]
+result = None
+if js != "-" and os.path.exists(js):
+    with open(js) as f:
+        result = json.load(f)
+print(json.dumps({"step": name, "command": cmd, "exit": int(rc), "seconds": int(secs),
+                  "timed_out": rc in ("124", "137"), "result": result}))
+PY
+    }
+    step devices 30 "$out/devices.json" sh -c "'$f3g' devices --json >'$out/devices.json'"
+    export F3G_TEST_DEVICE=cuda
+    step splat-parity 150 - "$bin/f3g-splat-gpu" --test-threads 1
+    step nets-parity 120 - "$bin/f3g-nets-gpu" --test-threads 1
+    if command -v compute-sanitizer >/dev/null; then
+        for tool in racecheck synccheck initcheck; do
+            step "sanitizer-$tool" 60 - compute-sanitizer --tool "$tool" --error-exitcode 9 \
+                "$bin/f3g-splat-gpu" --test-threads 1 --exact \
+                the_op_matches_the_cpu_on_random_scenes
+        done
+    fi
+    step bench-splat 90 "$out/splat.json" "$f3g" bench splat --device cuda --repeats 5 \
+        --json "$out/splat.json"
+    step bench-gsplat 120 "$out/gsplat.json" python3 "$dir/tools/bench_gsplat.py" --repeats 5 \
+        --json "$out/gsplat.json"
+    step bench-nets-cold 120 "$out/nets-cold.json" "$bin/f3g-cuda" bench nets --device cuda \
+        --json "$out/nets-cold.json"
+    step bench-nets-warm 60 "$out/nets-warm.json" "$bin/f3g-cuda" bench nets --device cuda \
+        --json "$out/nets-warm.json"
+    step bench-nets-autotune 120 "$out/nets-autotune.json" "$f3g" bench nets --device cuda \
+        --json "$out/nets-autotune.json"
+    step bench-nets-torch 60 "$out/nets-torch.json" python3 "$dir/tools/bench_nets_torch.py" \
+        --image 128 --json "$out/nets-torch.json"
+    step bench-train-paper 120 "$out/train-paper.json" "$f3g" bench train --preset paper \
+        --device cuda --steps 20 --json "$out/train-paper.json"
+    python3 - "$out" "$((SECONDS - started))" <<'PY'
+import json, sys
+out, total = sys.argv[1], int(sys.argv[2])
+steps = [json.loads(l) for l in open(f"{out}/steps.jsonl")]
+with open(f"{out}/summary.json", "w") as f:
+    json.dump({"seconds": total, "steps": steps}, f, indent=1)
+rows = ["| step | exit | seconds | note |", "|---|---|---|---|"]
+for s in steps:
+    note = ("timed out" if s["timed_out"] else "skipped (budget)" if s["exit"] == 125
+            else "ok" if s["exit"] == 0 else "failed: see the log")
+    rows.append(f"| {s['step']} | {s['exit']} | {s['seconds']} | {note} |")
+with open(f"{out}/summary.md", "w") as f:
+    f.write(f"# GPU check ({total} s)\n\n" + "\n".join(rows) + "\n")
+print("\n".join(rows))
+PY
+}
+
+case "$mode" in
+pack) pack ;;
+run) run "$@" ;;
+*)
+    sed -n '2,27p' "$0"
+    exit 2
+    ;;
+esac
