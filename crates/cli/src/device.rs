@@ -250,7 +250,72 @@ fn open_cuda(index: usize) -> Result<Device> {
             }
         );
     }
+    kernel_cache::configure();
     Ok(Device::cuda(index))
+}
+
+/// CubeCL's compilation cache for CUDA: compiled kernels (PTX) and autotune's choices kept
+/// between processes, so only the first process on a machine pays for NVRTC and tuning.
+pub mod kernel_cache {
+    use std::path::{Path, PathBuf};
+
+    #[cfg(feature = "cuda")]
+    use burn::cubecl::config::cache::CacheConfig;
+    #[cfg(feature = "cuda")]
+    use burn::cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
+
+    /// Where the cache goes: `F3G_KERNEL_CACHE` (a folder, or `off`), else
+    /// `$XDG_CACHE_HOME/f3g/cubecl`, else `~/.cache/f3g/cubecl`.
+    pub fn folder(var: impl Fn(&str) -> Option<String>) -> Option<PathBuf> {
+        match var("F3G_KERNEL_CACHE").as_deref() {
+            Some("off") => None,
+            Some(dir) if !dir.is_empty() => Some(PathBuf::from(dir)),
+            _ => var("XDG_CACHE_HOME")
+                .filter(|d| !d.is_empty())
+                .map(PathBuf::from)
+                .or_else(|| var("HOME").map(|home| Path::new(&home).join(".cache")))
+                .map(|cache| cache.join("f3g").join("cubecl")),
+        }
+    }
+
+    /// The CubeCL configuration file CubeCL itself would read (`cubecl.toml`, or `burn.toml`
+    /// with its `[cubecl]` section, in the working directory or above), if any.
+    #[cfg(feature = "cuda")]
+    fn users_file() -> Option<PathBuf> {
+        let mut dir = std::env::current_dir().ok()?;
+        loop {
+            let names = CubeClRuntimeConfig::file_names().iter().copied().chain(
+                CubeClRuntimeConfig::section_file_names()
+                    .iter()
+                    .map(|(name, _)| *name),
+            );
+            for name in names {
+                if dir.join(name).is_file() {
+                    return Some(dir.join(name));
+                }
+            }
+            if !dir.pop() {
+                return None;
+            }
+        }
+    }
+
+    /// Turns the cache on in [`folder`], unless a CubeCL configuration file of the user's
+    /// decides (then it is CubeCL's to read, untouched). Must run before the first CUDA device
+    /// is created: CubeCL reads its configuration once per process.
+    #[cfg(feature = "cuda")]
+    pub fn configure() {
+        if users_file().is_some() {
+            return;
+        }
+        let Some(folder) = folder(|name| std::env::var(name).ok()) else {
+            return;
+        };
+        let mut config = CubeClRuntimeConfig::default().override_from_env();
+        config.compilation.cache = true;
+        config.environment.path = CacheConfig::Directory(folder);
+        CubeClRuntimeConfig::try_set(config);
+    }
 }
 
 /// One line per CUDA device: `cuda:N  name (compute capability, memory)`.
@@ -361,6 +426,7 @@ pub fn devices(a: &DevicesArgs) -> Result<()> {
                 "nvrtc": found.nvrtc,
                 "include": found.include,
                 "nccl": found.nccl,
+                "kernel_cache": kernel_cache::folder(|name| std::env::var(name).ok()),
                 "problems": problems,
                 "devices": cuda,
             },
@@ -384,6 +450,13 @@ pub fn devices(a: &DevicesArgs) -> Result<()> {
     }
     for line in found.describe().lines() {
         println!("  {line}");
+    }
+    match kernel_cache::folder(|name| std::env::var(name).ok()) {
+        Some(dir) => println!(
+            "  kernel cache {} (F3G_KERNEL_CACHE=off to disable)",
+            dir.display()
+        ),
+        None => println!("  kernel cache off"),
     }
     for p in &problems {
         println!("  missing: {p}");
@@ -425,6 +498,36 @@ fn open_cuda(index: usize) -> Result<Device> {
 mod tests {
     use super::*;
 
+    #[test]
+    fn the_kernel_cache_goes_where_the_environment_says() {
+        use std::path::PathBuf;
+        let env = |pairs: &'static [(&'static str, &'static str)]| {
+            move |name: &str| {
+                pairs
+                    .iter()
+                    .find(|(k, _)| *k == name)
+                    .map(|(_, v)| v.to_string())
+            }
+        };
+        let folder = kernel_cache::folder;
+        assert_eq!(
+            folder(env(&[("HOME", "/home/a")])),
+            Some(PathBuf::from("/home/a/.cache/f3g/cubecl"))
+        );
+        assert_eq!(
+            folder(env(&[("HOME", "/home/a"), ("XDG_CACHE_HOME", "/c")])),
+            Some(PathBuf::from("/c/f3g/cubecl"))
+        );
+        assert_eq!(
+            folder(env(&[("HOME", "/home/a"), ("F3G_KERNEL_CACHE", "/k")])),
+            Some(PathBuf::from("/k"))
+        );
+        assert_eq!(
+            folder(env(&[("HOME", "/h"), ("F3G_KERNEL_CACHE", "off")])),
+            None
+        );
+        assert_eq!(folder(env(&[])), None);
+    }
     #[test]
     fn device_names_parse_and_print_back() {
         for (text, spec) in [

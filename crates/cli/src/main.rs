@@ -7,6 +7,7 @@ mod cuda_probe;
 mod data;
 mod demo;
 mod device;
+mod kernel_count;
 mod memory;
 mod motion;
 mod nets;

@@ -16,6 +16,7 @@ use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 use serde::Serialize;
 
 use crate::device::{DeviceArg, DeviceSpec};
+use crate::kernel_count;
 
 /// The converter, run with the machine's Python (standard library only).
 const CONVERTER: &str = include_str!("../../../tools/convert_lpips.py");
@@ -247,16 +248,34 @@ pub struct NetsBenchArgs {
 struct NetTiming {
     name: String,
     parameters: usize,
+    #[serde(flatten)]
+    timed: Timed,
+}
+
+/// One network's times.
+#[derive(Serialize)]
+struct Timed {
+    /// Medians of the repetitions after the first.
     forward_ms: f64,
     forward_backward_ms: f64,
+    /// The first repetition, forward and forward+backward together: in a fresh process on a
+    /// GPU, the kernels' compilation (and autotuning) is in it.
+    first_ms: f64,
+    /// Distinct kernels the first repetition launched (GPU devices): each one compiled then.
+    first_kernels: Option<usize>,
 }
 
 /// Keeps a timing and prints it at once: on a GPU the first repetition of a large network
 /// (kernel compilation, autotuning) can take minutes, and a silent wait looks like a hang.
 fn record(rows: &mut Vec<NetTiming>, row: NetTiming) {
+    let t = &row.timed;
+    let kernels = t
+        .first_kernels
+        .map(|n| format!(", {n} kernels"))
+        .unwrap_or_default();
     eprintln!(
-        "  {}: {:.1} / {:.1} ms",
-        row.name, row.forward_ms, row.forward_backward_ms
+        "  {}: {:.1} / {:.1} ms (first repetition {:.0} ms{kernels})",
+        row.name, t.forward_ms, t.forward_backward_ms, t.first_ms
     );
     rows.push(row);
 }
@@ -276,21 +295,23 @@ fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
 /// backward). `f` receives the device and builds its inputs; networks are built once per device
 /// beforehand by `build`. The first repetition (kernel compilation, autotuning) is not counted,
 /// and each timing ends when the device has finished (`sync`), not when the work is queued.
-/// `show_repetitions` prints every repetition (on a GPU the first one compiles and autotunes
-/// the kernels, which can take minutes).
+/// `on_gpu` prints every repetition (on a GPU the first one compiles and autotunes the
+/// kernels, which can take minutes) and counts the kernels the first one launches.
 fn time_loss<N>(
     repeats: usize,
     device: &Device,
-    show_repetitions: bool,
+    on_gpu: bool,
     build: impl Fn(&Device) -> N,
     f: impl Fn(&N, &Device) -> Tensor<1>,
-) -> Result<(f64, f64)> {
+) -> Result<Timed> {
     let plain = device.clone();
     let train = device.clone().autodiff();
     let (net_plain, net_train) = (build(&plain), build(&train));
     let mut fwd = Vec::new();
     let mut both = Vec::new();
+    let (mut first_ms, mut first_kernels) = (0.0, None);
     for rep in 0..=repeats {
+        let counting = kernel_count::start(on_gpu && rep == 0);
         let start = Instant::now();
         std::hint::black_box(f(&net_plain, &plain).into_scalar::<f32>());
         let t_fwd = start.elapsed().as_secs_f64() * 1e3;
@@ -300,21 +321,29 @@ fn time_loss<N>(
             .sync()
             .map_err(|e| anyhow::anyhow!("running on {device:?}: {e:?}"))?;
         let t_both = start.elapsed().as_secs_f64() * 1e3;
-        if show_repetitions {
+        if on_gpu {
             eprintln!("    repetition {rep}: {t_fwd:.1} / {t_both:.1} ms");
         }
         if rep > 0 {
             fwd.push(t_fwd);
             both.push(t_both);
+        } else {
+            first_ms = t_fwd + t_both;
+            first_kernels = counting.map(kernel_count::finish);
         }
     }
-    Ok((median(fwd), median(both)))
+    Ok(Timed {
+        forward_ms: median(fwd),
+        forward_backward_ms: median(both),
+        first_ms,
+        first_kernels,
+    })
 }
 
 pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
     let device = a.device.open()?;
-    let show_repetitions = a.device.spec != DeviceSpec::Cpu;
+    let on_gpu = a.device.spec != DeviceSpec::Cpu;
     eprintln!(
         "timing on {} (the first repetition of each network is not counted)",
         a.device
@@ -342,10 +371,10 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     for (name, config) in nets {
         let parameters = config.init(0, &Device::flex())?.num_params();
         let s = config.input_size;
-        let (fwd, both) = time_loss(
+        let timed = time_loss(
             a.repeats,
             &device,
-            show_repetitions,
+            on_gpu,
             |device| config.init(0, device).expect("valid preset"),
             |net, device| {
                 let view = config
@@ -362,8 +391,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             NetTiming {
                 name: format!("StyleUNet {name} {s}→{}", config.output_size),
                 parameters,
-                forward_ms: fwd,
-                forward_backward_ms: both,
+                timed,
             },
         );
     }
@@ -373,10 +401,10 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             println!("LPIPS {net}: not timed ({e})");
             continue;
         }
-        let (fwd, both) = time_loss(
+        let timed = time_loss(
             a.repeats,
             &device,
-            show_repetitions,
+            on_gpu,
             |device| Lpips::load(net, device).expect("loaded above"),
             |lpips, device| {
                 let mut x = ramp([1, 3, size, size], device);
@@ -394,17 +422,16 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             NetTiming {
                 name: format!("LPIPS {net} {size}²"),
                 parameters: 0,
-                forward_ms: fwd,
-                forward_backward_ms: both,
+                timed,
             },
         );
     }
     let disc = DiscriminatorConfig::cpu(size.next_power_of_two().max(8));
     let r = disc.resolution;
-    let (fwd, both) = time_loss(
+    let timed = time_loss(
         a.repeats,
         &device,
-        show_repetitions,
+        on_gpu,
         |device| disc.init(0, device).expect("valid"),
         |d, device| {
             d.forward(ramp([1, 3, r, r], device))
@@ -417,15 +444,18 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         NetTiming {
             name: format!("discriminator cpu {r}²"),
             parameters: disc.init(0, &Device::flex())?.num_params(),
-            forward_ms: fwd,
-            forward_backward_ms: both,
+            timed,
         },
     );
-    println!("| network | parameters | forward ms | forward+backward ms |\n|---|---|---|---|");
+    println!(
+        "| network | parameters | forward ms | forward+backward ms | first repetition ms | its kernels |\n|---|---|---|---|---|---|"
+    );
     for r in &rows {
+        let t = &r.timed;
+        let kernels = t.first_kernels.map_or("—".to_string(), |n| n.to_string());
         println!(
-            "| {} | {} | {:.1} | {:.1} |",
-            r.name, r.parameters, r.forward_ms, r.forward_backward_ms
+            "| {} | {} | {:.1} | {:.1} | {:.0} | {kernels} |",
+            r.name, r.parameters, t.forward_ms, t.forward_backward_ms, t.first_ms
         );
     }
     match a.device.spec {

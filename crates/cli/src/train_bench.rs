@@ -3,7 +3,9 @@
 //! A run of the chosen preset is created on a capture (a small synthetic one unless `--data`
 //! names one) in a temporary folder; `--warmup` steps of the chosen stage compile kernels and
 //! build the face model, then `--steps` steps are timed with the device synchronised at every
-//! phase boundary (`f3g_avatar::train::profile`). Nothing of the run is kept.
+//! phase boundary (`f3g_avatar::train::profile`). Nothing of the run is kept. On a GPU it
+//! also counts the distinct kernels the warm-up launched (CubeCL's `LaunchedKernels`): in a
+//! fresh process, what its first steps compile — autotune's candidates included.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -18,7 +20,7 @@ use serde::Serialize;
 
 use crate::avatar::ConfigArgs;
 use crate::device::{DeviceArg, DeviceSpec};
-use crate::memory;
+use crate::{kernel_count, memory};
 
 /// The stage whose steps are timed.
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -80,6 +82,12 @@ struct TrainBench {
     /// The most memory the device's allocator held (GPU), or the most the process allocated
     /// on the heap during the timed steps (CPU), MiB.
     peak_mib: Option<f64>,
+    /// Milliseconds of the warm-up steps together: on a GPU in a fresh process, with every
+    /// kernel's compilation (or its load from the kernel cache) and autotuning.
+    warmup_ms: f64,
+    /// Distinct kernels the warm-up steps launched, each compiled once by a fresh process
+    /// (GPU devices only).
+    warmup_kernels: Option<usize>,
     body_gaussians: usize,
     face_gaussians: usize,
 }
@@ -133,7 +141,11 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         trainer.setup.face_count()
     );
     let stage = Stage::from(a.stage);
+    let launched = kernel_count::start(a.device.spec != DeviceSpec::Cpu);
+    let start = Instant::now();
     trainer.bench(stage, a.warmup as u64, 0, &timer)?;
+    let warmup_ms = start.elapsed().as_secs_f64() * 1e3;
+    let warmup_kernels = launched.map(kernel_count::finish);
     let before = memory::live_bytes();
     memory::reset_peak();
     let start = Instant::now();
@@ -155,6 +167,8 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         step_ms,
         phases,
         peak_mib,
+        warmup_ms,
+        warmup_kernels,
         body_gaussians: trainer.setup.body_count(),
         face_gaussians: trainer.setup.face_count(),
     };
@@ -170,6 +184,15 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     match result.peak_mib {
         Some(m) => println!("peak memory {m:.0} MiB"),
         None => println!("peak memory: not reported by this device"),
+    }
+    match result.warmup_kernels {
+        Some(n) => println!(
+            "warm-up: {} steps in {:.1} s, {n} distinct kernels launched (each compiled, or loaded \
+             from the kernel cache, once per process)",
+            a.warmup,
+            warmup_ms / 1e3
+        ),
+        None => println!("warm-up: {} steps in {:.1} s", a.warmup, warmup_ms / 1e3),
     }
     debug_assert_eq!(PHASES.len(), result.phases.phases.len());
     if let Some(path) = &a.json {

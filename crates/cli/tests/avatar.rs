@@ -274,6 +274,8 @@ fn data_parallel_training_and_the_training_step_bench() {
     let sum: f64 = phases.iter().map(|p| p[1].as_f64().unwrap()).sum();
     let step = bench["step_ms"].as_f64().unwrap();
     assert!(sum <= step * 1.001 && sum > 0.9 * step, "{sum} vs {step}");
+    // The CPU launches no CubeCL kernels (counted on GPUs: tests/gpu.rs).
+    assert!(bench["warmup_kernels"].is_null(), "{bench}");
     let e = f3g(
         d,
         &["bench", "train", "--data", "cap", "--set", "steps.joint=0"],

@@ -205,6 +205,31 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
         v["device"].as_str().unwrap().to_string()
     };
     assert!(written_on("step-000000003").contains("Cube"));
+    // The step bench counts the kernels a cold step launches (each compiled then): the
+    // networks' convolutions, the splat op's 13 kernels (fewer: one SH degree), LPIPS, Adam.
+    ok(&f3g_in(
+        d,
+        &[
+            "bench",
+            "train",
+            "--device",
+            "wgpu",
+            "--data",
+            "cap",
+            "--config",
+            "tiny.json",
+            "--steps",
+            "1",
+            "--warmup",
+            "1",
+            "--json",
+            "bench.json",
+        ],
+    ));
+    let bench: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("bench.json")).unwrap()).unwrap();
+    let kernels = bench["warmup_kernels"].as_u64().unwrap();
+    assert!((20..5000).contains(&kernels), "{bench}");
     ok(&f3g_in(
         d,
         &["train", "--resume", "mixed", "--device", "cpu"],

@@ -14,6 +14,8 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 
 use super::bin::{TileBins, bin_tiles, depth_order, read_count};
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::{Projection, project};
 use super::project_backward::project_backward;
 use super::raster::{Accumulation, rasterize, rasterize_backward};
@@ -45,6 +47,22 @@ mod kernels {
             }
         }
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check.
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    let (settings, properties, target_properties) = target.settings(CubeDim::new_1d(UNITS as u32));
+    Ok(vec![target.source(
+        "flag_non_finite",
+        kernels::flag_non_finite::FlagNonFinite::new(
+            settings,
+            properties,
+            target_properties,
+            tensor(),
+            tensor(),
+        ),
+    )?])
 }
 
 /// A contiguous f32 copy of `t` (a no-op for the f32 tensors the trainer makes).

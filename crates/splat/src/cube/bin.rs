@@ -23,6 +23,8 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::Projection;
 use super::scan::{MAX_ROW, exclusive_scan, grid};
 use super::sort::sort_pairs;
@@ -118,6 +120,55 @@ mod kernels {
             }
         }
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check.
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    use kernels::{depth_keys, gather, intersect, tile_offsets};
+    let (s, p, t) = target.settings(CubeDim::new_1d(UNITS as u32));
+    Ok(vec![
+        target.source(
+            "depth_keys",
+            depth_keys::DepthKeys::new(
+                s.clone(),
+                p.clone(),
+                t.clone(),
+                tensor(),
+                tensor(),
+                tensor(),
+            ),
+        )?,
+        target.source(
+            "gather",
+            gather::Gather::new(
+                s.clone(),
+                p.clone(),
+                t.clone(),
+                tensor(),
+                tensor(),
+                tensor(),
+            ),
+        )?,
+        target.source(
+            "intersect",
+            intersect::Intersect::new(
+                s.clone(),
+                p.clone(),
+                t.clone(),
+                tensor(),
+                tensor(),
+                tensor(),
+                tensor(),
+                tensor(),
+                (),
+            ),
+        )?,
+        target.source(
+            "tile_offsets",
+            tile_offsets::TileOffsets::new(s, p, t, tensor(), tensor()),
+        )?,
+    ])
 }
 
 /// The visible Gaussians in depth order and where each one's intersections start.

@@ -12,6 +12,8 @@
 
 mod backend;
 pub mod bin;
+#[cfg(feature = "cuda")]
+pub mod cuda_source;
 pub mod project;
 pub mod project_backward;
 pub mod raster;

@@ -18,6 +18,8 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::scan::{MAX_ROW, grid};
 use crate::Camera;
 use crate::op::{GaussianTensors, SCREEN_FLOATS};
@@ -226,6 +228,41 @@ pub(super) mod kernels {
         rects[4 * i + 2] = i32::cast_from(tx1);
         rects[4 * i + 3] = i32::cast_from(ty1);
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check: one per SH degree (0 to 3).
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    (0..=3)
+        .map(|degree| {
+            let (s, p, t) = target.settings(CubeDim::new_1d(UNITS));
+            target.source(
+                format!("project (SH degree {degree})"),
+                kernels::project::Project::new(
+                    s,
+                    p,
+                    t,
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    (),
+                    (),
+                    (),
+                    (),
+                    (),
+                    crate::sh::num_coeffs(degree),
+                    TILE_SIZE as u32,
+                ),
+            )
+        })
+        .collect()
 }
 
 /// The camera as the kernel reads it: `W` (row-major, 9), `t` (3), `fx, fy, cx, cy`, the

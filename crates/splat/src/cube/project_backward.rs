@@ -14,6 +14,8 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::camera_constants;
 use super::scan::{MAX_ROW, grid};
 use crate::Camera;
@@ -382,6 +384,39 @@ mod kernels {
             d_means[3 * i + a] = d_x[a] + cam[a] * dp0 + cam[3 + a] * dp1 + cam[6 + a] * dp2;
         }
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check: one per SH degree (0 to 3).
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    (0..=3)
+        .map(|degree| {
+            let (s, p, t) = target.settings(CubeDim::new_1d(UNITS as u32));
+            target.source(
+                format!("project_backward (SH degree {degree})"),
+                kernels::project_backward::ProjectBackward::new(
+                    s,
+                    p,
+                    t,
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    (),
+                    crate::sh::num_coeffs(degree),
+                ),
+            )
+        })
+        .collect()
 }
 
 /// Gradients of `inputs` (without the background, which the rasteriser's backward gives)

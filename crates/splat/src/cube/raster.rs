@@ -25,12 +25,14 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, FloatDType, Shape};
 use burn_cubecl::cubecl::client::Client;
 use burn_cubecl::cubecl::ir::features::{AtomicUsage, Plane};
-use burn_cubecl::cubecl::ir::{ElemType, FloatKind, Type};
+use burn_cubecl::cubecl::ir::{DeviceProperties, ElemType, FloatKind, Type};
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
 use super::bin::TileBins;
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use crate::op::{PACKED_CHANNELS, SCREEN_FLOATS};
 use crate::semantics::{ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
 
@@ -426,6 +428,82 @@ mod kernels {
     }
 }
 
+/// The kernels above as CUDA C, for the offline NVRTC check: the backward in the variant
+/// [`Accumulation::for_properties`] picks for `target`, as a launch on it would.
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    let (s, p, t) = target.settings(CubeDim::new_2d(TILE_SIZE as u32, TILE_SIZE as u32));
+    let forward = target.source(
+        "forward",
+        kernels::forward::Forward::new(
+            s.clone(),
+            p.clone(),
+            t.clone(),
+            tensor(),
+            tensor(),
+            tensor(),
+            tensor(),
+            tensor(),
+            tensor(),
+            tensor(),
+            tensor(),
+            (),
+            (),
+            (),
+            (),
+            (),
+            TILE_SIZE as u32,
+        ),
+    )?;
+    let accumulation = Accumulation::for_properties(target.properties());
+    let label = format!(
+        "backward ({}, {})",
+        if accumulation.float_atomics {
+            "float atomics"
+        } else {
+            "compare-and-swap"
+        },
+        if accumulation.planes {
+            "plane sums"
+        } else {
+            "cube sums"
+        }
+    );
+    macro_rules! backward {
+        ($add:ty) => {
+            target.source(
+                label,
+                kernels::backward::Backward::<$add>::new(
+                    s,
+                    p,
+                    t,
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    tensor(),
+                    (),
+                    (),
+                    (),
+                    (),
+                    TILE_SIZE as u32,
+                    accumulation.planes,
+                ),
+            )
+        };
+    }
+    let backward = if accumulation.float_atomics {
+        backward!(kernels::FloatAdd)?
+    } else {
+        backward!(kernels::SwapAdd)?
+    };
+    Ok(vec![forward, backward])
+}
+
 /// A forward render on the device: the packed `[H, W, 5]` image (RGB, alpha, depth), the
 /// final transmittance `[H, W]` and the one-past-last contributing list position `[H, W]`.
 #[derive(Clone, Debug)]
@@ -500,7 +578,11 @@ pub struct Accumulation {
 impl Accumulation {
     /// The fastest that `client`'s device supports.
     pub fn best(client: &Client) -> Self {
-        let properties = client.properties();
+        Self::for_properties(client.properties())
+    }
+
+    /// The fastest that a device with these properties supports.
+    pub fn for_properties(properties: &DeviceProperties) -> Self {
         Self {
             float_atomics: properties
                 .atomic_type_usage(Type::atomic(ElemType::Float(FloatKind::F32)))

@@ -4,6 +4,8 @@
 //! scans 256 values in shared memory and writes its total; the totals are scanned the same
 //! way (recursively); each value then gets its cube's offset.
 
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use burn::backend::Cube;
 use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
@@ -69,6 +71,30 @@ mod kernels {
             out[g] += offsets[g / block];
         }
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check.
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    let (s, p, t) = target.settings(CubeDim::new_1d(BLOCK as u32));
+    Ok(vec![
+        target.source(
+            "scan_blocks",
+            kernels::scan_blocks::ScanBlocks::new(
+                s.clone(),
+                p.clone(),
+                t.clone(),
+                tensor(),
+                tensor(),
+                tensor(),
+                BLOCK,
+            ),
+        )?,
+        target.source(
+            "add_block_offsets",
+            kernels::add_block_offsets::AddBlockOffsets::new(s, p, t, tensor(), tensor(), BLOCK),
+        )?,
+    ])
 }
 
 /// Cubes per grid row: wgpu allows at most 65 535 per dimension.

@@ -12,6 +12,8 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 
+#[cfg(feature = "cuda")]
+use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::scan::{MAX_ROW, exclusive_scan_in_rows, grid};
 
 /// Units per cube.
@@ -151,6 +153,45 @@ mod kernels {
             }
         }
     }
+}
+
+/// The kernels above as CUDA C, for the offline NVRTC check.
+#[cfg(feature = "cuda")]
+pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
+    let (s, p, t) = target.settings(CubeDim::new_1d(UNITS as u32));
+    Ok(vec![
+        target.source(
+            "count",
+            kernels::count::Count::new(
+                s.clone(),
+                p.clone(),
+                t.clone(),
+                tensor(),
+                tensor(),
+                (),
+                (),
+                UNITS,
+                PER_UNIT,
+            ),
+        )?,
+        target.source(
+            "scatter",
+            kernels::scatter::Scatter::new(
+                s,
+                p,
+                t,
+                tensor(),
+                tensor(),
+                tensor(),
+                tensor(),
+                tensor(),
+                (),
+                (),
+                UNITS,
+                PER_UNIT,
+            ),
+        )?,
+    ])
 }
 
 /// Sorts `(keys, values)` by the low `bits` bits of the keys (u32 and i32 tensors of one

@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# CUDA without a GPU: NVIDIA's compilers from PyPI, and a driver that compiles but never runs.
+#
+#   tools/cuda-offline.sh setup [DIR]     # NVIDIA's CUDA 13.0 wheels from PyPI, unpacked into DIR
+#                                         # (default target/cuda-offline), and the offline driver
+#                                         # built there; prints what to export
+#   tools/cuda-offline.sh test  [DIR]     # setup, then the checks: every splat kernel through
+#                                         # NVRTC and ptxas (crates/splat/tests/cuda_kernels.rs),
+#                                         # a training step on the offline driver, cold then from
+#                                         # the kernel cache (crates/cli/tests/cuda_offline.rs)
+#   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
+#                                         # the offline driver, e.g. `bench train --device cuda`
+#
+# The wheels (about 130 MB, pinned): nvidia-cuda-nvrtc (libnvrtc.so.13 and its builtins),
+# nvidia-cuda-runtime and nvidia-cuda-crt (CUDA's headers, which NVRTC includes: the tensor-core
+# matmuls need crt/mma.h), nvidia-cuda-cccl (the cccl headers
+# cubecl-cuda adds to the include path), nvidia-cuda-nvcc (ptxas). NVRTC compiles CUDA C to PTX
+# and ptxas PTX to SASS without a device. The offline driver (tools/offline-cuda/libcuda.c)
+# answers as one H100 that accepts every module and launch and executes nothing: with it a
+# `cuda` build of f3g compiles every kernel a command launches, exactly as on a GPU, and reports
+# how many (its results are zeros). CUDA_PATH is set as cubecl-cuda reads it.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+mode=${1:-}
+dir=${2:-target/cuda-offline}
+
+setup() {
+    if [ ! -x "$dir/nvidia/cu13/bin/ptxas" ] || [ ! -f "$dir/nvidia/cu13/include/crt/mma.h" ]; then
+        mkdir -p "$dir/wheels"
+        python3 -m pip download --quiet --no-deps -d "$dir/wheels" \
+            nvidia-cuda-nvrtc==13.0.88 nvidia-cuda-runtime==13.0.88 nvidia-cuda-crt==13.0.88 \
+            nvidia-cuda-cccl==13.0.85 nvidia-cuda-nvcc==13.0.88
+        for wheel in "$dir"/wheels/*.whl; do python3 -m zipfile -e "$wheel" "$dir"; done
+        chmod +x "$dir/nvidia/cu13/bin/"*
+        rm -rf "$dir/wheels"
+    fi
+    CUDA_PATH=$(cd "$dir/nvidia/cu13" && pwd)
+    export CUDA_PATH
+    export LD_LIBRARY_PATH=$CUDA_PATH/lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+    mkdir -p "$dir/driver"
+    cc -shared -fPIC -O1 -Wall -Wextra -Werror -o "$dir/driver/libcuda.so.1" tools/offline-cuda/libcuda.c
+    ln -sf libcuda.so.1 "$dir/driver/libcuda.so"
+    driver=$(cd "$dir/driver" && pwd)
+}
+
+case "$mode" in
+setup)
+    setup
+    echo "export CUDA_PATH=$CUDA_PATH"
+    echo "export LD_LIBRARY_PATH=$LD_LIBRARY_PATH"
+    echo "# and, for the offline driver instead of a real one:"
+    echo "export LD_LIBRARY_PATH=$driver:\$LD_LIBRARY_PATH"
+    ;;
+run)
+    f3g=${2:?the f3g binary (a cuda build) to run}
+    shift 2
+    dir=target/cuda-offline
+    setup
+    LD_LIBRARY_PATH=$driver:$LD_LIBRARY_PATH "$f3g" "$@"
+    ;;
+test)
+    setup
+    export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
+    export F3G_OFFLINE_CUDA_DRIVER=$driver
+    # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
+    # it all of Burn) when CUDA_PATH changes. One feature set for both crates, so Burn and
+    # CubeCL are built once. Then the test binaries run with it.
+    tests=$(env -u CUDA_PATH cargo test --release --locked -p f3g-splat -p f3g-cli \
+        --features f3g-cli/cuda,f3g-splat/cuda --test cuda_kernels --test cuda_offline --no-run \
+        --message-format=json-render-diagnostics | python3 -c '
+import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"]:
+        print(m["executable"])
+')
+    for test in $tests; do
+        "$test" --nocapture --test-threads 1
+    done
+    ;;
+*)
+    sed -n '2,21p' "$0"
+    exit 2
+    ;;
+esac
