@@ -10,6 +10,7 @@
 #                                         # the kernel cache (crates/cli/tests/cuda_offline.rs)
 #   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
 #                                         # the offline driver, e.g. `bench train --device cuda`
+#   tools/cuda-offline.sh features        # the cargo features `test` builds with
 #
 # The wheels (about 130 MB, pinned): nvidia-cuda-nvrtc (libnvrtc.so.13 and its builtins),
 # nvidia-cuda-runtime and nvidia-cuda-crt (CUDA's headers, which NVRTC includes: the tensor-core
@@ -24,6 +25,9 @@ cd "$(dirname "$0")/.."
 
 mode=${1:-}
 dir=${2:-target/cuda-offline}
+# Every GPU feature of the crates with GPU tests (`features` prints it: .ci/run builds its
+# lavapipe tests with the same).
+GPU_TEST_FEATURES=f3g-cli/gpu,f3g-cli/cuda,f3g-nets/gpu,f3g-nets/cuda,f3g-splat/gpu,f3g-splat/cuda
 
 setup() {
     if [ ! -x "$dir/nvidia/cu13/bin/ptxas" ] || [ ! -f "$dir/nvidia/cu13/include/crt/mma.h" ]; then
@@ -45,6 +49,9 @@ setup() {
 }
 
 case "$mode" in
+features)
+    echo "$GPU_TEST_FEATURES"
+    ;;
 setup)
     setup
     echo "export CUDA_PATH=$CUDA_PATH"
@@ -64,10 +71,12 @@ test)
     export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
     export F3G_OFFLINE_CUDA_DRIVER=$driver
     # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
-    # it all of Burn) when CUDA_PATH changes. One feature set for both crates, so Burn and
-    # CubeCL are built once. Then the test binaries run with it.
-    tests=$(env -u CUDA_PATH cargo test --release --locked -p f3g-splat -p f3g-cli \
-        --features f3g-cli/cuda,f3g-splat/cuda --test cuda_kernels --test cuda_offline --no-run \
+    # it all of Burn) when CUDA_PATH changes. The feature set of CI's GPU tests (GPU_TEST_FEATURES
+    # below, also `wgpu`), so one build of Burn and CubeCL serves the lavapipe tests that follow
+    # in CI: a GPU build recompiles nearly every dependency (about 30 min on two cores), and two
+    # feature sets cost two of them. Then the test binaries run with it.
+    tests=$(env -u CUDA_PATH cargo test --release --locked -p f3g-nets -p f3g-splat -p f3g-cli \
+        --features "$GPU_TEST_FEATURES" --test cuda_kernels --test cuda_offline --no-run \
         --message-format=json-render-diagnostics | python3 -c '
 import json, sys
 for line in sys.stdin:
@@ -80,7 +89,7 @@ for line in sys.stdin:
     done
     ;;
 *)
-    sed -n '2,21p' "$0"
+    sed -n '2,22p' "$0"
     exit 2
     ;;
 esac
