@@ -90,6 +90,20 @@ impl fmt::Display for DeviceSpec {
     }
 }
 
+/// Pins Burn's default device to the CPU (`BURN_DEVICE=flex`) for this process. f3g names
+/// every device it computes on (`--device`); Burn itself falls back to its default device in
+/// one place, loading an optimiser's state (`ModuleOptimizer::load_record`, burn-optim 0.22.1),
+/// whose tensors move to their parameters' device at the next step. Unpinned, the default is the
+/// first GPU backend compiled in: a `cuda` build resuming a run on a machine without CUDA
+/// panicked in cudarc, and a user's `BURN_DEVICE` naming a backend not built would too.
+///
+/// Call first in `main`, before any thread exists (the environment is process-wide).
+pub fn pin_burn_default_device() {
+    // SAFETY: called at the start of `main`, before f3g or its libraries start a thread, so
+    // nothing reads the environment concurrently.
+    unsafe { std::env::set_var("BURN_DEVICE", "flex") };
+}
+
 /// How data-parallel replicas on `devices` sum their gradients: with NCCL when they are
 /// distinct CUDA devices and `libnccl` loads, otherwise on the host's terms (which every device
 /// has).

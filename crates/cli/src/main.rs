@@ -81,6 +81,7 @@ enum Command {
 }
 
 fn main() -> Result<()> {
+    device::pin_burn_default_device();
     let cli = Cli::parse();
     match cli.command {
         Command::Demo(args) => demo::demo(&args),
