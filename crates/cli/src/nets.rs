@@ -10,6 +10,7 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::{Args, Subcommand};
 use f3g_io::Image;
+use f3g_nets::conv::profile as conv_profile;
 use f3g_nets::lpips::{Lpips, LpipsNet, weights_dir, weights_file};
 use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
@@ -237,6 +238,13 @@ pub struct NetsBenchArgs {
     /// Also time the paper-sized presets (slow on a CPU).
     #[arg(long)]
     pub paper: bool,
+    /// Time only the networks whose name contains this text (e.g. `body`, `LPIPS vgg`).
+    #[arg(long)]
+    pub only: Option<String>,
+    /// Split each forward+backward into its convolutions (forward, input gradient, weight
+    /// gradient: time and GFLOP/s) and everything else (CPU only).
+    #[arg(long)]
+    pub profile: bool,
     /// Write the results as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -263,6 +271,60 @@ struct Timed {
     first_ms: f64,
     /// Distinct kernels the first repetition launched (GPU devices): each one compiled then.
     first_kernels: Option<usize>,
+    /// Where a forward+backward goes (`--profile`).
+    profile: Option<Profile>,
+}
+
+/// A forward+backward split by convolution phase, means over the timed repetitions.
+#[derive(Serialize)]
+struct Profile {
+    forward: PhaseTime,
+    input_grad: PhaseTime,
+    weight_grad: PhaseTime,
+    /// Everything that is not a convolution: activations, resampling, reductions, autodiff.
+    other_ms: f64,
+    /// The whole forward+backward, mean.
+    total_ms: f64,
+}
+
+#[derive(Serialize)]
+struct PhaseTime {
+    ms: f64,
+    gflop: f64,
+    gflop_per_s: f64,
+    convolutions: usize,
+}
+
+impl Profile {
+    fn new(records: &[conv_profile::Record], repeats: usize, total_ms: f64) -> Self {
+        let phase = |phase: conv_profile::Phase| {
+            let of_phase = records.iter().filter(|r| r.phase == phase);
+            let seconds: f64 = of_phase.clone().map(|r| r.seconds).sum();
+            let flop: f64 = of_phase.clone().map(conv_profile::Record::flops).sum();
+            PhaseTime {
+                ms: seconds * 1e3 / repeats as f64,
+                gflop: flop * 1e-9 / repeats as f64,
+                gflop_per_s: if seconds > 0.0 {
+                    flop * 1e-9 / seconds
+                } else {
+                    0.0
+                },
+                convolutions: of_phase.count() / repeats,
+            }
+        };
+        let (forward, input_grad, weight_grad) = (
+            phase(conv_profile::Phase::Forward),
+            phase(conv_profile::Phase::InputGrad),
+            phase(conv_profile::Phase::WeightGrad),
+        );
+        Self {
+            other_ms: total_ms - forward.ms - input_grad.ms - weight_grad.ms,
+            forward,
+            input_grad,
+            weight_grad,
+            total_ms,
+        }
+    }
 }
 
 /// Keeps a timing and prints it at once: on a GPU the first repetition of a large network
@@ -296,11 +358,13 @@ fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
 /// beforehand by `build`. The first repetition (kernel compilation, autotuning) is not counted,
 /// and each timing ends when the device has finished (`sync`), not when the work is queued.
 /// `on_gpu` prints every repetition (on a GPU the first one compiles and autotunes the
-/// kernels, which can take minutes) and counts the kernels the first one launches.
+/// kernels, which can take minutes) and counts the kernels the first one launches; `profile`
+/// records the convolutions of the timed forward+backward repetitions.
 fn time_loss<N>(
     repeats: usize,
     device: &Device,
     on_gpu: bool,
+    profile: bool,
     build: impl Fn(&Device) -> N,
     f: impl Fn(&N, &Device) -> Tensor<1>,
 ) -> Result<Timed> {
@@ -310,17 +374,25 @@ fn time_loss<N>(
     let mut fwd = Vec::new();
     let mut both = Vec::new();
     let (mut first_ms, mut first_kernels) = (0.0, None);
+    let mut records = Vec::new();
     for rep in 0..=repeats {
         let counting = kernel_count::start(on_gpu && rep == 0);
         let start = Instant::now();
         std::hint::black_box(f(&net_plain, &plain).into_scalar::<f32>());
         let t_fwd = start.elapsed().as_secs_f64() * 1e3;
+        let profiling = profile && rep > 0;
+        if profiling {
+            conv_profile::start();
+        }
         let start = Instant::now();
         std::hint::black_box(f(&net_train, &train).backward());
         train
             .sync()
             .map_err(|e| anyhow::anyhow!("running on {device:?}: {e:?}"))?;
         let t_both = start.elapsed().as_secs_f64() * 1e3;
+        if profiling {
+            records.extend(conv_profile::finish());
+        }
         if on_gpu {
             eprintln!("    repetition {rep}: {t_fwd:.1} / {t_both:.1} ms");
         }
@@ -332,11 +404,13 @@ fn time_loss<N>(
             first_kernels = counting.map(kernel_count::finish);
         }
     }
+    let mean_both = both.iter().sum::<f64>() / repeats as f64;
     Ok(Timed {
         forward_ms: median(fwd),
         forward_backward_ms: median(both),
         first_ms,
         first_kernels,
+        profile: profile.then(|| Profile::new(&records, repeats, mean_both)),
     })
 }
 
@@ -344,6 +418,15 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
     let device = a.device.open()?;
     let on_gpu = a.device.spec != DeviceSpec::Cpu;
+    ensure!(
+        !(a.profile && on_gpu),
+        "--profile splits the CPU's time; a GPU queues its work, so it cannot be timed per call"
+    );
+    let wanted = |name: &str| {
+        a.only
+            .as_ref()
+            .is_none_or(|only| name.to_lowercase().contains(&only.to_lowercase()))
+    };
     eprintln!(
         "timing on {} (the first repetition of each network is not counted)",
         a.device
@@ -369,12 +452,17 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     }
     let mut rows = Vec::new();
     for (name, config) in nets {
-        let parameters = config.init(0, &Device::flex())?.num_params();
         let s = config.input_size;
+        let name = format!("StyleUNet {name} {s}→{}", config.output_size);
+        if !wanted(&name) {
+            continue;
+        }
+        let parameters = config.init(0, &Device::flex())?.num_params();
         let timed = time_loss(
             a.repeats,
             &device,
             on_gpu,
+            a.profile,
             |device| config.init(0, device).expect("valid preset"),
             |net, device| {
                 let view = config
@@ -389,7 +477,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         record(
             &mut rows,
             NetTiming {
-                name: format!("StyleUNet {name} {s}→{}", config.output_size),
+                name,
                 parameters,
                 timed,
             },
@@ -397,6 +485,10 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     }
     let size = a.image;
     for net in [LpipsNet::Alex, LpipsNet::Vgg] {
+        let name = format!("LPIPS {net} {size}²");
+        if !wanted(&name) {
+            continue;
+        }
         if let Err(e) = Lpips::load(net, &device) {
             println!("LPIPS {net}: not timed ({e})");
             continue;
@@ -405,6 +497,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             a.repeats,
             &device,
             on_gpu,
+            a.profile,
             |device| Lpips::load(net, device).expect("loaded above"),
             |lpips, device| {
                 let mut x = ramp([1, 3, size, size], device);
@@ -420,7 +513,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         record(
             &mut rows,
             NetTiming {
-                name: format!("LPIPS {net} {size}²"),
+                name,
                 parameters: 0,
                 timed,
             },
@@ -428,24 +521,33 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     }
     let disc = DiscriminatorConfig::cpu(size.next_power_of_two().max(8));
     let r = disc.resolution;
-    let timed = time_loss(
-        a.repeats,
-        &device,
-        on_gpu,
-        |device| disc.init(0, device).expect("valid"),
-        |d, device| {
-            d.forward(ramp([1, 3, r, r], device))
-                .expect("shapes")
-                .mean()
-        },
-    )?;
-    record(
-        &mut rows,
-        NetTiming {
-            name: format!("discriminator cpu {r}²"),
-            parameters: disc.init(0, &Device::flex())?.num_params(),
-            timed,
-        },
+    let name = format!("discriminator cpu {r}²");
+    if wanted(&name) {
+        let timed = time_loss(
+            a.repeats,
+            &device,
+            on_gpu,
+            a.profile,
+            |device| disc.init(0, device).expect("valid"),
+            |d, device| {
+                d.forward(ramp([1, 3, r, r], device))
+                    .expect("shapes")
+                    .mean()
+            },
+        )?;
+        record(
+            &mut rows,
+            NetTiming {
+                name,
+                parameters: disc.init(0, &Device::flex())?.num_params(),
+                timed,
+            },
+        );
+    }
+    ensure!(
+        !rows.is_empty(),
+        "--only {:?} matches no network",
+        a.only.as_deref().unwrap_or_default()
     );
     println!(
         "| network | parameters | forward ms | forward+backward ms | first repetition ms | its kernels |\n|---|---|---|---|---|---|"
@@ -458,6 +560,9 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             r.name, r.parameters, t.forward_ms, t.forward_backward_ms, t.first_ms
         );
     }
+    if a.profile {
+        print_profile(&rows);
+    }
     match a.device.spec {
         DeviceSpec::Cpu => println!("(cpu, {} threads)", rayon::current_num_threads()),
         other => println!("({other})"),
@@ -466,6 +571,33 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         write_json(path, &rows)?;
     }
     Ok(())
+}
+
+/// The `--profile` table: per network, each convolution phase's time and rate, and the rest.
+fn print_profile(rows: &[NetTiming]) {
+    println!(
+        "\n| network | forward+backward ms | conv forward ms (GFLOP/s) | conv input grad ms (GFLOP/s) | conv weight grad ms (GFLOP/s) | other ms |\n|---|---|---|---|---|---|"
+    );
+    let cell = |p: &PhaseTime| {
+        if p.convolutions == 0 {
+            "—".to_string()
+        } else {
+            format!("{:.1} ({:.0})", p.ms, p.gflop_per_s)
+        }
+    };
+    for row in rows {
+        if let Some(p) = &row.timed.profile {
+            println!(
+                "| {} | {:.1} | {} | {} | {} | {:.1} |",
+                row.name,
+                p.total_ms,
+                cell(&p.forward),
+                cell(&p.input_grad),
+                cell(&p.weight_grad),
+                p.other_ms
+            );
+        }
+    }
 }
 
 fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {

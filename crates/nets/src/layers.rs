@@ -13,12 +13,14 @@
 
 use burn::module::{Module, Param};
 use burn::tensor::activation::leaky_relu;
-use burn::tensor::module::{conv2d, interpolate};
+use burn::tensor::module::interpolate;
 use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions, PadMode};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr_free::normal;
+
+use crate::conv::conv2d;
 
 /// Gain that keeps the variance of leaky ReLU(0.2) activations at one.
 pub const LRELU_GAIN: f32 = std::f32::consts::SQRT_2;

@@ -6,12 +6,15 @@
 //! - [`lpips`]: LPIPS v0.1 (AlexNet, VGG16), differentiable.
 //! - [`metrics`]: SSIM (3DGS convention), PSNR, D-SSIM and L1 losses.
 //! - [`layers`]: the equalised-learning-rate building blocks.
+//! - [`conv`]: the 2-D convolution every network uses, a backend op whose weight gradient is one
+//!   GEMM per tile on the CPU.
 //! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
 //!
 //! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host
 //! from a seed, so the same seed gives the same network on every backend.
 
 pub mod checkpoint;
+pub mod conv;
 pub mod discriminator;
 mod error;
 pub mod layers;

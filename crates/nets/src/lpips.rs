@@ -15,12 +15,13 @@
 use std::path::{Path, PathBuf};
 
 use burn::tensor::activation::relu;
-use burn::tensor::module::{conv2d, max_pool2d};
+use burn::tensor::module::max_pool2d;
 use burn::tensor::ops::{ConvOptions, MaxPoolOptions};
 use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
+use crate::conv::conv2d;
 
 /// The AlexNet LPIPS weights, compiled in so the demo and the tests work offline.
 const ALEX_WEIGHTS: &[u8] = include_bytes!("../../../assets/lpips/alex.safetensors");

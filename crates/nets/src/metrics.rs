@@ -15,11 +15,11 @@
 //!
 //! Tensors are `[B, C, H, W]` in `[0, 1]`; host images are [`f3g_io::Image`] `[H, W, C]`.
 
-use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::NetsError;
+use crate::conv::conv2d;
 use f3g_io::Image;
 
 const WINDOW: usize = 11;

@@ -1,0 +1,104 @@
+//! 2-D convolution as a backend operation, so that the CPU computes its weight gradient with one
+//! GEMM per tile of output positions instead of Burn's generic route.
+//!
+//! Burn 0.22 derives a convolution's weight gradient as another convolution: the input with
+//! batch and channels swapped, convolved with the output gradient as a kernel the size of the
+//! output (`burn-backend` `conv2d_weight_grad_no_groups`). On `Flex` that becomes one narrow
+//! GEMM per input channel (N = kh·kw = 9) over an im2col nine times the input, or, with at most
+//! 16 output channels, a direct loop with no register tiling. Here the gradient is
+//! `dW[co, (ci, ky, kx)] = Σ_b Σ_p G[b, co, p] · X̂[b, (ci, ky, kx), p]` (X̂ the im2col of the
+//! input, p the output positions): one well-shaped GEMM (M = out channels, N = in channels · k²,
+//! K = positions) per tile, accumulated per thread ([`flex`]).
+//!
+//! The forward and the input gradient are Burn's own on every backend (`Flex`: tiled im2col +
+//! GEMM, and GEMM + col2im as a transposed convolution); `Cube` devices use Burn's for all three.
+//! `Autodiff` records one node whose backward asks the inner backend for each gradient a parent
+//! needs. Layouts are Burn's: `x` `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
+use burn::tensor::ops::ConvOptions;
+
+mod autodiff;
+mod flex;
+pub mod profile;
+
+/// A 2-D convolution whose gradients the backend computes ([`ConvBackend`]); `bias` (`[C_out]`)
+/// is added by broadcasting.
+pub fn conv2d(
+    x: Tensor<4>,
+    weight: Tensor<4>,
+    bias: Option<Tensor<1>>,
+    options: ConvOptions<2>,
+) -> Tensor<4> {
+    let channels = weight.dims()[0];
+    let out = Tensor::<4>::from_dispatch(<Dispatch as ConvBackend>::conv2d_forward(
+        x.into_dispatch(),
+        weight.into_dispatch(),
+        options,
+    ));
+    match bias {
+        Some(bias) => out + bias.reshape([1, channels, 1, 1]),
+        None => out,
+    }
+}
+
+/// The convolution and its two gradients as backend operations.
+#[backend_extension(Autodiff, Flex, Cube: cfg(any(feature = "gpu", feature = "cuda")))]
+pub trait ConvBackend: Backend {
+    /// `conv2d(x, weight)` without bias: `[B, C_out, H_out, W_out]`.
+    fn conv2d_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self>;
+
+    /// The gradient of the input given the output gradient `grad`.
+    fn conv2d_input_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self>;
+
+    /// The gradient of the weight given the output gradient `grad`.
+    fn conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self>;
+}
+
+/// Burn's kernels (CubeCL's convolutions and their gradients) on wgpu and CUDA devices.
+#[cfg(any(feature = "gpu", feature = "cuda"))]
+impl ConvBackend for burn::backend::Cube {
+    fn conv2d_forward(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d(x, weight, None, options)
+    }
+
+    fn conv2d_input_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d_x_backward(x, weight, grad, options)
+    }
+
+    fn conv2d_weight_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d_weight_backward(
+            x, weight, grad, options,
+        )
+    }
+}
