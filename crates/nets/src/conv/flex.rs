@@ -134,6 +134,13 @@ fn weight_grad(geometry: &Geometry, x: &[f32], grad: &[f32]) -> Vec<f32> {
     let rows = geometry.rows();
     let positions = height_out * width_out;
     let zeros = || vec![0.0f32; channels_out * rows];
+    // The GEMM below reads through raw pointers: the slices must hold exactly these shapes.
+    assert_eq!(x.len(), batch * channels_in * height * width, "input");
+    assert_eq!(
+        grad.len(),
+        batch * channels_out * positions,
+        "output gradient"
+    );
     if batch == 0 || positions == 0 || rows == 0 {
         return zeros();
     }
