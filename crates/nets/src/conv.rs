@@ -1,19 +1,19 @@
-//! 2-D convolution as a backend operation, so that the CPU computes its weight gradient with one
-//! GEMM per tile of output positions instead of Burn's generic route.
+//! 2-D convolution as a backend operation, so that the CPU computes it and both its gradients
+//! as im2col + GEMM on NCHW data instead of Burn's generic route.
 //!
-//! Burn 0.22 derives a convolution's weight gradient as another convolution: the input with
-//! batch and channels swapped, convolved with the output gradient as a kernel the size of the
-//! output (`burn-backend` `conv2d_weight_grad_no_groups`). On `Flex` that becomes one narrow
-//! GEMM per input channel (N = kh·kw = 9) over an im2col nine times the input, or, with at most
-//! 16 output channels, a direct loop with no register tiling. Here the gradient is
-//! `dW[co, (ci, ky, kx)] = Σ_b Σ_p G[b, co, p] · X̂[b, (ci, ky, kx), p]` (X̂ the im2col of the
-//! input, p the output positions): one well-shaped GEMM (M = out channels, N = in channels · k²,
-//! K = positions) per tile, accumulated per thread ([`flex`]).
+//! Burn 0.22's `Flex` converts every convolution's input to NHWC and back and tiles 512 output
+//! positions at a time, computes the input gradient as a transposed convolution, and derives the
+//! weight gradient as another convolution: the input with batch and channels swapped, convolved
+//! with the output gradient as a kernel the size of the output (`burn-backend`
+//! `conv2d_weight_grad_no_groups`), one narrow GEMM per input channel. Here ([`flex`]), with `X̂`
+//! the im2col of the input (one column per output position) and `W` the weight as
+//! `[C_out, C_in·kh·kw]`: the output is `W · X̂`, the input gradient the convolution of the output
+//! gradient with the flipped kernel (stride 1) or `col2im(Wᵀ · G)`, and the weight gradient
+//! `Σ G · X̂ᵀ`, each one well-shaped GEMM per tile of output positions.
 //!
-//! The forward and the input gradient are Burn's own on every backend (`Flex`: tiled im2col +
-//! GEMM, and GEMM + col2im as a transposed convolution); `Cube` devices use Burn's for all three.
-//! `Autodiff` records one node whose backward asks the inner backend for each gradient a parent
-//! needs. Layouts are Burn's: `x` `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
+//! `Cube` devices use Burn's kernels for all three. `Autodiff` records one node whose backward
+//! asks the inner backend for each gradient a parent needs. Layouts are Burn's: `x`
+//! `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};

@@ -14,13 +14,14 @@
 use burn::module::{Module, Param};
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::module::interpolate;
-use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions, PadMode};
+use burn::tensor::ops::{ConvOptions, InterpolateMode, InterpolateOptions};
 use burn::tensor::{Device, Tensor, TensorData};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr_free::normal;
 
 use crate::conv::conv2d;
+use crate::fused;
 
 /// Gain that keeps the variance of leaky ReLU(0.2) activations at one.
 pub const LRELU_GAIN: f32 = std::f32::consts::SQRT_2;
@@ -73,10 +74,14 @@ mod rand_distr_free {
     }
 }
 
-/// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation).
+/// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation):
+/// one op on the CPU ([`fused::bias_leaky_relu`]), [`portable::fused_lrelu`] elsewhere.
 pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
-    let c = bias.dims()[0];
-    leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
+    if fused::on_flex(&x) {
+        fused::bias_leaky_relu(x, bias)
+    } else {
+        portable::fused_lrelu(x, bias)
+    }
 }
 
 /// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`]. On the CPU
@@ -134,54 +139,133 @@ fn bilinear_weights(from: usize, to: usize, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(weights, [to, from]), device)
 }
 
-/// Bilinear up-sampling by 2 (`align_corners = false`), written with slices, sums and a
-/// reshape rather than `interpolate`, because Burn 0.22's CubeCL backends (CUDA, wgpu) have no
-/// backward for bilinear interpolation. Per axis: `out[2i] = ¾ x[i] + ¼ x[i−1]`,
-/// `out[2i+1] = ¾ x[i] + ¼ x[i+1]`, with the edge sample repeated at the borders — exactly
-/// bilinear interpolation at the source coordinates `i ∓ ¼`.
+/// Bilinear up-sampling by 2 (`align_corners = false`): one op on the CPU
+/// ([`fused::upsample2`]), [`portable::upsample2`] elsewhere.
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    let x = upsample2_axis(x, 3);
-    upsample2_axis(x, 2)
-}
-
-fn upsample2_axis(x: Tensor<4>, axis: usize) -> Tensor<4> {
-    let dims = x.dims();
-    let n = dims[axis];
-    let slice = |from: usize, to: usize| x.clone().narrow(axis, from, to - from);
-    let (previous, next) = if n == 1 {
-        (x.clone(), x.clone())
+    if fused::on_flex(&x) {
+        fused::upsample2(x)
     } else {
-        (
-            Tensor::cat(vec![slice(0, 1), slice(0, n - 1)], axis),
-            Tensor::cat(vec![slice(1, n), slice(n - 1, n)], axis),
-        )
-    };
-    let centre = x.clone() * 0.75;
-    let even = centre.clone() + previous * 0.25;
-    let odd = centre + next * 0.25;
-    let mut out = dims;
-    out[axis] = 2 * n;
-    Tensor::stack::<5>(vec![even, odd], axis + 1).reshape(out)
+        portable::upsample2(x)
+    }
 }
 
 /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
-/// both axes (the output grows by `before + after − 3`).
+/// both axes (the output grows by `before + after − 3`): one op on the CPU ([`fused::blur`]),
+/// [`portable::blur`] elsewhere.
 pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
-    const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
-    let x = x.pad((before, after, before, after), PadMode::Constant(0.0));
-    let [b, c, h, w] = x.dims();
-    let (oh, ow) = (h - 3, w - 3);
-    let rows = TAPS
-        .iter()
-        .enumerate()
-        .map(|(k, &t)| x.clone().slice([0..b, 0..c, 0..h, k..k + ow]) * t)
-        .reduce(|a, v| a + v)
-        .expect("four taps");
-    TAPS.iter()
-        .enumerate()
-        .map(|(k, &t)| rows.clone().slice([0..b, 0..c, k..k + oh, 0..ow]) * t)
-        .reduce(|a, v| a + v)
-        .expect("four taps")
+    if fused::on_flex(&x) && before <= 3 && after <= 3 {
+        fused::blur(x, before, after)
+    } else {
+        portable::blur(x, before, after)
+    }
+}
+
+/// The element-wise chains written with Burn's tensor ops, differentiable on every backend:
+/// what GPU devices run, and the reference the CPU's fused ops are tested against.
+pub mod portable {
+    use burn::tensor::Tensor;
+    use burn::tensor::activation::leaky_relu;
+    use burn::tensor::ops::PadMode;
+
+    use super::LRELU_GAIN;
+
+    /// `leaky_relu(x + bias, 0.2) · √2`.
+    pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+        let c = bias.dims()[0];
+        leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
+    }
+
+    /// Bilinear up-sampling by 2 (`align_corners = false`), written with slices, sums and a
+    /// reshape rather than `interpolate`, because Burn 0.22's CubeCL backends (CUDA, wgpu) have no
+    /// backward for bilinear interpolation. Per axis: `out[2i] = ¾ x[i] + ¼ x[i−1]`,
+    /// `out[2i+1] = ¾ x[i] + ¼ x[i+1]`, with the edge sample repeated at the borders — exactly
+    /// bilinear interpolation at the source coordinates `i ∓ ¼`.
+    pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
+        let x = upsample2_axis(x, 3);
+        upsample2_axis(x, 2)
+    }
+
+    fn upsample2_axis(x: Tensor<4>, axis: usize) -> Tensor<4> {
+        let dims = x.dims();
+        let n = dims[axis];
+        let slice = |from: usize, to: usize| x.clone().narrow(axis, from, to - from);
+        let (previous, next) = if n == 1 {
+            (x.clone(), x.clone())
+        } else {
+            (
+                Tensor::cat(vec![slice(0, 1), slice(0, n - 1)], axis),
+                Tensor::cat(vec![slice(1, n), slice(n - 1, n)], axis),
+            )
+        };
+        let centre = x.clone() * 0.75;
+        let even = centre.clone() + previous * 0.25;
+        let odd = centre + next * 0.25;
+        let mut out = dims;
+        out[axis] = 2 * n;
+        Tensor::stack::<5>(vec![even, odd], axis + 1).reshape(out)
+    }
+
+    /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
+    /// both axes (the output grows by `before + after − 3`).
+    pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
+        const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
+        let x = x.pad((before, after, before, after), PadMode::Constant(0.0));
+        let [b, c, h, w] = x.dims();
+        let (oh, ow) = (h - 3, w - 3);
+        let rows = TAPS
+            .iter()
+            .enumerate()
+            .map(|(k, &t)| x.clone().slice([0..b, 0..c, 0..h, k..k + ow]) * t)
+            .reduce(|a, v| a + v)
+            .expect("four taps");
+        TAPS.iter()
+            .enumerate()
+            .map(|(k, &t)| rows.clone().slice([0..b, 0..c, k..k + oh, 0..ow]) * t)
+            .reduce(|a, v| a + v)
+            .expect("four taps")
+    }
+
+    /// Orthonormal 2-D Haar analysis: `[B, C, 2H, 2W] → [B, 4C, H, W]`, channel `4c + k` holding
+    /// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`.
+    pub fn haar(x: Tensor<4>) -> Tensor<4> {
+        let [b, c, h2, w2] = x.dims();
+        let (h, w) = (h2 / 2, w2 / 2);
+        let x = x.reshape([b, c, h, 2, w, 2]);
+        let tap = |i: usize, j: usize| {
+            x.clone()
+                .slice([0..b, 0..c, 0..h, i..i + 1, 0..w, j..j + 1])
+                .reshape([b, c, 1, h, w])
+        };
+        let (p, q, r, s) = (tap(0, 0), tap(0, 1), tap(1, 0), tap(1, 1));
+        let ll = (p.clone() + q.clone() + r.clone() + s.clone()) * 0.5;
+        let lh = (p.clone() + q.clone() - r.clone() - s.clone()) * 0.5;
+        let hl = (p.clone() - q.clone() + r.clone() - s.clone()) * 0.5;
+        let hh = (p - q - r + s) * 0.5;
+        Tensor::cat(vec![ll, lh, hl, hh], 2).reshape([b, 4 * c, h, w])
+    }
+
+    /// The inverse of [`haar`]: `[B, 4C, H, W] → [B, C, 2H, 2W]`.
+    pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
+        let [b, c4, h, w] = x.dims();
+        let c = c4 / 4;
+        let x = x.reshape([b, c, 4, h, w]);
+        let band = |k: usize| x.clone().slice([0..b, 0..c, k..k + 1, 0..h, 0..w]);
+        let (ll, lh, hl, hh) = (band(0), band(1), band(2), band(3));
+        let p = (ll.clone() + lh.clone() + hl.clone() + hh.clone()) * 0.5;
+        let q = (ll.clone() + lh.clone() - hl.clone() - hh.clone()) * 0.5;
+        let r = (ll.clone() - lh.clone() + hl.clone() - hh.clone()) * 0.5;
+        let s = (ll - lh - hl + hh) * 0.5;
+        // [B, C, 1, H, W] each → [B, C, H, 2 (i), W, 2 (j)].
+        let row = |a: Tensor<5>, bb: Tensor<5>| {
+            Tensor::cat(
+                vec![a.reshape([b, c, h, w, 1]), bb.reshape([b, c, h, w, 1])],
+                4,
+            )
+        };
+        let top = row(p, q).reshape([b, c, h, 1, w, 2]);
+        let bottom = row(r, s).reshape([b, c, h, 1, w, 2]);
+        Tensor::cat(vec![top, bottom], 3).reshape([b, c, 2 * h, 2 * w])
+    }
 }
 
 /// A convolution with equalised learning rate.
@@ -414,45 +498,23 @@ impl StyledConv {
 }
 
 /// Orthonormal 2-D Haar analysis: `[B, C, 2H, 2W] → [B, 4C, H, W]`, channel `4c + k` holding
-/// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`.
+/// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`: one op on the CPU ([`fused::haar`]),
+/// [`portable::haar`] elsewhere.
 pub fn haar(x: Tensor<4>) -> Tensor<4> {
-    let [b, c, h2, w2] = x.dims();
-    let (h, w) = (h2 / 2, w2 / 2);
-    let x = x.reshape([b, c, h, 2, w, 2]);
-    let tap = |i: usize, j: usize| {
-        x.clone()
-            .slice([0..b, 0..c, 0..h, i..i + 1, 0..w, j..j + 1])
-            .reshape([b, c, 1, h, w])
-    };
-    let (p, q, r, s) = (tap(0, 0), tap(0, 1), tap(1, 0), tap(1, 1));
-    let ll = (p.clone() + q.clone() + r.clone() + s.clone()) * 0.5;
-    let lh = (p.clone() + q.clone() - r.clone() - s.clone()) * 0.5;
-    let hl = (p.clone() - q.clone() + r.clone() - s.clone()) * 0.5;
-    let hh = (p - q - r + s) * 0.5;
-    Tensor::cat(vec![ll, lh, hl, hh], 2).reshape([b, 4 * c, h, w])
+    if fused::on_flex(&x) {
+        fused::haar(x)
+    } else {
+        portable::haar(x)
+    }
 }
 
 /// The inverse of [`haar`]: `[B, 4C, H, W] → [B, C, 2H, 2W]`.
 pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
-    let [b, c4, h, w] = x.dims();
-    let c = c4 / 4;
-    let x = x.reshape([b, c, 4, h, w]);
-    let band = |k: usize| x.clone().slice([0..b, 0..c, k..k + 1, 0..h, 0..w]);
-    let (ll, lh, hl, hh) = (band(0), band(1), band(2), band(3));
-    let p = (ll.clone() + lh.clone() + hl.clone() + hh.clone()) * 0.5;
-    let q = (ll.clone() + lh.clone() - hl.clone() - hh.clone()) * 0.5;
-    let r = (ll.clone() - lh.clone() + hl.clone() - hh.clone()) * 0.5;
-    let s = (ll - lh - hl + hh) * 0.5;
-    // [B, C, 1, H, W] each → [B, C, H, 2 (i), W, 2 (j)].
-    let row = |a: Tensor<5>, bb: Tensor<5>| {
-        Tensor::cat(
-            vec![a.reshape([b, c, h, w, 1]), bb.reshape([b, c, h, w, 1])],
-            4,
-        )
-    };
-    let top = row(p, q).reshape([b, c, h, 1, w, 2]);
-    let bottom = row(r, s).reshape([b, c, h, 1, w, 2]);
-    Tensor::cat(vec![top, bottom], 3).reshape([b, c, 2 * h, 2 * w])
+    if fused::on_flex(&x) {
+        fused::inverse_haar(x)
+    } else {
+        portable::inverse_haar(x)
+    }
 }
 
 /// StyleGAN2's `ToRGB` in the Haar domain: a modulated 1×1 convolution without demodulation to
@@ -569,19 +631,22 @@ mod tests {
                 let grads = (y.clone() * weights.clone()).sum().backward();
                 (values(y), values(x.grad(&grads).unwrap()))
             };
-            let (ours, ours_grad) = run(&upsample2);
             let (theirs, theirs_grad) = run(&|x| {
                 let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
                 options.align_corners = false;
                 options.output_size = Some([2 * h, 2 * w]);
                 interpolate(x, options)
             });
-            for (a, b) in ours
-                .iter()
-                .zip(&theirs)
-                .chain(ours_grad.iter().zip(&theirs_grad))
-            {
-                assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+            // The CPU's fused op and the tensor-op formulation of other devices.
+            for up in [upsample2 as fn(Tensor<4>) -> Tensor<4>, portable::upsample2] {
+                let (ours, ours_grad) = run(&up);
+                for (a, b) in ours
+                    .iter()
+                    .zip(&theirs)
+                    .chain(ours_grad.iter().zip(&theirs_grad))
+                {
+                    assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+                }
             }
         }
     }

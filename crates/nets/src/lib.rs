@@ -8,6 +8,8 @@
 //! - [`layers`]: the equalised-learning-rate building blocks.
 //! - [`conv`]: the 2-D convolution every network uses, a backend op whose weight gradient is one
 //!   GEMM per tile on the CPU.
+//! - [`fused`]: StyleGAN2's element-wise chains (bias + leaky ReLU, ×2 up-sampling, blur, Haar)
+//!   as single passes on the CPU.
 //! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
 //!
 //! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host
@@ -17,6 +19,8 @@ pub mod checkpoint;
 pub mod conv;
 pub mod discriminator;
 mod error;
+pub mod fused;
+mod host;
 pub mod layers;
 pub mod lpips;
 pub mod metrics;

@@ -125,34 +125,47 @@ fn grouped_convolutions_take_burns_route_and_match() {
     );
 }
 
-#[test]
-fn the_weight_gradient_matches_central_differences() {
-    let _turn = CPU.lock().unwrap_or_else(|e| e.into_inner());
-    let device = Device::flex().autodiff();
-    let options = ConvOptions::new([2, 1], [1, 0], [1, 2], 1);
-    let x = ramp([2, 2, 7, 8], &device);
-    let w0 = weight([3, 2, 3, 2], &device);
-    let loss = |w: Tensor<4>| {
-        let y = conv2d(x.clone(), w, None, options.clone());
-        let r = ramp(y.dims(), &device) + 0.3;
-        (y.clone() * y * r).sum()
-    };
-    let w = w0.clone().require_grad();
-    let analytic = values(w.grad(&loss(w.clone()).backward()).unwrap());
-    let base = values(w0.clone());
+/// The analytic gradient of `loss` at `v0` against central differences, element by element.
+fn check_central_differences(loss: &dyn Fn(Tensor<4>) -> Tensor<1>, v0: Tensor<4>, what: &str) {
+    let device = v0.device();
+    let v = v0.clone().require_grad();
+    let analytic = values(v.grad(&loss(v.clone()).backward()).unwrap());
+    let base = values(v0.clone());
     let eps = 1e-2f32;
     for (i, &a) in analytic.iter().enumerate() {
         let at = |delta: f32| {
-            let mut v = base.clone();
-            v[i] += delta;
-            let w = Tensor::<4>::from_data(TensorData::new(v, w0.dims()), &device);
-            f64::from(loss(w).into_scalar::<f32>())
+            let mut shifted = base.clone();
+            shifted[i] += delta;
+            let v = Tensor::<4>::from_data(TensorData::new(shifted, v0.dims()), &device);
+            f64::from(loss(v).into_scalar::<f32>())
         };
         let numeric = ((at(eps) - at(-eps)) / (2.0 * f64::from(eps))) as f32;
         assert!(
             (a - numeric).abs() <= 2e-3 * (1.0 + numeric.abs()),
-            "dW[{i}]: {a}, central differences give {numeric}"
+            "{what}[{i}]: {a}, central differences give {numeric}"
         );
+    }
+}
+
+#[test]
+fn both_gradients_match_central_differences() {
+    let _turn = CPU.lock().unwrap_or_else(|e| e.into_inner());
+    let device = Device::flex().autodiff();
+    // Strided (dx through col2im) and stride 1 (dx as the convolution with the flipped kernel).
+    for options in [
+        ConvOptions::new([2, 1], [1, 0], [1, 2], 1),
+        ConvOptions::new([1, 1], [1, 2], [1, 1], 1),
+    ] {
+        let x0 = ramp([2, 2, 7, 8], &device);
+        let w0 = weight([3, 2, 3, 2], &device);
+        let loss = |x: Tensor<4>, w: Tensor<4>| {
+            let y = conv2d(x, w, None, options.clone());
+            let r = ramp(y.dims(), &device) + 0.3;
+            (y.clone() * y * r).sum()
+        };
+        let what = format!("stride {:?}", options.stride);
+        check_central_differences(&|w| loss(x0.clone(), w), w0.clone(), &format!("dW, {what}"));
+        check_central_differences(&|x| loss(x, w0.clone()), x0.clone(), &format!("dx, {what}"));
     }
 }
 

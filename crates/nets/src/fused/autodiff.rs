@@ -1,0 +1,172 @@
+//! `impl FusedBackend for Autodiff<B>`: one graph node per fused op, whose backward calls the
+//! inner backend's gradient op; the backward ops themselves are not differentiated again.
+
+use burn::backend::autodiff::{
+    Autodiff,
+    checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
+    grads::Gradients,
+    ops::{Backward, Ops, OpsKind},
+};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{AutodiffBackend, Backend};
+
+use super::FusedBackend;
+
+#[derive(Debug)]
+struct BiasLeakyReluBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
+    /// The op's output: its sign gives the slope.
+    type State = FloatTensor<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let pre_activation = B::bias_leaky_relu_grad(ops.state, grad);
+        let [x_node, bias_node] = ops.parents;
+        if let Some(node) = bias_node {
+            grads.register::<B>(node.id, B::channel_sum(pre_activation.clone()));
+        }
+        if let Some(node) = x_node {
+            grads.register::<B>(node.id, pre_activation);
+        }
+    }
+}
+
+#[derive(Debug)]
+struct Upsample2Backward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for Upsample2Backward {
+    type State = ();
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, B::upsample2_grad(grad));
+        }
+    }
+}
+
+#[derive(Debug)]
+struct BlurBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for BlurBackward {
+    /// The forward's padding `(before, after)`.
+    type State = (usize, usize);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (before, after) = ops.state;
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, B::blur(grad, 3 - before, 3 - after));
+        }
+    }
+}
+
+/// Haar analysis (`inverse: false`) or synthesis: orthonormal, so each one's backward is the
+/// other.
+#[derive(Debug)]
+struct HaarBackward {
+    inverse: bool,
+}
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for HaarBackward {
+    type State = ();
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        if let [Some(node)] = ops.parents {
+            let dx = if self.inverse {
+                B::haar(grad)
+            } else {
+                B::inverse_haar(grad)
+            };
+            grads.register::<B>(node.id, dx);
+        }
+    }
+}
+
+impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff<B, C> {
+    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node(), bias.node()];
+        let out = B::bias_leaky_relu(x.into_primitive(), bias.into_primitive());
+        match BiasLeakyReluBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(out.clone(), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn bias_leaky_relu_grad(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::bias_leaky_relu_grad(
+            output.into_primitive(),
+            grad.into_primitive(),
+        ))
+    }
+
+    fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::channel_sum(x.into_primitive()))
+    }
+
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        Upsample2Backward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::upsample2(x.into_primitive()))
+    }
+
+    fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::upsample2_grad(grad.into_primitive()))
+    }
+
+    fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        let out = B::blur(x.into_primitive(), before, after);
+        match BlurBackward.prepare::<C>(nodes).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => prep.finish((before, after), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        HaarBackward { inverse: false }
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::haar(x.into_primitive()))
+    }
+
+    fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        HaarBackward { inverse: true }
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::inverse_haar(x.into_primitive()))
+    }
+}

@@ -1,0 +1,258 @@
+//! `impl FusedBackend for Flex`: each op one loop over the `[B·C]` planes of row-major f32 data,
+//! planes in parallel, in f32 (the networks' only float type).
+
+use burn::backend::Flex;
+use burn::backend::TensorMetadata;
+use burn::backend::tensor::FloatTensor;
+use rayon::prelude::*;
+
+use super::FusedBackend;
+use crate::host::{from_values, host_f32};
+use crate::layers::LRELU_GAIN;
+
+/// Leaky ReLU's slope below zero.
+const SLOPE: f32 = 0.2;
+/// The blur's taps.
+const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
+
+impl FusedBackend for Flex {
+    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        let shape = dims(&x);
+        let plane = shape[2] * shape[3];
+        let (bias, channels) = (host_f32(&bias), shape[1]);
+        assert_eq!(bias.len(), channels, "one bias per channel");
+        let mut out = host_f32(&x).into_owned();
+        out.par_chunks_mut(plane.max(1))
+            .enumerate()
+            .for_each(|(index, values)| {
+                let b = bias[index % channels];
+                for v in values {
+                    let pre = *v + b;
+                    *v = LRELU_GAIN * if pre > 0.0 { pre } else { SLOPE * pre };
+                }
+            });
+        from_values(out, shape.to_vec())
+    }
+
+    fn bias_leaky_relu_grad(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&grad);
+        let output = host_f32(&output);
+        let mut dx = host_f32(&grad).into_owned();
+        assert_eq!(output.len(), dx.len(), "output and gradient shapes");
+        dx.par_chunks_mut(1 << 14)
+            .zip(output.par_chunks(1 << 14))
+            .for_each(|(dx, y)| {
+                for (d, &y) in dx.iter_mut().zip(y) {
+                    *d *= LRELU_GAIN * if y > 0.0 { 1.0 } else { SLOPE };
+                }
+            });
+        from_values(dx, shape.to_vec())
+    }
+
+    fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        let plane = height * width;
+        let values = host_f32(&x);
+        let per_plane: Vec<f64> = if plane == 0 {
+            vec![0.0; batch * channels]
+        } else {
+            values
+                .par_chunks(plane)
+                .map(|p| p.iter().map(|&v| f64::from(v)).sum())
+                .collect()
+        };
+        let sums = (0..channels)
+            .map(|c| (0..batch).map(|b| per_plane[b * channels + c]).sum::<f64>() as f32)
+            .collect();
+        from_values(sums, vec![channels])
+    }
+
+    fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        let x = host_f32(&x);
+        let mut out = vec![0.0f32; 4 * x.len()];
+        if height * width > 0 {
+            out.par_chunks_mut(4 * height * width)
+                .zip(x.par_chunks(height * width))
+                .for_each(|(out, plane)| {
+                    let mut rows = vec![0.0f32; 2 * plane.len()];
+                    upsample_axis(plane, height, width, 1, &mut rows);
+                    upsample_axis(&rows, 1, height, 2 * width, out);
+                });
+        }
+        from_values(out, vec![batch, channels, 2 * height, 2 * width])
+    }
+
+    fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height2, width2] = dims(&grad);
+        let (height, width) = (height2 / 2, width2 / 2);
+        let grad = host_f32(&grad);
+        let mut dx = vec![0.0f32; grad.len() / 4];
+        if height * width > 0 {
+            dx.par_chunks_mut(height * width)
+                .zip(grad.par_chunks(4 * height * width))
+                .for_each(|(dx, plane)| {
+                    let mut rows = vec![0.0f32; 2 * dx.len()];
+                    upsample_axis_adjoint(plane, 1, height, 2 * width, &mut rows);
+                    upsample_axis_adjoint(&rows, height, width, 1, dx);
+                });
+        }
+        from_values(dx, vec![batch, channels, height, width])
+    }
+
+    fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        assert!(before <= 3 && after <= 3, "blur padding at most 3");
+        let grown = |n: usize| (n + before + after).saturating_sub(3);
+        let (out_h, out_w) = (grown(height), grown(width));
+        let x = host_f32(&x);
+        let mut out = vec![0.0f32; batch * channels * out_h * out_w];
+        if out_h * out_w > 0 {
+            out.par_chunks_mut(out_h * out_w)
+                .zip(x.par_chunks(height * width))
+                .for_each(|(out, plane)| {
+                    let mut rows = vec![0.0f32; height * out_w];
+                    blur_axis(plane, height, width, 1, before, &mut rows);
+                    blur_axis(&rows, 1, height, out_w, before, out);
+                });
+        }
+        from_values(out, vec![batch, channels, out_h, out_w])
+    }
+
+    fn haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        assert!(
+            height % 2 == 0 && width % 2 == 0,
+            "Haar analysis of even sizes"
+        );
+        let (h, w) = (height / 2, width / 2);
+        let x = host_f32(&x);
+        let mut out = vec![0.0f32; x.len()];
+        if h * w > 0 {
+            // One input plane → its four sub-band planes, which are contiguous.
+            out.par_chunks_mut(4 * h * w)
+                .zip(x.par_chunks(4 * h * w))
+                .for_each(|(bands, plane)| {
+                    let (ll, rest) = bands.split_at_mut(h * w);
+                    let (lh, rest) = rest.split_at_mut(h * w);
+                    let (hl, hh) = rest.split_at_mut(h * w);
+                    for i in 0..h {
+                        let (top, bottom) =
+                            (&plane[2 * i * width..], &plane[(2 * i + 1) * width..]);
+                        for j in 0..w {
+                            let (p, q) = (top[2 * j], top[2 * j + 1]);
+                            let (r, s) = (bottom[2 * j], bottom[2 * j + 1]);
+                            let o = i * w + j;
+                            ll[o] = 0.5 * (p + q + r + s);
+                            lh[o] = 0.5 * (p + q - r - s);
+                            hl[o] = 0.5 * (p - q + r - s);
+                            hh[o] = 0.5 * (p - q - r + s);
+                        }
+                    }
+                });
+        }
+        from_values(out, vec![batch, 4 * channels, h, w])
+    }
+
+    fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels4, h, w] = dims(&x);
+        assert!(
+            channels4 % 4 == 0,
+            "Haar synthesis of four sub-bands per channel"
+        );
+        let x = host_f32(&x);
+        let mut out = vec![0.0f32; x.len()];
+        if h * w > 0 {
+            out.par_chunks_mut(4 * h * w)
+                .zip(x.par_chunks(4 * h * w))
+                .for_each(|(plane, bands)| {
+                    let (ll, rest) = bands.split_at(h * w);
+                    let (lh, rest) = rest.split_at(h * w);
+                    let (hl, hh) = rest.split_at(h * w);
+                    for i in 0..h {
+                        let (top, bottom) =
+                            plane[2 * i * 2 * w..(2 * i + 2) * 2 * w].split_at_mut(2 * w);
+                        for j in 0..w {
+                            let o = i * w + j;
+                            let (a, b, c, d) = (ll[o], lh[o], hl[o], hh[o]);
+                            top[2 * j] = 0.5 * (a + b + c + d);
+                            top[2 * j + 1] = 0.5 * (a + b - c - d);
+                            bottom[2 * j] = 0.5 * (a - b + c - d);
+                            bottom[2 * j + 1] = 0.5 * (a - b - c + d);
+                        }
+                    }
+                });
+        }
+        from_values(out, vec![batch, channels4 / 4, 2 * h, 2 * w])
+    }
+}
+
+fn dims(t: &FloatTensor<Flex>) -> [usize; 4] {
+    t.shape().dims()
+}
+
+/// Bilinear ×2 along one axis of `lines` blocks of `n` samples, each sample `inner` contiguous
+/// values (`inner` = 1: along rows; the row length: along columns): output sample `2i` is
+/// `¾ x[i] + ¼ x[i − 1]`, `2i + 1` is `¾ x[i] + ¼ x[i + 1]`, the edge sample repeated.
+fn upsample_axis(x: &[f32], lines: usize, n: usize, inner: usize, out: &mut [f32]) {
+    for line in 0..lines {
+        let source = &x[line * n * inner..(line + 1) * n * inner];
+        let target = &mut out[2 * line * n * inner..2 * (line + 1) * n * inner];
+        let sample = |i: usize| &source[i * inner..(i + 1) * inner];
+        for i in 0..n {
+            let (centre, previous, next) = (sample(i), sample(i.saturating_sub(1)), {
+                sample((i + 1).min(n - 1))
+            });
+            let (even, odd) = target[2 * i * inner..(2 * i + 2) * inner].split_at_mut(inner);
+            for t in 0..inner {
+                even[t] = 0.75 * centre[t] + 0.25 * previous[t];
+                odd[t] = 0.75 * centre[t] + 0.25 * next[t];
+            }
+        }
+    }
+}
+
+/// The adjoint of [`upsample_axis`]: `grad` has `2n` samples per line, `dx` gets `n`.
+fn upsample_axis_adjoint(grad: &[f32], lines: usize, n: usize, inner: usize, dx: &mut [f32]) {
+    for line in 0..lines {
+        let source = &grad[2 * line * n * inner..2 * (line + 1) * n * inner];
+        let target = &mut dx[line * n * inner..(line + 1) * n * inner];
+        target.fill(0.0);
+        for i in 0..n {
+            let even = &source[2 * i * inner..(2 * i + 1) * inner];
+            let odd = &source[(2 * i + 1) * inner..(2 * i + 2) * inner];
+            let (previous, next) = (i.saturating_sub(1), (i + 1).min(n - 1));
+            for t in 0..inner {
+                target[i * inner + t] += 0.75 * (even[t] + odd[t]);
+                target[previous * inner + t] += 0.25 * even[t];
+                target[next * inner + t] += 0.25 * odd[t];
+            }
+        }
+    }
+}
+
+/// The `[1, 3, 3, 1] / 8` filter along one axis of `lines` blocks of `n` samples (each `inner`
+/// contiguous values), zero-padded by `before` (and by `after`, implied by `out`'s length):
+/// `out[o] = Σ_k taps[k] · x[o + k − before]`.
+fn blur_axis(x: &[f32], lines: usize, n: usize, inner: usize, before: usize, out: &mut [f32]) {
+    let out_n = out.len() / (lines * inner).max(1);
+    for line in 0..lines {
+        let source = &x[line * n * inner..(line + 1) * n * inner];
+        let target = &mut out[line * out_n * inner..(line + 1) * out_n * inner];
+        target.fill(0.0);
+        for o in 0..out_n {
+            let value = &mut target[o * inner..(o + 1) * inner];
+            for (k, tap) in TAPS.iter().enumerate() {
+                let Some(i) = (o + k).checked_sub(before).filter(|&i| i < n) else {
+                    continue;
+                };
+                for (v, s) in value.iter_mut().zip(&source[i * inner..(i + 1) * inner]) {
+                    *v += tap * s;
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,196 @@
+//! The CPU's fused element-wise ops (`f3g_nets::fused`) against the tensor-op formulation other
+//! devices run (`layers::portable`): outputs and gradients within float tolerance for the shapes
+//! and paddings the networks use and for edge sizes; each hand-written backward against central
+//! differences.
+
+mod common;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use common::ramp;
+use f3g_nets::fused;
+use f3g_nets::layers::portable;
+
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_into_vec::<f32>().unwrap()
+}
+
+fn assert_close(got: &[f32], expected: &[f32], what: &str) {
+    assert_eq!(got.len(), expected.len(), "{what}: lengths");
+    for (i, (g, e)) in got.iter().zip(expected).enumerate() {
+        assert!(
+            (g - e).abs() <= 1e-5 * (1.0 + e.abs()),
+            "{what}[{i}]: {g}, the tensor ops give {e}"
+        );
+    }
+}
+
+/// Weights for `sum(op(x) · r)`, so that every output has its own gradient.
+fn weights(shape: [usize; 4], device: &Device) -> Tensor<4> {
+    let n: usize = shape.iter().product();
+    let v: Vec<f32> = (0..n).map(|i| ((i * 31) % 13) as f32 - 6.0).collect();
+    Tensor::from_data(TensorData::new(v, shape), device)
+}
+
+/// Output and input gradient of `op` on `x`.
+fn output_and_grad(op: &dyn Fn(Tensor<4>) -> Tensor<4>, x: Tensor<4>) -> [Vec<f32>; 2] {
+    let x = x.require_grad();
+    let y = op(x.clone());
+    let r = weights(y.dims(), &x.device());
+    let grads = (y.clone() * r).sum().backward();
+    [values(y), values(x.grad(&grads).unwrap())]
+}
+
+fn bias(channels: usize, device: &Device) -> Tensor<1> {
+    let v = (0..channels).map(|c| 0.3 - 0.17 * c as f32).collect();
+    Tensor::from_data(TensorData::new(v, [channels]), device)
+}
+
+#[test]
+fn bias_leaky_relu_matches_the_tensor_ops() {
+    let device = Device::flex().autodiff();
+    for shape in [[1, 3, 5, 7], [2, 4, 1, 1], [2, 32, 16, 16]] {
+        let run = |op: fn(Tensor<4>, Tensor<1>) -> Tensor<4>| {
+            let b = bias(shape[1], &device).require_grad();
+            let x = ramp(shape, &device).require_grad();
+            let y = op(x.clone(), b.clone());
+            let grads = (y.clone() * weights(shape, &device)).sum().backward();
+            [
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(b.grad(&grads).unwrap()),
+            ]
+        };
+        let ours = run(fused::bias_leaky_relu);
+        let theirs = run(portable::fused_lrelu);
+        for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "db"]) {
+            assert_close(got, expected, &format!("{what} of {shape:?}"));
+        }
+    }
+}
+
+#[test]
+fn upsample2_matches_the_tensor_ops() {
+    let device = Device::flex().autodiff();
+    for shape in [[1, 1, 1, 1], [2, 3, 1, 4], [1, 2, 5, 3], [1, 12, 16, 16]] {
+        let ours = output_and_grad(&fused::upsample2, ramp(shape, &device));
+        let theirs = output_and_grad(&portable::upsample2, ramp(shape, &device));
+        assert_close(&ours[0], &theirs[0], &format!("y of {shape:?}"));
+        assert_close(&ours[1], &theirs[1], &format!("dx of {shape:?}"));
+    }
+}
+
+#[test]
+fn blur_matches_the_tensor_ops_for_every_padding() {
+    let device = Device::flex().autodiff();
+    for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {
+        for (before, after) in [(2, 2), (2, 1), (1, 2), (3, 0), (0, 3), (3, 3), (1, 1)] {
+            if shape[2] + before + after < 4 || shape[3] + before + after < 4 {
+                continue;
+            }
+            let ours = output_and_grad(&|x| fused::blur(x, before, after), ramp(shape, &device));
+            let theirs =
+                output_and_grad(&|x| portable::blur(x, before, after), ramp(shape, &device));
+            let what = format!("{shape:?} padded ({before}, {after})");
+            assert_close(&ours[0], &theirs[0], &format!("y of {what}"));
+            assert_close(&ours[1], &theirs[1], &format!("dx of {what}"));
+        }
+    }
+}
+
+#[test]
+fn haar_and_its_inverse_match_the_tensor_ops() {
+    let device = Device::flex().autodiff();
+    for shape in [[1, 1, 2, 2], [2, 3, 4, 6], [1, 3, 16, 16]] {
+        let ours = output_and_grad(&fused::haar, ramp(shape, &device));
+        let theirs = output_and_grad(&portable::haar, ramp(shape, &device));
+        assert_close(&ours[0], &theirs[0], &format!("haar y of {shape:?}"));
+        assert_close(&ours[1], &theirs[1], &format!("haar dx of {shape:?}"));
+        let bands = [shape[0], 4 * shape[1], shape[2] / 2, shape[3] / 2];
+        let ours = output_and_grad(&fused::inverse_haar, ramp(bands, &device));
+        let theirs = output_and_grad(&portable::inverse_haar, ramp(bands, &device));
+        assert_close(&ours[0], &theirs[0], &format!("inverse y of {bands:?}"));
+        assert_close(&ours[1], &theirs[1], &format!("inverse dx of {bands:?}"));
+    }
+}
+
+/// The analytic gradient of `loss` at `x0` against central differences of step `eps`, element
+/// by element.
+fn check_central_differences(
+    loss: &dyn Fn(Tensor<4>) -> Tensor<1>,
+    x0: Tensor<4>,
+    eps: f32,
+    what: &str,
+) {
+    let device = x0.device();
+    let x = x0.clone().require_grad();
+    let analytic = values(x.grad(&loss(x.clone()).backward()).unwrap());
+    let base = values(x0.clone());
+    for (i, &a) in analytic.iter().enumerate() {
+        let at = |delta: f32| {
+            let mut v = base.clone();
+            v[i] += delta;
+            let x = Tensor::<4>::from_data(TensorData::new(v, x0.dims()), &device);
+            f64::from(loss(x).into_scalar::<f32>())
+        };
+        let numeric = ((at(eps) - at(-eps)) / (2.0 * f64::from(eps))) as f32;
+        assert!(
+            (a - numeric).abs() <= 2e-3 * (1.0 + numeric.abs()),
+            "{what}[{i}]: {a}, central differences give {numeric}"
+        );
+    }
+}
+
+#[test]
+fn every_backward_matches_central_differences() {
+    let device = Device::flex().autodiff();
+    // A loss that is not linear in the output, so that the gradient depends on where it is taken.
+    let squared = |y: Tensor<4>| {
+        let r = weights(y.dims(), &y.device()) * 0.1 + 0.05;
+        (y.clone() * y * r).sum()
+    };
+    let x0 = ramp([2, 3, 4, 5], &device);
+    // Pre-activations stay away from leaky ReLU's kink at zero: ramp values are odd multiples
+    // of 1/194 and the bias whole multiples of 1/97, so every x + b is at least 1/194 from
+    // zero, beyond the step.
+    let kink_free = 4e-3;
+    let b = Tensor::<1>::from_data(
+        TensorData::new(vec![29.0 / 97.0, 0.0, -13.0 / 97.0], [3]),
+        &device,
+    );
+    check_central_differences(
+        &|x| squared(fused::bias_leaky_relu(x, b.clone())),
+        x0.clone(),
+        kink_free,
+        "dx of bias_leaky_relu",
+    );
+    let bias_loss = |b: Tensor<4>| squared(fused::bias_leaky_relu(x0.clone(), b.reshape([3])));
+    check_central_differences(
+        &bias_loss,
+        b.reshape([1, 3, 1, 1]),
+        kink_free,
+        "db of bias_leaky_relu",
+    );
+    check_central_differences(
+        &|x| squared(fused::upsample2(x)),
+        x0.clone(),
+        1e-2,
+        "upsample2",
+    );
+    let even = ramp([2, 3, 4, 6], &device);
+    check_central_differences(&|x| squared(fused::haar(x)), even, 1e-2, "haar");
+    let bands = ramp([1, 8, 2, 3], &device);
+    check_central_differences(
+        &|x| squared(fused::inverse_haar(x)),
+        bands,
+        1e-2,
+        "inverse_haar",
+    );
+    for (before, after) in [(2, 2), (3, 0), (1, 3)] {
+        check_central_differences(
+            &|x| squared(fused::blur(x, before, after)),
+            x0.clone(),
+            1e-2,
+            &format!("blur ({before}, {after})"),
+        );
+    }
+}
