@@ -236,15 +236,37 @@ fn upsample_axis_adjoint(grad: &[f32], lines: usize, n: usize, inner: usize, dx:
 
 /// The `[1, 3, 3, 1] / 8` filter along one axis of `lines` blocks of `n` samples (each `inner`
 /// contiguous values), zero-padded by `before` (and by `after`, implied by `out`'s length):
-/// `out[o] = Σ_k taps[k] · x[o + k − before]`.
+/// `out[o] = Σ_k taps[k] · x[o + k − before]`. Outputs whose four taps all fall inside form one
+/// contiguous span in `out` and in each shifted `x`, summed as four zipped slices (which
+/// vectorise whatever `inner` is); the at most three outputs at each end check their taps.
 fn blur_axis(x: &[f32], lines: usize, n: usize, inner: usize, before: usize, out: &mut [f32]) {
     let out_n = out.len() / (lines * inner).max(1);
+    // Outputs o with 0 ≤ o − before and o + 3 − before < n.
+    let interior = before.min(out_n)
+        ..(n + before)
+            .saturating_sub(3)
+            .clamp(before.min(out_n), out_n);
     for line in 0..lines {
         let source = &x[line * n * inner..(line + 1) * n * inner];
         let target = &mut out[line * out_n * inner..(line + 1) * out_n * inner];
-        target.fill(0.0);
-        for o in 0..out_n {
+        let span = interior.len() * inner;
+        if span > 0 {
+            let start = (interior.start - before) * inner;
+            let shifted = |k: usize| &source[start + k * inner..start + k * inner + span];
+            let [t0, t1, t2, t3] = TAPS;
+            let values = target[interior.start * inner..interior.end * inner].iter_mut();
+            for ((((v, a), b), c), d) in values
+                .zip(shifted(0))
+                .zip(shifted(1))
+                .zip(shifted(2))
+                .zip(shifted(3))
+            {
+                *v = t0 * a + t1 * b + t2 * c + t3 * d;
+            }
+        }
+        for o in (0..interior.start).chain(interior.end..out_n) {
             let value = &mut target[o * inner..(o + 1) * inner];
+            value.fill(0.0);
             for (k, tap) in TAPS.iter().enumerate() {
                 let Some(i) = (o + k).checked_sub(before).filter(|&i| i < n) else {
                     continue;
