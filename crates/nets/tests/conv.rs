@@ -3,6 +3,7 @@
 //! the cases that take Burn's route (groups); its weight gradient against central differences;
 //! and a frozen weight gets no weight-gradient computation.
 
+mod central_differences;
 mod common;
 
 use std::sync::Mutex;
@@ -10,15 +11,12 @@ use std::sync::Mutex;
 use burn::tensor::module::conv2d as burn_conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Device, Tensor, TensorData};
+use central_differences::values;
 use common::ramp;
 use f3g_nets::conv::{conv2d, profile};
 
 /// The profile is process-wide: tests that convolve on the CPU take turns.
 static CPU: Mutex<()> = Mutex::new(());
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec::<f32>().unwrap()
-}
 
 fn assert_close(got: &[f32], expected: &[f32], what: &str) {
     assert_eq!(got.len(), expected.len(), "{what}: lengths");
@@ -125,28 +123,6 @@ fn grouped_convolutions_take_burns_route_and_match() {
     );
 }
 
-/// The analytic gradient of `loss` at `v0` against central differences, element by element.
-fn check_central_differences(loss: &dyn Fn(Tensor<4>) -> Tensor<1>, v0: Tensor<4>, what: &str) {
-    let device = v0.device();
-    let v = v0.clone().require_grad();
-    let analytic = values(v.grad(&loss(v.clone()).backward()).unwrap());
-    let base = values(v0.clone());
-    let eps = 1e-2f32;
-    for (i, &a) in analytic.iter().enumerate() {
-        let at = |delta: f32| {
-            let mut shifted = base.clone();
-            shifted[i] += delta;
-            let v = Tensor::<4>::from_data(TensorData::new(shifted, v0.dims()), &device);
-            f64::from(loss(v).into_scalar::<f32>())
-        };
-        let numeric = ((at(eps) - at(-eps)) / (2.0 * f64::from(eps))) as f32;
-        assert!(
-            (a - numeric).abs() <= 2e-3 * (1.0 + numeric.abs()),
-            "{what}[{i}]: {a}, central differences give {numeric}"
-        );
-    }
-}
-
 #[test]
 fn both_gradients_match_central_differences() {
     let _turn = CPU.lock().unwrap_or_else(|e| e.into_inner());
@@ -164,8 +140,18 @@ fn both_gradients_match_central_differences() {
             (y.clone() * y * r).sum()
         };
         let what = format!("stride {:?}", options.stride);
-        check_central_differences(&|w| loss(x0.clone(), w), w0.clone(), &format!("dW, {what}"));
-        check_central_differences(&|x| loss(x, w0.clone()), x0.clone(), &format!("dx, {what}"));
+        central_differences::check(
+            &|w| loss(x0.clone(), w),
+            w0.clone(),
+            1e-2,
+            &format!("dW, {what}"),
+        );
+        central_differences::check(
+            &|x| loss(x, w0.clone()),
+            x0.clone(),
+            1e-2,
+            &format!("dx, {what}"),
+        );
     }
 }
 

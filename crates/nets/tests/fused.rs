@@ -3,16 +3,14 @@
 //! and paddings the networks use and for edge sizes; each hand-written backward against central
 //! differences.
 
+mod central_differences;
 mod common;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use central_differences::values;
 use common::ramp;
 use f3g_nets::fused;
 use f3g_nets::layers::portable;
-
-fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec::<f32>().unwrap()
-}
 
 fn assert_close(got: &[f32], expected: &[f32], what: &str) {
     assert_eq!(got.len(), expected.len(), "{what}: lengths");
@@ -113,33 +111,6 @@ fn haar_and_its_inverse_match_the_tensor_ops() {
     }
 }
 
-/// The analytic gradient of `loss` at `x0` against central differences of step `eps`, element
-/// by element.
-fn check_central_differences(
-    loss: &dyn Fn(Tensor<4>) -> Tensor<1>,
-    x0: Tensor<4>,
-    eps: f32,
-    what: &str,
-) {
-    let device = x0.device();
-    let x = x0.clone().require_grad();
-    let analytic = values(x.grad(&loss(x.clone()).backward()).unwrap());
-    let base = values(x0.clone());
-    for (i, &a) in analytic.iter().enumerate() {
-        let at = |delta: f32| {
-            let mut v = base.clone();
-            v[i] += delta;
-            let x = Tensor::<4>::from_data(TensorData::new(v, x0.dims()), &device);
-            f64::from(loss(x).into_scalar::<f32>())
-        };
-        let numeric = ((at(eps) - at(-eps)) / (2.0 * f64::from(eps))) as f32;
-        assert!(
-            (a - numeric).abs() <= 2e-3 * (1.0 + numeric.abs()),
-            "{what}[{i}]: {a}, central differences give {numeric}"
-        );
-    }
-}
-
 #[test]
 fn every_backward_matches_central_differences() {
     let device = Device::flex().autodiff();
@@ -157,36 +128,36 @@ fn every_backward_matches_central_differences() {
         TensorData::new(vec![29.0 / 97.0, 0.0, -13.0 / 97.0], [3]),
         &device,
     );
-    check_central_differences(
+    central_differences::check(
         &|x| squared(fused::bias_leaky_relu(x, b.clone())),
         x0.clone(),
         kink_free,
         "dx of bias_leaky_relu",
     );
     let bias_loss = |b: Tensor<4>| squared(fused::bias_leaky_relu(x0.clone(), b.reshape([3])));
-    check_central_differences(
+    central_differences::check(
         &bias_loss,
         b.reshape([1, 3, 1, 1]),
         kink_free,
         "db of bias_leaky_relu",
     );
-    check_central_differences(
+    central_differences::check(
         &|x| squared(fused::upsample2(x)),
         x0.clone(),
         1e-2,
         "upsample2",
     );
     let even = ramp([2, 3, 4, 6], &device);
-    check_central_differences(&|x| squared(fused::haar(x)), even, 1e-2, "haar");
+    central_differences::check(&|x| squared(fused::haar(x)), even, 1e-2, "haar");
     let bands = ramp([1, 8, 2, 3], &device);
-    check_central_differences(
+    central_differences::check(
         &|x| squared(fused::inverse_haar(x)),
         bands,
         1e-2,
         "inverse_haar",
     );
     for (before, after) in [(2, 2), (3, 0), (1, 3)] {
-        check_central_differences(
+        central_differences::check(
             &|x| squared(fused::blur(x, before, after)),
             x0.clone(),
             1e-2,

@@ -100,6 +100,17 @@ fn gemm_geometry(
     Geometry::new(input, weight, options.clone())
 }
 
+/// [`gemm_geometry`] of a gradient, whose output gradient must have the output's shape.
+fn gradient_geometry(
+    x: &FloatTensor<Flex>,
+    weight: &FloatTensor<Flex>,
+    grad: &FloatTensor<Flex>,
+    options: &ConvOptions<2>,
+) -> Option<Geometry> {
+    gemm_geometry(&[x, weight, grad], dims(x), dims(weight), options)
+        .filter(|geometry| geometry.output == dims(grad))
+}
+
 /// [`forward`] on tensors.
 fn forward_tensor(
     x: FloatTensor<Flex>,
@@ -123,9 +134,7 @@ fn input_grad_tensor(
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
     let weight_shape = dims(&weight);
-    let geometry = gemm_geometry(&[&x, &weight, &grad], dims(&x), weight_shape, &options)
-        .filter(|geometry| geometry.output == dims(&grad));
-    let Some(geometry) = geometry else {
+    let Some(geometry) = gradient_geometry(&x, &weight, &grad, &options) else {
         return Flex::conv2d_x_backward(x, weight, grad, options);
     };
     let values = match geometry.input_grad_as_forward() {
@@ -147,9 +156,7 @@ fn weight_grad_tensor(
     options: ConvOptions<2>,
 ) -> FloatTensor<Flex> {
     let weight_shape = dims(&weight);
-    let geometry = gemm_geometry(&[&x, &weight, &grad], dims(&x), weight_shape, &options)
-        .filter(|geometry| geometry.output == dims(&grad));
-    let Some(geometry) = geometry else {
+    let Some(geometry) = gradient_geometry(&x, &weight, &grad, &options) else {
         return Flex::conv2d_weight_backward(x, weight, grad, options);
     };
     from_values(
