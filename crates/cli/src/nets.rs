@@ -1,6 +1,7 @@
 //! `f3g metrics`, `f3g weights` and `f3g bench nets`: image metrics, fetching the LPIPS VGG
 //! weights, and timing the networks.
 
+use std::cell::Cell;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
@@ -353,65 +354,75 @@ fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
     Tensor::from_data(TensorData::new(v, shape), device)
 }
 
-/// Times a scalar loss built by `f` on `device` (forward) and on its autodiff twin (forward +
-/// backward). `f` receives the device and builds its inputs; networks are built once per device
-/// beforehand by `build`. The first repetition (kernel compilation, autotuning) is not counted,
-/// and each timing ends when the device has finished (`sync`), not when the work is queued.
-/// `on_gpu` prints every repetition (on a GPU the first one compiles and autotunes the
-/// kernels, which can take minutes) and counts the kernels the first one launches; `profile`
-/// records the convolutions of the timed forward+backward repetitions.
-fn time_loss<N>(
+/// How every network of one `bench nets` run is timed.
+struct Timing<'a> {
     repeats: usize,
-    device: &Device,
+    device: &'a Device,
     on_gpu: bool,
     profile: bool,
-    build: impl Fn(&Device) -> N,
-    f: impl Fn(&N, &Device) -> Tensor<1>,
-) -> Result<Timed> {
-    let plain = device.clone();
-    let train = device.clone().autodiff();
-    let (net_plain, net_train) = (build(&plain), build(&train));
-    let mut fwd = Vec::new();
-    let mut both = Vec::new();
-    let (mut first_ms, mut first_kernels) = (0.0, None);
-    let mut records = Vec::new();
-    for rep in 0..=repeats {
-        let counting = kernel_count::start(on_gpu && rep == 0);
-        let start = Instant::now();
-        std::hint::black_box(f(&net_plain, &plain).into_scalar::<f32>());
-        let t_fwd = start.elapsed().as_secs_f64() * 1e3;
-        let profiling = profile && rep > 0;
-        if profiling {
-            conv_profile::start();
+}
+
+impl Timing<'_> {
+    /// Times a scalar loss built by `f` on the device (forward) and on its autodiff twin
+    /// (forward + backward). `f` receives the device and builds its inputs; networks are built
+    /// once per device beforehand by `build`. The first repetition (kernel compilation,
+    /// autotuning) is not counted, and each timing ends when the device has finished (`sync`),
+    /// not when the work is queued. On a GPU every repetition is printed (the first one compiles
+    /// and autotunes the kernels, which can take minutes) and the kernels the first one launches
+    /// are counted; `profile` records the convolutions of the timed forward+backward
+    /// repetitions.
+    fn time_loss<N>(
+        &self,
+        build: impl Fn(&Device) -> N,
+        f: impl Fn(&N, &Device) -> Tensor<1>,
+    ) -> Result<Timed> {
+        let plain = self.device.clone();
+        let train = self.device.clone().autodiff();
+        let (net_plain, net_train) = (build(&plain), build(&train));
+        let mut fwd = Vec::new();
+        let mut both = Vec::new();
+        let (mut first_ms, mut first_kernels) = (0.0, None);
+        let mut records = Vec::new();
+        for rep in 0..=self.repeats {
+            let counting = kernel_count::start(self.on_gpu && rep == 0);
+            let start = Instant::now();
+            std::hint::black_box(f(&net_plain, &plain).into_scalar::<f32>());
+            let t_fwd = start.elapsed().as_secs_f64() * 1e3;
+            let profiling = self.profile && rep > 0;
+            if profiling {
+                conv_profile::start();
+            }
+            let start = Instant::now();
+            std::hint::black_box(f(&net_train, &train).backward());
+            train
+                .sync()
+                .map_err(|e| anyhow::anyhow!("running on {:?}: {e:?}", self.device))?;
+            let t_both = start.elapsed().as_secs_f64() * 1e3;
+            if profiling {
+                records.extend(conv_profile::finish());
+            }
+            if self.on_gpu {
+                eprintln!("    repetition {rep}: {t_fwd:.1} / {t_both:.1} ms");
+            }
+            if rep > 0 {
+                fwd.push(t_fwd);
+                both.push(t_both);
+            } else {
+                first_ms = t_fwd + t_both;
+                first_kernels = counting.map(kernel_count::finish);
+            }
         }
-        let start = Instant::now();
-        std::hint::black_box(f(&net_train, &train).backward());
-        train
-            .sync()
-            .map_err(|e| anyhow::anyhow!("running on {device:?}: {e:?}"))?;
-        let t_both = start.elapsed().as_secs_f64() * 1e3;
-        if profiling {
-            records.extend(conv_profile::finish());
-        }
-        if on_gpu {
-            eprintln!("    repetition {rep}: {t_fwd:.1} / {t_both:.1} ms");
-        }
-        if rep > 0 {
-            fwd.push(t_fwd);
-            both.push(t_both);
-        } else {
-            first_ms = t_fwd + t_both;
-            first_kernels = counting.map(kernel_count::finish);
-        }
+        let mean_both = both.iter().sum::<f64>() / self.repeats as f64;
+        Ok(Timed {
+            forward_ms: median(fwd),
+            forward_backward_ms: median(both),
+            first_ms,
+            first_kernels,
+            profile: self
+                .profile
+                .then(|| Profile::new(&records, self.repeats, mean_both)),
+        })
     }
-    let mean_both = both.iter().sum::<f64>() / repeats as f64;
-    Ok(Timed {
-        forward_ms: median(fwd),
-        forward_backward_ms: median(both),
-        first_ms,
-        first_kernels,
-        profile: profile.then(|| Profile::new(&records, repeats, mean_both)),
-    })
 }
 
 pub fn bench(a: &NetsBenchArgs) -> Result<()> {
@@ -422,10 +433,21 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         !(a.profile && on_gpu),
         "--profile splits the CPU's time; a GPU queues its work, so it cannot be timed per call"
     );
+    let timing = Timing {
+        repeats: a.repeats,
+        device: &device,
+        on_gpu,
+        profile: a.profile,
+    };
+    // Whether `--only` matched a network, timed or not (LPIPS without its weights is not).
+    let matched = Cell::new(false);
     let wanted = |name: &str| {
-        a.only
+        let wanted = a
+            .only
             .as_ref()
-            .is_none_or(|only| name.to_lowercase().contains(&only.to_lowercase()))
+            .is_none_or(|only| name.to_lowercase().contains(&only.to_lowercase()));
+        matched.set(matched.get() || wanted);
+        wanted
     };
     eprintln!(
         "timing on {} (the first repetition of each network is not counted)",
@@ -458,11 +480,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             continue;
         }
         let parameters = config.init(0, &Device::flex())?.num_params();
-        let timed = time_loss(
-            a.repeats,
-            &device,
-            on_gpu,
-            a.profile,
+        let timed = timing.time_loss(
             |device| config.init(0, device).expect("valid preset"),
             |net, device| {
                 let view = config
@@ -493,11 +511,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
             println!("LPIPS {net}: not timed ({e})");
             continue;
         }
-        let timed = time_loss(
-            a.repeats,
-            &device,
-            on_gpu,
-            a.profile,
+        let timed = timing.time_loss(
             |device| Lpips::load(net, device).expect("loaded above"),
             |lpips, device| {
                 let mut x = ramp([1, 3, size, size], device);
@@ -523,11 +537,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
     let r = disc.resolution;
     let name = format!("discriminator cpu {r}²");
     if wanted(&name) {
-        let timed = time_loss(
-            a.repeats,
-            &device,
-            on_gpu,
-            a.profile,
+        let timed = timing.time_loss(
             |device| disc.init(0, device).expect("valid"),
             |d, device| {
                 d.forward(ramp([1, 3, r, r], device))
@@ -545,7 +555,7 @@ pub fn bench(a: &NetsBenchArgs) -> Result<()> {
         );
     }
     ensure!(
-        !rows.is_empty(),
+        matched.get(),
         "--only {:?} matches no network",
         a.only.as_deref().unwrap_or_default()
     );

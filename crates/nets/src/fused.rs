@@ -7,7 +7,7 @@
 //! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel. Other devices keep the tensor-op formulation in
-//! [`crate::layers`] (the extension is listed for `Flex` only; [`on_flex`] routes).
+//! [`crate::layers::portable`] (the extension is listed for `Flex` only; [`on_flex`] routes).
 //!
 //! Layouts: `[B, C, H, W]` row-major; `bias` `[C]`.
 

@@ -92,7 +92,7 @@ pub fn resize(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
     if [height, width] == [2 * h, 2 * w] {
         return upsample2(x);
     }
-    if x.device().without_autodiff() != Device::flex() {
+    if !fused::on_flex(&x) {
         return resize_separable(x, height, width);
     }
     let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
