@@ -7,7 +7,8 @@
 //!   square with white and resized to `lpips_size`;
 //! - **head**: the square around the projected head vertices of the frame's posed body model
 //!   (padding as in training), cut from the full-resolution image and resized to
-//!   `face_size`, and the avatar rendered with that crop's camera; PSNR, SSIM, LPIPS on it;
+//!   `face_size` (default [`DEFAULT_FACE_SIZE`]; shrinking averages each pixel's footprint),
+//!   and the avatar rendered with that crop's camera; PSNR, SSIM, LPIPS on it;
 //! - novel poses go through the pose PCA (clamped coefficients) as in Animatable Gaussians.
 //!
 //! Renders and ground truths are rounded to 8 bits and written as PNG (`images/`: the body
@@ -34,6 +35,10 @@ use f3g_nets::{Lpips, LpipsNet};
 use f3g_rig::RigParams;
 use f3g_splat::Camera;
 
+/// Side of the head crops unless asked otherwise: the paper's face resolution, cut from the
+/// full-resolution images whatever crop size the avatar was trained with, so runs trained at
+/// 128² and 256² are scored on the same pixels.
+pub const DEFAULT_FACE_SIZE: usize = 256;
 /// What to evaluate and how.
 #[derive(Clone, Debug)]
 pub struct EvalOptions {

@@ -98,7 +98,11 @@ impl Setup {
         )?;
         let maps = PositionMaps::build(&template, config.map_resolution, None)?;
         let head = if config.face_branch {
-            Some(HeadMaps::build(&maps, &rig.head_joints()?)?)
+            Some(HeadMaps::build(
+                &maps,
+                &rig.head_joints()?,
+                config.face_density,
+            )?)
         } else {
             None
         };

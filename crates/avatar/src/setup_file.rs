@@ -234,7 +234,7 @@ impl Setup {
             (true, true) => {
                 let m = count(&mut npz, "head_pixels")?;
                 let crop = npz.indices("head_crop", &[3], r + 1)?;
-                let size = npz.indices("head_size", &[1], 2 * r + 1)?[0];
+                let size = npz.indices("head_size", &[1], 4 * r + 1)?[0];
                 let sources = npz.i64("head_sources")?.1;
                 let source_weights = npz.f32_exact("head_source_weights", &[m, 4])?;
                 if sources.len() != 4 * m || sources.iter().any(|&b| b < -1 || b >= n as i64) {

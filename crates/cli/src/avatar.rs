@@ -273,13 +273,14 @@ pub struct EvalArgs {
     /// Evaluate every N-th frame.
     #[arg(long, default_value_t = 1)]
     pub every: usize,
-    /// Body images at this fraction of the capture's resolution, 0.01–4 (1: the paper's
-    /// protocol; smaller is faster on a CPU and not comparable with the paper).
+    /// Body images at this fraction of the capture's resolution, 0.01–4 (default: the run's
+    /// `body_scale`, 1 for an avatar file; 1 is the paper's protocol).
     #[arg(long, value_parser = crate::bounds::eval_scale)]
     pub scale: Option<f32>,
-    /// Side of the head crops, 32–2048 (default: the training face crop size).
-    #[arg(long, value_parser = crate::bounds::size::<32, 2048>)]
-    pub face_size: Option<usize>,
+    /// Side of the head crops, 32–2048, cut from the full-resolution images (default 256,
+    /// the paper's face resolution, whatever the training crops were).
+    #[arg(long, default_value_t = f3g_avatar::eval::DEFAULT_FACE_SIZE, value_parser = crate::bounds::size::<32, 2048>)]
+    pub face_size: usize,
     /// Side the body's LPIPS square is resized to, 32–2048 (512: the paper's protocol).
     #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<32, 2048>)]
     pub lpips_size: usize,
@@ -300,15 +301,15 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
     } else {
         None
     };
-    let (data, face_size, lpips_net, out) = match &baked {
-        Some(b) => (
+    let (data, scale, lpips_net, out) = match &baked {
+        Some(_) => (
             a.data.clone().with_context(|| {
                 format!(
                     "{}: an avatar file does not name its capture; give --data",
                     a.run.display()
                 )
             })?,
-            a.face_size.unwrap_or(b.face_crop_size),
+            a.scale.unwrap_or(1.0),
             a.lpips.unwrap_or(LpipsNet::Alex),
             a.out
                 .clone()
@@ -319,7 +320,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
             let info = f3g_avatar::run::Run::new(&a.run).info()?;
             (
                 a.data.clone().unwrap_or(info.data),
-                a.face_size.unwrap_or(config.model.face_crop_size),
+                a.scale.unwrap_or(config.body_scale),
                 a.lpips.unwrap_or(config.lpips_net),
                 a.out
                     .clone()
@@ -346,8 +347,8 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         cameras,
         frames,
         every: a.every,
-        scale: a.scale.unwrap_or(1.0),
-        face_size,
+        scale,
+        face_size: a.face_size,
         lpips_size: a.lpips_size,
         lpips_net,
         out: Some(out.clone()),

@@ -27,6 +27,9 @@ pub struct SynthArgs {
     /// Camera elevation, degrees.
     #[arg(long)]
     pub elevation: Option<f32>,
+    /// Samples per pixel along each axis, 1–4 (default 2: each pixel averages 2 × 2).
+    #[arg(long, value_parser = crate::bounds::size::<1, 4>)]
+    pub supersample: Option<usize>,
     /// Seed of the motion and the camera jitter.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -50,6 +53,7 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
     options.frames = a.frames.unwrap_or(options.frames);
     options.resolution = a.resolution.unwrap_or(options.resolution);
     options.elevation_deg = a.elevation.unwrap_or(options.elevation_deg);
+    options.supersample = a.supersample.unwrap_or(options.supersample);
     options.seed = a.seed;
     if f3g_data::synth::holds_capture(&a.out) {
         if !a.overwrite {

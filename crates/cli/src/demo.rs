@@ -20,14 +20,35 @@ pub struct CaptureAndTraining {
     /// Frames of the synthetic capture, 5–10000 (the last 20 % are novel poses).
     #[arg(long, default_value_t = 20, value_parser = crate::bounds::size::<5, 10_000>)]
     pub frames: usize,
-    /// Image height of the synthetic capture (64–4096).
-    #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<64, 4096>)]
+    /// Image height of the synthetic capture (64–4096). The default, AvatarReX's 2048, puts
+    /// the head at about 230 pixels for the face crops; the body is trained and evaluated at
+    /// `BODY_HEIGHT` pixels (`body_scale`, unless `--set body_scale=…` says otherwise).
+    #[arg(long, default_value_t = 2048, value_parser = crate::bounds::size::<64, 4096>)]
     pub resolution: usize,
     /// Override a training configuration key (repeatable), e.g. `--set steps.joint=50`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
     #[command(flatten)]
     pub device: DeviceArg,
+}
+
+/// Height in pixels of the body views the demo trains and evaluates on, whatever the
+/// capture's resolution: the networks' cost is set by the maps, but the body's render, its
+/// losses and the loader's images grow with the pixels.
+pub const BODY_HEIGHT: usize = 512;
+
+impl CaptureAndTraining {
+    /// The training overrides: a `body_scale` that shows the body at [`BODY_HEIGHT`] pixels
+    /// (unless `--set` gives one), then the `--set`s.
+    pub fn overrides(&self) -> Vec<String> {
+        let scale = (BODY_HEIGHT as f32 / self.resolution as f32).min(1.0);
+        let given = self.set.iter().any(|s| s.starts_with("body_scale="));
+        (!given)
+            .then(|| format!("body_scale={scale}"))
+            .into_iter()
+            .chain(self.set.iter().cloned())
+            .collect()
+    }
 }
 
 /// Options of `f3g demo`.
@@ -57,6 +78,9 @@ pub(crate) fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
         frames: Some(c.frames),
         resolution: Some(c.resolution),
         elevation: None,
+        // At 1024 pixels and above the head crops and the body views are cut down from the
+        // capture, which filters them: one sample per pixel halves the capture's time.
+        supersample: Some(if c.resolution >= 1024 { 1 } else { 2 }),
         seed: c.seed,
         preset: None,
         overwrite: false,
@@ -121,7 +145,7 @@ pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize, device: Devi
         frames: None,
         every,
         scale: None,
-        face_size: None,
+        face_size: f3g_avatar::eval::DEFAULT_FACE_SIZE,
         lpips_size: 512,
         lpips: None,
         out: None,
@@ -149,7 +173,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         &capture,
         preset,
         a.capture.seed,
-        &a.capture.set,
+        &a.capture.overrides(),
         device,
     )?;
     println!("3/5 evaluation");
@@ -321,4 +345,33 @@ the CPU in {minutes:.1} minutes.</p>
         ),
         config = config.replace('<', "&lt;"),
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        capture: CaptureAndTraining,
+    }
+
+    fn overrides(args: &[&str]) -> Vec<String> {
+        Cli::parse_from(std::iter::once("f3g").chain(args.iter().copied()))
+            .capture
+            .overrides()
+    }
+
+    #[test]
+    fn the_body_is_seen_at_the_body_height_unless_set() {
+        assert_eq!(overrides(&[]), ["body_scale=0.25"]);
+        assert_eq!(
+            overrides(&["--resolution", "1024", "--set", "steps.joint=5"]),
+            ["body_scale=0.5", "steps.joint=5"]
+        );
+        assert_eq!(overrides(&["--resolution", "300"]), ["body_scale=1"]);
+        assert_eq!(overrides(&["--set", "body_scale=0.5"]), ["body_scale=0.5"]);
+    }
 }

@@ -2,7 +2,8 @@
 //!
 //! Variants (one change each from the full method, same steps): the full method; the face-crop
 //! losses on the body Gaussians without the face networks; no face branch at all (body losses
-//! only); no adversarial loss. Each is trained with several seeds on one synthetic capture and
+//! only); no adversarial loss; and the paper's Table 4 — 128² head crops instead of 256², face
+//! networks of capacity (n_mlp, cm) = (2, 1) and (4, 2) beside the full method's (4, 1). Each is trained with several seeds on one synthetic capture and
 //! evaluated on novel views and novel poses; the report gives mean ± sample standard deviation
 //! over seeds and, for each part, the difference of means against the seed-to-seed spread.
 //!
@@ -11,7 +12,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use f3g_avatar::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
@@ -34,6 +35,14 @@ pub enum Variant {
     NoFaceBranch,
     /// The full method without the adversarial loss.
     NoAdversarial,
+    /// Head crops of 128² in training (and a 128² discriminator) instead of the preset's
+    /// 256²: the resolution rows of the paper's Table 4.
+    Crop128,
+    /// Face networks with n_mlp 2 instead of 4: capacity (n_mlp, cm) = (2, 1) of Table 4
+    /// (the full method is (4, 1)).
+    FaceMlp2,
+    /// Face networks with channel multiplier 2: capacity (4, 2) of Table 4.
+    FaceCm2,
 }
 
 impl Variant {
@@ -43,6 +52,9 @@ impl Variant {
             Self::FaceLossesOnly => "face-losses-only",
             Self::NoFaceBranch => "no-face-branch",
             Self::NoAdversarial => "no-adversarial",
+            Self::Crop128 => "crop-128",
+            Self::FaceMlp2 => "face-mlp-2",
+            Self::FaceCm2 => "face-cm-2",
         }
     }
 
@@ -52,6 +64,9 @@ impl Variant {
             Self::FaceLossesOnly => &["face_branch=false"],
             Self::NoFaceBranch => &["face_branch=false", "face_losses=false"],
             Self::NoAdversarial => &["adversarial=false"],
+            Self::Crop128 => &["face_crop_size=128", "discriminator.resolution=128"],
+            Self::FaceMlp2 => &["face_net.n_mlp=2"],
+            Self::FaceCm2 => &["face_net.channel_multiplier=2"],
         }
     }
 }
@@ -72,7 +87,7 @@ pub struct QualityArgs {
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "full,face-losses-only,no-face-branch,no-adversarial"
+        default_value = "full,face-losses-only,no-face-branch,no-adversarial,crop-128,face-mlp-2,face-cm-2"
     )]
     pub variants: Vec<Variant>,
     /// Evaluate every N-th frame of the novel-view split (novel poses: every frame).
@@ -143,11 +158,41 @@ struct VariantResult {
     seeds: Vec<u64>,
     novel_view: SplitStats,
     novel_pose: SplitStats,
+    /// Milliseconds per training step of the joint stage (body steps without the face
+    /// branch), the median of the log's step-to-step times, over seeds.
+    ms_per_step: Stat,
     /// Per-seed reports (paths to the runs and every image's numbers).
     runs: Vec<(EvalReport, EvalReport)>,
 }
 
-/// The evaluation of `split` in `run`, reused when it scored the run's final step.
+/// The median wall time in milliseconds between consecutive logged steps of the joint stage
+/// (of the body stage when there is no joint stage), so checkpoint and validation pauses do
+/// not count.
+fn ms_per_step(run: &Path) -> Result<f64> {
+    let path = run.join("log.jsonl");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let lines: Vec<(String, f64)> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| Some((v["stage"].as_str()?.to_string(), v["seconds"].as_f64()?)))
+        .collect();
+    for stage in ["joint", "body"] {
+        let mut steps: Vec<f64> = lines
+            .windows(2)
+            .filter(|w| w[0].0 == stage && w[1].0 == stage)
+            .map(|w| 1e3 * (w[1].1 - w[0].1))
+            .collect();
+        if !steps.is_empty() {
+            steps.sort_by(f64::total_cmp);
+            return Ok(steps[steps.len() / 2]);
+        }
+    }
+    anyhow::bail!("{}: no joint or body steps logged", path.display())
+}
+
+/// The evaluation of `split` in `run`, reused when it scored the run's final step with the
+/// default head crops.
 fn evaluation(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> Result<EvalReport> {
     let metrics = run
         .join("eval")
@@ -157,6 +202,7 @@ fn evaluation(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> 
     if let Ok(text) = std::fs::read_to_string(&metrics)
         && let Ok(report) = serde_json::from_str::<EvalReport>(&text)
         && report.step == total
+        && report.face_size == f3g_avatar::eval::DEFAULT_FACE_SIZE
     {
         println!("reusing {}", metrics.display());
         return Ok(report);
@@ -170,14 +216,15 @@ pub fn quality(a: &QualityArgs) -> Result<()> {
     ensure_capture(&capture, &a.capture)?;
     let mut results = Vec::new();
     for &variant in &a.variants {
-        let mut runs = Vec::new();
+        let (mut runs, mut ms) = (Vec::new(), Vec::new());
         for &seed in &a.seeds {
             let run = a.out.join(variant.name()).join(format!("seed-{seed}"));
-            let mut set = a.capture.set.clone();
+            let mut set = a.capture.overrides();
             set.extend(variant.overrides().iter().map(|s| s.to_string()));
             println!("training `{}` with seed {seed}", variant.name());
             let device = a.capture.device;
             train_or_resume(&run, &capture, "cpu", seed, &set, device)?;
+            ms.push(ms_per_step(&run)?);
             runs.push((
                 evaluation(&run, SplitKind::NovelView, a.every, device)?,
                 evaluation(&run, SplitKind::NovelPose, 1, device)?,
@@ -189,6 +236,7 @@ pub fn quality(a: &QualityArgs) -> Result<()> {
             seeds: a.seeds.clone(),
             novel_view: split_stats(&nv),
             novel_pose: split_stats(&np),
+            ms_per_step: stat(&ms),
             runs,
         });
     }
@@ -221,13 +269,13 @@ fn markdown(results: &[VariantResult], seeds: usize) -> String {
     ] {
         md += &format!(
             "\n### {title}\n\n| variant | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | \
-             head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n"
+             head SSIM ↑ | head LPIPS ↓ | ms / step |\n|---|---|---|---|---|---|---|---|\n"
         );
         for r in results {
             let s = pick(r);
             let l = |x: &Option<Stat>| x.as_ref().map_or("n/a".into(), |v| pm(v, 4));
             md += &format!(
-                "| {} | {} | {} | {} | {} | {} | {} |\n",
+                "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
                 r.variant.name(),
                 pm(&s.body.psnr, 2),
                 pm(&s.body.ssim, 4),
@@ -235,6 +283,7 @@ fn markdown(results: &[VariantResult], seeds: usize) -> String {
                 pm(&s.head.psnr, 2),
                 pm(&s.head.ssim, 4),
                 l(&s.head.lpips),
+                pm(&r.ms_per_step, 0),
             );
         }
     }
@@ -299,5 +348,41 @@ mod tests {
         let s = stat(&[1.0, 2.0, 3.0]);
         assert_eq!((s.mean, s.std), (2.0, 1.0));
         assert_eq!(stat(&[5.0]).std, 0.0);
+    }
+
+    #[test]
+    fn step_time_is_the_joint_stages_median_gap() {
+        let dir = tempfile::tempdir().unwrap();
+        let line = |stage: &str, seconds: f64| {
+            format!("{{\"stage\":\"{stage}\",\"seconds\":{seconds}}}\n")
+        };
+        // Body steps 1 s apart, joint steps 0.5 s apart with one 9-s checkpoint pause, and a
+        // partial last line.
+        let log: String = [
+            line("body", 1.0),
+            line("body", 2.0),
+            line("joint", 2.5),
+            line("joint", 3.0),
+            line("joint", 12.0),
+            line("joint", 12.5),
+            line("joint", 13.0),
+            "{\"stage\":\"jo".into(),
+        ]
+        .concat();
+        std::fs::write(dir.path().join("log.jsonl"), log).unwrap();
+        assert_eq!(ms_per_step(dir.path()).unwrap(), 500.0);
+        std::fs::write(
+            dir.path().join("log.jsonl"),
+            line("body", 1.0) + &line("body", 1.25),
+        )
+        .unwrap();
+        assert_eq!(ms_per_step(dir.path()).unwrap(), 250.0);
+        std::fs::write(dir.path().join("log.jsonl"), "").unwrap();
+        assert!(
+            ms_per_step(dir.path())
+                .unwrap_err()
+                .to_string()
+                .contains("log.jsonl")
+        );
     }
 }

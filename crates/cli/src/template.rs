@@ -275,7 +275,7 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
         1,
         maps.mask().iter().map(|&m| m as u8 as f32).collect(),
     )?;
-    let head = HeadMaps::build(&maps, &rig.head_joints()?)?;
+    let head = HeadMaps::build(&maps, &rig.head_joints()?, f3g_template::head::DENSIFY)?;
     let hs = head.size;
     save(
         &a.out.join("head.png"),

@@ -45,6 +45,17 @@ pub fn head_box(camera: &Camera, points: &[Vec3], padding: f32) -> Option<HeadBo
     })
 }
 
+/// The camera of the crop of `b` resampled to `size × size`.
+pub fn crop_camera(camera: &Camera, b: &HeadBox, size: usize) -> Camera {
+    camera.crop_resize(
+        b.x0 as f64,
+        b.y0 as f64,
+        size as f64 / b.side as f64,
+        size as u32,
+        size as u32,
+    )
+}
+
 /// Crops `image` to `b`, resampled to `size × size`, with its camera.
 pub fn crop_view(
     image: &Image,
@@ -53,14 +64,10 @@ pub fn crop_view(
     size: usize,
     fill: &[f32],
 ) -> (Image, Camera) {
-    let cam = camera.crop_resize(
-        b.x0 as f64,
-        b.y0 as f64,
-        size as f64 / b.side as f64,
-        size as u32,
-        size as u32,
-    );
-    (crop_resize(image, b.x0, b.y0, b.side, size, fill), cam)
+    (
+        crop_resize(image, b.x0, b.y0, b.side, size, fill),
+        crop_camera(camera, b, size),
+    )
 }
 
 #[cfg(test)]

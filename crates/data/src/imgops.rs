@@ -87,16 +87,33 @@ fn sample(img: &Image, x: f32, y: f32, fill: &[f32], out: &mut [f32]) {
 }
 
 /// A square crop: top-left `(x0, y0)` and side in source pixels, resampled to `size × size`
-/// (bilinear; `fill` outside the image). Use [`Camera::crop_resize`] with
-/// `scale = size / side` for its intrinsics.
+/// (`fill` outside the image). Use [`Camera::crop_resize`] with `scale = size / side` for its
+/// intrinsics.
+///
+/// Enlarging samples bilinearly at each output pixel's centre. Shrinking averages an `n × n`
+/// grid of bilinear samples spread over the output pixel's footprint (`n = ⌈side / size⌉`),
+/// so a 230-pixel head cut to 128² is filtered over its area instead of aliased.
 pub fn crop_resize(img: &Image, x0: f32, y0: f32, side: f32, size: usize, fill: &[f32]) -> Image {
     let scale = side / size as f32;
-    let mut out = Image::filled(size, size, img.channels, 0.0);
+    let n = scale.ceil().max(1.0) as usize;
+    let c = img.channels;
+    let mut out = Image::filled(size, size, c, 0.0);
+    let mut tap = vec![0.0; c];
     for j in 0..size {
         for i in 0..size {
-            let (x, y) = (x0 + (i as f32 + 0.5) * scale, y0 + (j as f32 + 0.5) * scale);
-            let at = (j * size + i) * img.channels;
-            sample(img, x, y, fill, &mut out.data[at..at + img.channels]);
+            let at = (j * size + i) * c;
+            for sj in 0..n {
+                for si in 0..n {
+                    let (x, y) = (
+                        x0 + (i as f32 + (si as f32 + 0.5) / n as f32) * scale,
+                        y0 + (j as f32 + (sj as f32 + 0.5) / n as f32) * scale,
+                    );
+                    sample(img, x, y, fill, &mut tap);
+                    for (o, t) in out.data[at..at + c].iter_mut().zip(&tap) {
+                        *o += t / (n * n) as f32;
+                    }
+                }
+            }
         }
     }
     out
@@ -139,6 +156,21 @@ impl CentredSquare {
             (x1 + 1 + pad).min(mask.width),
             (y1 + 1 + pad).min(mask.height),
         ]))
+    }
+}
+
+/// The pixels `[x0, x1) × [y0, y1)` of `img` (inside it) as an image of their own.
+pub fn window(img: &Image, x0: usize, y0: usize, x1: usize, y1: usize) -> Image {
+    let c = img.channels;
+    let data = (y0..y1)
+        .flat_map(|y| &img.data[(y * img.width + x0) * c..(y * img.width + x1) * c])
+        .copied()
+        .collect();
+    Image {
+        width: x1 - x0,
+        height: y1 - y0,
+        channels: c,
+        data,
     }
 }
 
@@ -263,6 +295,28 @@ mod tests {
             let expected = (10.0 + (i as f32 + 0.5) * 2.0) / w as f32;
             assert!((crop.pixel(i, 4)[0] - expected).abs() < 1e-5);
         }
+    }
+
+    #[test]
+    fn shrinking_crops_average_the_footprint() {
+        // A one-pixel checkerboard cut 4:1 averages to grey; a single bilinear tap at each
+        // output pixel's centre (here a source pixel's centre) would return black or white.
+        let (w, h) = (64, 64);
+        let data: Vec<f32> = (0..w * h).map(|p| ((p % w + p / w) % 2) as f32).collect();
+        let img = Image::from_vec(w, h, 1, data).unwrap();
+        let crop = crop_resize(&img, 0.5, 0.5, 64.0, 16, &[0.0]);
+        // The last row and column reach past the image (filled with 0).
+        for j in 0..15 {
+            for i in 0..15 {
+                let v = crop.pixel(i, j)[0];
+                assert!((v - 0.5).abs() < 1e-5, "({i}, {j}): {v}");
+            }
+        }
+        // Enlarging (n = 1) is the plain bilinear tap at the centre.
+        let up = crop_resize(&img, 8.0, 8.0, 4.0, 8, &[0.0]);
+        let mut tap = [0.0];
+        sample(&img, 8.25, 8.25, &[0.0], &mut tap);
+        assert_eq!(up.data[0], tap[0]);
     }
 
     #[test]

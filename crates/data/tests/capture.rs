@@ -310,4 +310,15 @@ fn views_have_consistent_cameras() {
         .project([head.x as f64, head.y as f64, head.z as f64])
         .unwrap();
     assert!(uv_body[0] > 0.0 && uv_body[0] < body.image.width as f64);
+    // The cache keeps views prepared for a body scale and a padding: asked with others, it
+    // prepares them afresh instead of returning the old ones.
+    let full = LoaderOptions {
+        body_scale: 1.0,
+        face_padding: 2.0,
+        ..options
+    };
+    let (body_full, face_wide, _) = make_view(&ds, &cache, 0, 0, &full, [1.0; 3]).unwrap();
+    assert_eq!(body_full.image.width, 2 * body.image.width);
+    let zoom = face_wide.unwrap().camera.k[0][0] / face.camera.k[0][0];
+    assert!((zoom - 1.3 / 2.0).abs() < 1e-3, "{zoom}");
 }

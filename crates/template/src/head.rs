@@ -1,14 +1,15 @@
-//! Head maps: the head's square of the position maps, densified ×2 for the face branch.
+//! Head maps: the head's square of the position maps, densified (×2 in the reference) for the
+//! face branch.
 //!
 //! The head region is where Gaussians are mostly skinned to the head joint and its
 //! descendants (weight ≥ 0.5; the body model names its head, see `f3g_rig::body`). Its bounding box in the front map, enlarged by 10 % and made
 //! square, is cropped from both the front and the back map (same columns), giving a
-//! `[S, 2S]` head map. Densification is masked bilinear upsampling by 2 (sample positions as
+//! `[S, 2S]` head map. Densification is masked bilinear upsampling by the density d (sample positions as
 //! `align_corners=False`): an output texel blends its four source texels, weighted by bilinear
 //! weight × validity; it is kept when the interpolated validity is at least 0.5 (the F3G
 //! reference's rule) and then renormalised by that validity (the reference does not
 //! renormalise, which pulls border texels towards the origin). Each kept texel is one face
-//! Gaussian, numbered row-major over the `[2S, 4S]` head map; its position, normal and skin
+//! Gaussian, numbered row-major over the `[dS, 2dS]` head map; its position, normal and skin
 //! weights are the same blend of its source Gaussians'.
 
 use glam::Vec3;
@@ -17,7 +18,7 @@ use crate::TemplateError;
 use crate::posmap::PositionMaps;
 use f3g_rig::SkinWeights;
 
-/// Densification factor (the reference uses 2).
+/// Densification factor of the reference (and the default): each head texel becomes 2 × 2.
 pub const DENSIFY: usize = 2;
 /// Minimum interpolated validity for a densified texel.
 pub const VALIDITY: f32 = 0.5;
@@ -27,7 +28,7 @@ pub const VALIDITY: f32 = 0.5;
 pub struct HeadMaps {
     /// Crop in the front map: left column, top row, side S (pixels of the body maps).
     pub crop: [usize; 3],
-    /// Side of one densified head map: `DENSIFY · S`.
+    /// Side of one densified head map: `density · S`.
     pub size: usize,
     /// Texel index into the `[size, 2·size]` head map of every face Gaussian.
     pub pixels: Vec<usize>,
@@ -40,8 +41,18 @@ pub struct HeadMaps {
 
 impl HeadMaps {
     /// Finds the head region of `maps` (Gaussians skinned mostly to the `head` joints, the
-    /// body model's [`f3g_rig::Rig::head_joints`]) and densifies it.
-    pub fn build(maps: &PositionMaps, head: &[usize]) -> Result<Self, TemplateError> {
+    /// body model's [`f3g_rig::Rig::head_joints`]) and densifies it, each texel becoming
+    /// `density × density` ([`DENSIFY`] in the reference).
+    pub fn build(
+        maps: &PositionMaps,
+        head: &[usize],
+        density: usize,
+    ) -> Result<Self, TemplateError> {
+        if density == 0 {
+            return Err(TemplateError::Invalid(
+                "the head maps' density must be at least 1".into(),
+            ));
+        }
         let r = maps.resolution;
         let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
         for (g, &p) in maps.pixels.iter().enumerate() {
@@ -71,7 +82,7 @@ impl HeadMaps {
         for (g, &p) in maps.pixels.iter().enumerate() {
             gaussian_at[p] = g;
         }
-        let size = DENSIFY * side;
+        let size = density * side;
         let mut out = Self {
             crop: [left, top, side],
             size,
@@ -87,9 +98,9 @@ impl HeadMaps {
                 for col in 0..size {
                     // Source coordinates (align_corners = False), clamped at the crop's border.
                     let sx =
-                        ((col as f32 + 0.5) / DENSIFY as f32 - 0.5).clamp(0.0, (side - 1) as f32);
+                        ((col as f32 + 0.5) / density as f32 - 0.5).clamp(0.0, (side - 1) as f32);
                     let sy =
-                        ((row as f32 + 0.5) / DENSIFY as f32 - 0.5).clamp(0.0, (side - 1) as f32);
+                        ((row as f32 + 0.5) / density as f32 - 0.5).clamp(0.0, (side - 1) as f32);
                     let (ix, iy) = (sx.floor() as usize, sy.floor() as usize);
                     let (fx, fy) = (sx - ix as f32, sy - iy as f32);
                     let mut taps = Vec::with_capacity(4);

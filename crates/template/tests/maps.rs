@@ -2,6 +2,7 @@
 
 use f3g_rig::{Mesh, ModelSpec, SkinWeights};
 use f3g_template::canonical::CanonicalPose;
+use f3g_template::head::DENSIFY;
 use f3g_template::mesh::SurfaceQuery;
 use f3g_template::template::{LABEL_BODY, Template};
 use f3g_template::{HeadMaps, Poser, PositionMaps, TransferOptions, posed_positions};
@@ -157,7 +158,7 @@ fn a_fully_covered_head_crop_densifies_to_four_times_the_texels() {
     let t = rigid_template(cube(0.5));
     let maps = PositionMaps::build(&t, 20, Some(2.0)).unwrap();
     // The one joint of the rigid template is the head: everything is head.
-    let head = HeadMaps::build(&maps, &[0]).unwrap();
+    let head = HeadMaps::build(&maps, &[0], DENSIFY).unwrap();
     let [_, _, side] = head.crop;
     assert_eq!(side, 11);
     assert_eq!(head.size, 22);
@@ -171,6 +172,17 @@ fn a_fully_covered_head_crop_densifies_to_four_times_the_texels() {
             "densified points stay on the faces of the box"
         );
     }
+    // Density 4: 4 × 4 texels per source texel inside the block (40×40 per side); at its
+    // corners the validity rule drops a texel whose sample point lies outside the block along
+    // both axes (coverage 0.625² < 0.5), where the crop's border clamp does not cover it.
+    let dense = HeadMaps::build(&maps, &[0], 4).unwrap();
+    assert_eq!(dense.size, 44);
+    assert!(
+        (2 * 40 * 40 - 8..=2 * 40 * 40).contains(&dense.len()),
+        "{}",
+        dense.len()
+    );
+    assert!(HeadMaps::build(&maps, &[0], 0).is_err());
 }
 
 #[test]
@@ -214,7 +226,7 @@ fn builtin_maps_posed_at_the_canonical_pose_equal_the_canonical_maps() {
     );
 
     let head_joints = rig.head_joints().unwrap();
-    let head = HeadMaps::build(&maps, &head_joints).unwrap();
+    let head = HeadMaps::build(&maps, &head_joints, DENSIFY).unwrap();
     assert!(!head.is_empty());
     let head_weight = |g: usize| {
         head.skin

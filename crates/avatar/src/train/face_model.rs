@@ -76,9 +76,9 @@ pub fn build(
         let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
         q.iter_mut().for_each(|v| *v /= norm);
     }
-    // The densified grid is DENSIFY times finer: so are its Gaussians, or they would blur the
-    // detail the face branch is there to add.
-    let shrink = (f3g_template::head::DENSIFY as f32).ln();
+    // The densified grid is `size / S` times finer: so are its Gaussians, or they would blur
+    // the detail the face branch is there to add.
+    let shrink = (head.size as f32 / head.crop[2] as f32).ln();
     Ok(FaceBase {
         positions: blend(&sum[0], 3),
         colours: blend(&sum[1], 3),

@@ -337,14 +337,21 @@ impl Trainer {
     }
 
     /// Fails when the loader's image cache would grow beyond the memory the machine has: it
-    /// holds up to `cache_bytes` of decoded images and masks (16 bytes per pixel), or every
-    /// training image when they take less.
+    /// holds up to `cache_bytes` of prepared views (16 bytes per pixel of the body image at
+    /// `body_scale` and of the full-resolution window around the head, at most a quarter of
+    /// the image height squared), or every training image's when they take less.
     fn ensure_cache_fits(&self) -> Result<(), AvatarError> {
         let images: u64 = f3g_data::loader::available(&self.dataset, &self.split)
             .iter()
             .map(|&(c, _)| {
                 let cam = &self.dataset.cameras[c].camera;
-                16 * cam.width as u64 * cam.height as u64
+                let (w, h) = f3g_data::imgops::scaled_size(
+                    cam.width as usize,
+                    cam.height as usize,
+                    self.config.body_scale,
+                );
+                let head = (cam.height as u64).div_ceil(4).pow(2);
+                16 * (w as u64 * h as u64 + head)
             })
             .sum();
         let bytes = images.min(self.config.cache_bytes as u64);
