@@ -135,8 +135,8 @@ pub struct ModelConfig {
     /// Face crop box enlargement around the projected head.
     pub face_padding: f32,
     /// Face Gaussians per head texel of the body maps, along each axis (the reference: 2).
-    /// A head seen at 200+ pixels needs more than the reference's density at the `cpu`
-    /// preset's 256² maps.
+    /// 4 (four times the face Gaussians) measured no better on the demo's 230-pixel heads
+    /// at its 730 steps (BENCHMARKS, "The face at real resolution").
     #[serde(default = "reference_face_density")]
     pub face_density: usize,
     /// Initial thickness of the Gaussians: the scale along the surface normal relative to the

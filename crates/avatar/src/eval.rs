@@ -39,6 +39,7 @@ use f3g_splat::Camera;
 /// full-resolution images whatever crop size the avatar was trained with, so runs trained at
 /// 128² and 256² are scored on the same pixels.
 pub const DEFAULT_FACE_SIZE: usize = 256;
+
 /// What to evaluate and how.
 #[derive(Clone, Debug)]
 pub struct EvalOptions {

@@ -22,7 +22,7 @@ pub struct CaptureAndTraining {
     pub frames: usize,
     /// Image height of the synthetic capture (64–4096). The default, AvatarReX's 2048, puts
     /// the head at about 230 pixels for the face crops; the body is trained and evaluated at
-    /// `BODY_HEIGHT` pixels (`body_scale`, unless `--set body_scale=…` says otherwise).
+    /// 512 pixels tall (`body_scale`, unless `--set body_scale=…` says otherwise).
     #[arg(long, default_value_t = 2048, value_parser = crate::bounds::size::<64, 4096>)]
     pub resolution: usize,
     /// Override a training configuration key (repeatable), e.g. `--set steps.joint=50`.
@@ -35,7 +35,7 @@ pub struct CaptureAndTraining {
 /// Height in pixels of the body views the demo trains and evaluates on, whatever the
 /// capture's resolution: the networks' cost is set by the maps, but the body's render, its
 /// losses and the loader's images grow with the pixels.
-pub const BODY_HEIGHT: usize = 512;
+const BODY_HEIGHT: usize = 512;
 
 impl CaptureAndTraining {
     /// The training overrides: a `body_scale` that shows the body at [`BODY_HEIGHT`] pixels
