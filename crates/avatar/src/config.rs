@@ -226,7 +226,7 @@ impl TrainConfig {
                 face_branch: true,
                 face_net: face,
                 // 256², the evaluation's size: on the demo's 1536 × 2048 capture this beats
-                // 128² by +0.9 dB and −0.033 head LPIPS (two seeds) for +9 % step time.
+                // 128² by +0.9 dB and −0.032 head LPIPS (two seeds) for +9 % step time.
                 face_crop_size: 256,
                 face_padding: 1.3,
                 face_density: f3g_template::head::DENSIFY,
