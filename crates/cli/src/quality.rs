@@ -3,8 +3,9 @@
 //! Variants (one change each from the full method, same steps): the full method; the face-crop
 //! losses on the body Gaussians without the face networks; no face branch at all (body losses
 //! only); no adversarial loss; and the paper's Table 4 — 128² head crops instead of 256², face
-//! networks of capacity (n_mlp, cm) = (2, 1) and (4, 2) beside the full method's (4, 1). Each is trained with several seeds on one synthetic capture and
-//! evaluated on novel views and novel poses; the report gives mean ± sample standard deviation
+//! networks of capacity (n_mlp, cm) = (2, 1) and (4, 2) beside the full method's (4, 1). Each
+//! is trained with several seeds on one synthetic capture and evaluated on novel views and
+//! novel poses; the report gives mean ± sample standard deviation
 //! over seeds and, for each part, the difference of means against the seed-to-seed spread.
 //!
 //! Finished runs and their evaluations are reused, so several invocations with disjoint
@@ -41,7 +42,8 @@ pub enum Variant {
     /// Face networks with n_mlp 2 instead of 4: capacity (n_mlp, cm) = (2, 1) of Table 4
     /// (the full method is (4, 1)).
     FaceMlp2,
-    /// Face networks with channel multiplier 2: capacity (4, 2) of Table 4.
+    /// Face networks with channel multiplier 2: capacity (4, 2) of Table 4 (under the `cpu`
+    /// face networks' 64-channel cap only their 32² level widens, 32 → 64 channels).
     FaceCm2,
 }
 
