@@ -171,7 +171,7 @@ struct VariantResult {
 /// (of the body stage when there is no joint stage), so checkpoint and validation pauses do
 /// not count.
 fn ms_per_step(run: &Path) -> Result<f64> {
-    let path = run.join("log.jsonl");
+    let path = f3g_avatar::run::Run::new(run).log_path();
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let lines: Vec<(String, f64)> = text
