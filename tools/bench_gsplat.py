@@ -89,7 +89,7 @@ def main():
                 m, q, ls, ol, c = params
                 colour, _, meta = rasterization(
                     m, q, ls.exp(), torch.sigmoid(ol), c, viewmats, ks, w, h,
-                    sh_degree=0, backgrounds=bg)
+                    sh_degree=0, backgrounds=bg, packed=False)
                 return colour, meta
 
             forward, both = [], []

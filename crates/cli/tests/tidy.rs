@@ -258,6 +258,25 @@ fn the_gpu_kernels_share_semantics_not_the_cpu_path() {
     assert!(broken.is_empty(), "{broken:#?}");
 }
 
+/// CubeCL's CUDA runtime allocates Burn's tensors with padded rows ("pitched"); the splat
+/// kernels index row-major, so what they write must be allocated contiguous (`f3g_splat::cube`'s
+/// module doc). wgpu never pads, so no GPU test in CI sees a pitched allocation; this does.
+#[test]
+fn the_gpu_kernels_write_only_contiguous_allocations() {
+    let broken = find(
+        &rust_files(&workspace().join("crates/splat/src/cube")),
+        &[
+            "empty_device_dtype",
+            "empty_device(",
+            "empty_device::<",
+            "float_empty(",
+            "int_empty(",
+            "create_tensor(",
+        ],
+    );
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
 #[test]
 fn every_file_is_written_atomically_but_the_training_log() {
     let files: Vec<PathBuf> = LAYERS

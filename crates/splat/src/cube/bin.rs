@@ -21,7 +21,7 @@ use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 #[cfg(feature = "cuda")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
@@ -213,7 +213,7 @@ pub fn depth_order(projection: &Projection) -> DepthOrder {
     let n = tiles.meta.shape()[0];
     let (client, device) = (tiles.client.clone(), tiles.device.clone());
     let empty = |len: usize, dtype: DType| {
-        empty_device_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
+        empty_device_contiguous_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
     };
     if n == 0 {
         return DepthOrder {
@@ -275,7 +275,7 @@ pub fn bin_tiles(
         projection.tiles.device.clone(),
     );
     let empty = |len: usize, dtype: DType| {
-        empty_device_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
+        empty_device_contiguous_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
     };
     let tiles_x = width.div_ceil(TILE_SIZE as u32);
     let tile_count = (tiles_x * height.div_ceil(TILE_SIZE as u32)) as usize;

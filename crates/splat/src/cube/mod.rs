@@ -9,6 +9,12 @@
 //! [`rasterize`]. Backward: [`rasterize_backward`] (screen-space gradients, atomically summed
 //! per Gaussian) → [`project_backward`]. Conventions are the CPU path's (`crate::cpu`):
 //! tensors are f32 except counts, ids and radii (i32, the Int dtype of Cube devices).
+//!
+//! Layout: the kernels index every tensor row-major, so every tensor they read goes through
+//! `into_contiguous` and every tensor they write is allocated contiguous
+//! (`empty_device_contiguous_dtype`, or made flat and reshaped). Burn's ordinary allocation is
+//! *pitched* on CUDA (rows padded to 16 bytes or more: a `[n, 2]` i32 tensor has rows of four);
+//! wgpu never pads, so only a CUDA run shows a tensor that breaks this rule.
 
 mod backend;
 pub mod bin;

@@ -16,7 +16,7 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 #[cfg(feature = "cuda")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
@@ -327,20 +327,21 @@ pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
         TensorData::new(camera_constants(camera).to_vec(), [CAMERA_FLOATS]),
         &device,
     );
-    let screen = empty_device_dtype(
+    let screen = empty_device_contiguous_dtype(
         client.clone(),
         device.clone(),
         Shape::new([n, SCREEN_FLOATS]),
         DType::F32,
     );
-    let radii = empty_device_dtype(
+    let radii = empty_device_contiguous_dtype(
         client.clone(),
         device.clone(),
         Shape::new([n, 2]),
         DType::I32,
     );
-    let tiles = empty_device_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
-    let rects = empty_device_dtype(
+    let tiles =
+        empty_device_contiguous_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
+    let rects = empty_device_contiguous_dtype(
         client.clone(),
         device.clone(),
         Shape::new([n, 4]),

@@ -12,7 +12,7 @@ use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 #[cfg(feature = "cuda")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
@@ -434,7 +434,7 @@ pub fn project_backward(
     let sh_coeffs = inputs.sh.meta.shape()[1];
     let (client, device) = (means.client.clone(), means.device.clone());
     let empty = |shape: &[usize]| -> FloatTensor<Cube> {
-        empty_device_dtype(
+        empty_device_contiguous_dtype(
             client.clone(),
             device.clone(),
             Shape::from(shape.to_vec()),

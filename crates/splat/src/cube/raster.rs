@@ -28,7 +28,7 @@ use burn_cubecl::cubecl::ir::features::{AtomicUsage, Plane};
 use burn_cubecl::cubecl::ir::{DeviceProperties, ElemType, FloatKind, Type};
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use super::bin::TileBins;
 #[cfg(feature = "cuda")]
@@ -534,7 +534,7 @@ pub fn rasterize(
     let (client, device) = (screen.client.clone(), screen.device.clone());
     let (w, h) = (width as usize, height as usize);
     let empty = |shape: Shape, dtype: DType| {
-        empty_device_dtype(client.clone(), device.clone(), shape, dtype)
+        empty_device_contiguous_dtype(client.clone(), device.clone(), shape, dtype)
     };
     let image = empty(Shape::new([h, w, PACKED_CHANNELS]), DType::F32);
     let final_transmittance = empty(Shape::new([h, w]), DType::F32);
@@ -614,8 +614,11 @@ pub fn rasterize_backward(
     let grad_image = into_contiguous(grad_image.clone());
     let (w, h) = (width as usize, height as usize);
     // Zero bits are 0.0 either way; the compare-and-swap path reads and writes the same bytes
-    // as u32.
-    let grads = Cube::float_zeros(Shape::new([n, SCREEN_FLOATS]), &device, FloatDType::F32);
+    // as u32. Made flat, then reshaped: a `[n, 10]` allocation would be pitched on CUDA.
+    let grads = Cube::float_reshape(
+        Cube::float_zeros(Shape::new([n * SCREEN_FLOATS]), &device, FloatDType::F32),
+        Shape::new([n, SCREEN_FLOATS]),
+    );
     if n > 0 && bins.count > 0 {
         let launch = if accumulation.float_atomics {
             kernels::backward::launch::<kernels::FloatAdd>
@@ -656,9 +659,11 @@ pub fn rasterize_backward(
         colour_grad,
         Cube::float_reshape(final_transmittance.clone(), Shape::new([h, w, 1])),
     );
-    let background_grad = Cube::float_reshape(
-        Cube::float_sum_dim(Cube::float_reshape(weighted, Shape::new([h * w, 3])), 0),
-        Shape::new([3]),
-    );
+    // Rows first, then the column of row sums: without autotune Burn reduces an axis with one
+    // thread per output, so one `[h·w, 3]` sum is three threads walking every pixel. (On the
+    // H200 the op's backward grew with the pixels, not the Gaussians: 67 ms at 1024² for 10k
+    // or 300k Gaussians; this sum was its one step on three threads.)
+    let row_sums = Cube::float_sum_dim(weighted, 1);
+    let background_grad = Cube::float_reshape(Cube::float_sum_dim(row_sums, 0), Shape::new([3]));
     (grads, background_grad)
 }

@@ -11,7 +11,7 @@ use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 /// Values per cube (and units per cube).
 const BLOCK: usize = 256;
@@ -122,12 +122,14 @@ pub fn exclusive_scan_in_rows(
     let values = into_contiguous(values);
     let n = values.meta.shape()[0];
     let (client, device) = (values.client.clone(), values.device.clone());
-    let out = empty_device_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
+    let out =
+        empty_device_contiguous_dtype(client.clone(), device.clone(), Shape::new([n]), DType::I32);
     if n == 0 {
         return (out.clone(), out);
     }
     let blocks = n.div_ceil(BLOCK);
-    let totals = empty_device_dtype(client.clone(), device, Shape::new([blocks]), DType::I32);
+    let totals =
+        empty_device_contiguous_dtype(client.clone(), device, Shape::new([blocks]), DType::I32);
     kernels::scan_blocks::launch(
         &client,
         grid(blocks, row),

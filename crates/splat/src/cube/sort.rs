@@ -10,7 +10,7 @@ use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::numeric::empty_device_dtype;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 #[cfg(feature = "cuda")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
@@ -221,7 +221,7 @@ pub fn sort_pairs_in_rows(
     let (client, device) = (keys.client.clone(), keys.device.clone());
     let blocks = n.div_ceil(UNITS * PER_UNIT);
     let empty = |len: usize, dtype: DType| {
-        empty_device_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
+        empty_device_contiguous_dtype(client.clone(), device.clone(), Shape::new([len]), dtype)
     };
     for pass in 0..bits.div_ceil(DIGIT_BITS) {
         let shift = pass * DIGIT_BITS;
