@@ -42,8 +42,9 @@ pub enum Variant {
     /// Face networks with n_mlp 2 instead of 4: capacity (n_mlp, cm) = (2, 1) of Table 4
     /// (the full method is (4, 1)).
     FaceMlp2,
-    /// Face networks with channel multiplier 2: capacity (4, 2) of Table 4 (under the `cpu`
-    /// face networks' 64-channel cap only their 32² level widens, 32 → 64 channels).
+    /// Face networks with channel multiplier 2: capacity (4, 2) of Table 4. The `cpu` face
+    /// networks already reach their 64-channel cap at every level (16², 8², 4²), so the cap
+    /// doubles with the multiplier: 128 channels everywhere, twice the full method's.
     FaceCm2,
 }
 
@@ -68,7 +69,7 @@ impl Variant {
             Self::NoAdversarial => &["adversarial=false"],
             Self::Crop128 => &["face_crop_size=128", "discriminator.resolution=128"],
             Self::FaceMlp2 => &["face_net.n_mlp=2"],
-            Self::FaceCm2 => &["face_net.channel_multiplier=2"],
+            Self::FaceCm2 => &["face_net.channel_multiplier=2", "face_net.max_channels=128"],
         }
     }
 }
@@ -350,6 +351,24 @@ mod tests {
         let s = stat(&[1.0, 2.0, 3.0]);
         assert_eq!((s.mean, s.std), (2.0, 1.0));
         assert_eq!(stat(&[5.0]).std, 0.0);
+    }
+
+    /// A capacity variant that leaves the face networks as they are measures seed noise (the
+    /// multiplier alone did: every level was already at the channel cap).
+    #[test]
+    fn every_capacity_variant_changes_the_face_networks() {
+        let parameters = |v: Variant| {
+            let set: Vec<String> = v.overrides().iter().map(|s| s.to_string()).collect();
+            let config = f3g_avatar::TrainConfig::cpu().with_overrides(&set).unwrap();
+            let net = config.model.face_nets()[0]
+                .init(0, &burn::tensor::Device::flex())
+                .unwrap();
+            burn::module::Module::num_params(&net)
+        };
+        let full = parameters(Variant::Full);
+        for v in [Variant::FaceMlp2, Variant::FaceCm2] {
+            assert_ne!(parameters(v), full, "{}", v.name());
+        }
     }
 
     #[test]
