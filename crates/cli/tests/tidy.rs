@@ -340,25 +340,45 @@ fn every_cuda_feature_compiles_with_nvrtc_and_reaches_the_crates_below() {
         .find(|l| l.starts_with("cubecl-cuda "))
         .expect("the workspace names cubecl-cuda");
     assert!(entry.contains("\"cpp\""), "{entry}");
-    let cuda = |krate: &str| features(krate).get("cuda").cloned();
-    let mut broken = Vec::new();
+    let mut broken = unreached("cuda");
     for (krate, _) in LAYERS {
-        let Some(own) = cuda(krate) else { continue };
+        let Some(own) = features(krate).get("cuda").cloned() else {
+            continue;
+        };
         if own.iter().any(|e| e == "burn/cuda") && !own.iter().any(|e| e == "dep:cubecl-cuda") {
             broken.push(format!(
                 "crates/{krate}: `cuda` turns on burn/cuda without dep:cubecl-cuda"
             ));
         }
-        // The crates this feature reaches, through the `cuda` features it turns on.
+    }
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+/// Burn's `fusion` changes the type of every GPU tensor, so a crate fused alone would see
+/// another backend than the crates it calls: each `fusion` feature must reach them all.
+#[test]
+fn every_fusion_feature_reaches_the_crates_below() {
+    let broken = unreached("fusion");
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
+/// The crates whose `feature` a crate's own `feature` does not turn on (directly or through
+/// the same feature of a crate it turns on) although it depends on them and they have it.
+fn unreached(feature: &str) -> Vec<String> {
+    let own = |krate: &str| features(krate).get(feature).cloned();
+    let suffix = format!("/{feature}");
+    let mut broken = Vec::new();
+    for (krate, _) in LAYERS {
+        let Some(list) = own(krate) else { continue };
         let mut reached = BTreeSet::new();
-        let mut todo = vec![own];
+        let mut todo = vec![list];
         while let Some(list) = todo.pop() {
             for dep in list
                 .iter()
-                .filter_map(|e| e.strip_prefix("f3g-")?.strip_suffix("/cuda"))
+                .filter_map(|e| e.strip_prefix("f3g-")?.strip_suffix(suffix.as_str()))
             {
                 if reached.insert(dep.to_string()) {
-                    todo.extend(cuda(dep));
+                    todo.extend(own(dep));
                 }
             }
         }
@@ -366,12 +386,12 @@ fn every_cuda_feature_compiles_with_nvrtc_and_reaches_the_crates_below() {
             let Some(dep) = dep.strip_prefix("f3g-") else {
                 continue;
             };
-            if cuda(dep).is_some() && !reached.contains(dep) {
+            if own(dep).is_some() && !reached.contains(dep) {
                 broken.push(format!(
-                    "crates/{krate}: `cuda` does not turn on f3g-{dep}/cuda"
+                    "crates/{krate}: `{feature}` does not turn on f3g-{dep}/{feature}"
                 ));
             }
         }
     }
-    assert!(broken.is_empty(), "{broken:#?}");
+    broken
 }

@@ -9,7 +9,7 @@ mod common;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use common::ramp;
-use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
+use f3g_nets::{DiscriminatorConfig, Lpips, LpipsNet, StyleUNetConfig};
 
 /// The device under test: wgpu's default adapter, or the first CUDA GPU when
 /// `F3G_TEST_DEVICE=cuda` (build with `--features cuda`).
@@ -101,4 +101,32 @@ fn the_discriminator_matches_the_cpu_on_the_gpu() {
         "discriminator logits",
     );
     assert!(Module::num_params(&DiscriminatorConfig::cpu(64).init(5, &gpu).unwrap()) > 0);
+}
+
+/// LPIPS (AlexNet, the training loss) and its gradient: two images in `[0, 1]` whose
+/// difference changes sign, through every tap's channel normalisation.
+fn lpips(device: &Device, size: usize) -> (Vec<f32>, Vec<f32>) {
+    let device = device.clone().autodiff();
+    let lpips = Lpips::load(LpipsNet::Alex, &device).unwrap();
+    let a = (ramp([1, 3, size, size], &device) + 0.5).require_grad();
+    let b = ramp([1, 3, size, size], &device).flip([2]) + 0.5;
+    let d = lpips.forward(a.clone(), b).unwrap();
+    let grads = d.clone().sum().backward();
+    (values(d), values(a.grad(&grads).unwrap()))
+}
+
+#[test]
+fn lpips_matches_the_cpu_on_the_gpu() {
+    // 32²: AlexNet's last taps are 1×1 (the tiny test configurations' LPIPS size).
+    for size in [32, 64] {
+        let (d_gpu, grad_gpu) = lpips(&test_device(), size);
+        let (d_cpu, grad_cpu) = lpips(&Device::flex(), size);
+        assert_close(&d_gpu, &d_cpu, 1e-4, &format!("LPIPS distance at {size}²"));
+        assert_close(
+            &grad_gpu,
+            &grad_cpu,
+            1e-3,
+            &format!("LPIPS gradient at {size}²"),
+        );
+    }
 }

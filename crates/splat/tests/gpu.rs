@@ -13,15 +13,16 @@
 
 mod common;
 
+use burn::backend::DispatchDevice;
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
-use burn::backend::{Cube, DispatchDevice};
 use burn::tensor::TensorData;
+use burn_cubecl::CubeBackend;
 use f3g_splat::cpu;
 use f3g_splat::cube;
 use f3g_splat::op::GaussianTensors;
 use f3g_splat::semantics::{GaussianSlices, TILE_SIZE};
 
-type CubeDevice = <Cube as burn::backend::BackendTypes>::Device;
+type CubeDevice = <CubeBackend as burn::backend::BackendTypes>::Device;
 
 /// The device under test: wgpu's default adapter (lavapipe in CI), or the first CUDA GPU
 /// when `F3G_TEST_DEVICE=cuda` (build with `--features cuda`).
@@ -50,17 +51,17 @@ fn upload(
     v: &[f32],
     shape: &[usize],
     device: &CubeDevice,
-) -> burn::backend::tensor::FloatTensor<Cube> {
-    Cube::float_from_data(TensorData::new(v.to_vec(), shape.to_vec()), device)
+) -> burn::backend::tensor::FloatTensor<CubeBackend> {
+    CubeBackend::float_from_data(TensorData::new(v.to_vec(), shape.to_vec()), device)
 }
 
-fn floats(t: burn::backend::tensor::FloatTensor<Cube>) -> Vec<f32> {
-    let data = burn::tensor::read_sync(Cube::float_into_data(t)).unwrap();
+fn floats(t: burn::backend::tensor::FloatTensor<CubeBackend>) -> Vec<f32> {
+    let data = burn::tensor::read_sync(CubeBackend::float_into_data(t)).unwrap();
     data.try_into_vec::<f32>().unwrap()
 }
 
-fn ints(t: burn::backend::tensor::IntTensor<Cube>) -> Vec<i32> {
-    let data = burn::tensor::read_sync(Cube::int_into_data(t)).unwrap();
+fn ints(t: burn::backend::tensor::IntTensor<CubeBackend>) -> Vec<i32> {
+    let data = burn::tensor::read_sync(CubeBackend::int_into_data(t)).unwrap();
     data.convert::<i32>().try_into_vec::<i32>().unwrap()
 }
 
@@ -104,7 +105,7 @@ fn projection_and_bins_match_the_cpu() {
             },
             &s.camera,
         );
-        let inputs = GaussianTensors::<Cube> {
+        let inputs = GaussianTensors::<CubeBackend> {
             means: upload(&means, &[n, 3], &device),
             log_scales: upload(&log_scales, &[n, 3], &device),
             quats: upload(&quats, &[n, 4], &device),
@@ -181,7 +182,7 @@ fn projection_and_bins_match_the_cpu() {
 fn an_empty_scene_projects_to_nothing() {
     let device = device();
     let s = scene(9, 1, 0);
-    let inputs = GaussianTensors::<Cube> {
+    let inputs = GaussianTensors::<CubeBackend> {
         means: upload(&[], &[0, 3], &device),
         log_scales: upload(&[], &[0, 3], &device),
         quats: upload(&[], &[0, 4], &device),
@@ -204,7 +205,7 @@ fn exclusive_scan_matches_a_running_sum() {
     // for a third level of block totals (256² < 70 000).
     for n in [1usize, 5, 256, 257, 1000, 70_000] {
         let values: Vec<i32> = (0..n).map(|i| ((i * 7919) % 13) as i32).collect();
-        let t = Cube::int_from_data(TensorData::new(values.clone(), [n]), &device);
+        let t = CubeBackend::int_from_data(TensorData::new(values.clone(), [n]), &device);
         let (scanned, total) = cube::exclusive_scan(t);
         let got = ints(scanned);
         assert_eq!(ints(total), [values.iter().sum::<i32>()], "n = {n}");
@@ -247,7 +248,7 @@ fn sort_and_scan_ignore_the_cubes_past_the_work_of_a_multi_row_grid() {
     let device = device();
     for (n, row) in [(2_500usize, 3usize), (70_000, 4)] {
         let values: Vec<i32> = (0..n).map(|i| ((i * 31) % 7) as i32).collect();
-        let t = Cube::int_from_data(TensorData::new(values.clone(), [n]), &device);
+        let t = CubeBackend::int_from_data(TensorData::new(values.clone(), [n]), &device);
         let (scanned, total) = cube::exclusive_scan_in_rows(t, row);
         assert_eq!(
             ints(total),
@@ -279,16 +280,16 @@ fn check_sort(n: usize, bits: u32, row: Option<usize>) {
         (1 << bits) - 1
     };
     let values: Vec<i32> = (0..n as i32).collect();
-    let k = Cube::int_from_data(TensorData::new(keys.clone(), [n]), &device);
-    let k = Cube::int_cast(k, burn::tensor::IntDType::U32);
-    let v = Cube::int_from_data(TensorData::new(values, [n]), &device);
+    let k = CubeBackend::int_from_data(TensorData::new(keys.clone(), [n]), &device);
+    let k = CubeBackend::int_cast(k, burn::tensor::IntDType::U32);
+    let v = CubeBackend::int_from_data(TensorData::new(values, [n]), &device);
     let (sk, sv) = match row {
         Some(row) => cube::sort_pairs_in_rows(k, v, bits, row),
         None => cube::sort_pairs(k, v, bits),
     };
     let got_values = ints(sv);
     let got_keys: Vec<u32> = {
-        let data = burn::tensor::read_sync(Cube::int_into_data(sk)).unwrap();
+        let data = burn::tensor::read_sync(CubeBackend::int_into_data(sk)).unwrap();
         data.convert::<u32>().try_into_vec::<u32>().unwrap()
     };
     let mut want: Vec<(u32, i32)> = keys
@@ -520,7 +521,7 @@ fn every_accumulation_the_device_has_gives_the_same_gradients() {
     let f = |v: &[f64]| common::Scene::to_f32(v);
     let n = s.len();
     let k = s.sh.len() / (3 * n);
-    let inputs = GaussianTensors::<Cube> {
+    let inputs = GaussianTensors::<CubeBackend> {
         means: upload(&f(&s.means), &[n, 3], &device),
         log_scales: upload(&f(&s.log_scales), &[n, 3], &device),
         quats: upload(&f(&s.quats), &[n, 4], &device),

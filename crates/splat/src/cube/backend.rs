@@ -6,10 +6,10 @@
 //! Only when that flag is set are the inputs read back, to name the first bad value exactly as
 //! the CPU path does. The backward reads nothing back.
 
-use burn::backend::Cube;
 use burn::backend::ops::{FloatTensorOps, IntTensorOps};
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::{DType, FloatDType, IntDType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 
@@ -66,16 +66,16 @@ pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, Str
 }
 
 /// A contiguous f32 copy of `t` (a no-op for the f32 tensors the trainer makes).
-fn f32_contiguous(t: &FloatTensor<Cube>) -> FloatTensor<Cube> {
+fn f32_contiguous(t: &FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
     let t = if t.dtype == burn::tensor::DType::F32 {
         t.clone()
     } else {
-        Cube::float_cast(t.clone(), FloatDType::F32)
+        CubeBackend::float_cast(t.clone(), FloatDType::F32)
     };
     into_contiguous(t)
 }
 
-fn f32_inputs(inputs: &GaussianTensors<Cube>) -> GaussianTensors<Cube> {
+fn f32_inputs(inputs: &GaussianTensors<CubeBackend>) -> GaussianTensors<CubeBackend> {
     GaussianTensors {
         means: f32_contiguous(&inputs.means),
         log_scales: f32_contiguous(&inputs.log_scales),
@@ -86,8 +86,8 @@ fn f32_inputs(inputs: &GaussianTensors<Cube>) -> GaussianTensors<Cube> {
     }
 }
 
-fn host(t: &FloatTensor<Cube>) -> Vec<f32> {
-    burn::tensor::read_sync(Cube::float_into_data(t.clone()))
+fn host(t: &FloatTensor<CubeBackend>) -> Vec<f32> {
+    burn::tensor::read_sync(CubeBackend::float_into_data(t.clone()))
         .expect("reading a tensor back from the device")
         .convert::<f32>()
         .try_into_vec::<f32>()
@@ -95,7 +95,7 @@ fn host(t: &FloatTensor<Cube>) -> Vec<f32> {
 }
 
 /// Checks the shapes (metadata only, no device work).
-fn check_shapes(inputs: &GaussianTensors<Cube>) -> Result<(), SplatError> {
+fn check_shapes(inputs: &GaussianTensors<CubeBackend>) -> Result<(), SplatError> {
     check_gaussian_shapes(
         inputs.opacity_logits.meta.shape()[0],
         inputs.means.meta.shape(),
@@ -108,7 +108,7 @@ fn check_shapes(inputs: &GaussianTensors<Cube>) -> Result<(), SplatError> {
 
 /// The error the CPU path gives for these inputs (called only once the device found a
 /// non-finite value, so reading everything back is the rare path).
-fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
+fn host_error(inputs: &GaussianTensors<CubeBackend>) -> SplatError {
     let (means, log_scales, quats) = (
         host(&inputs.means),
         host(&inputs.log_scales),
@@ -133,7 +133,7 @@ fn host_error(inputs: &GaussianTensors<Cube>) -> SplatError {
         })
 }
 
-impl SplatBackend for Cube {
+impl SplatBackend for CubeBackend {
     fn splat_forward(
         inputs: GaussianTensors<Self>,
         camera: Camera,
@@ -150,7 +150,7 @@ impl SplatBackend for Cube {
         }
         let inputs = f32_inputs(&inputs);
         let client = inputs.means.client.clone();
-        let flag = Cube::int_zeros(Shape::new([1]), &device, IntDType::I32);
+        let flag = CubeBackend::int_zeros(Shape::new([1]), &device, IntDType::I32);
         for t in [
             &inputs.means,
             &inputs.log_scales,
@@ -178,9 +178,9 @@ impl SplatBackend for Cube {
             // No Gaussians: nothing to count, but the background must still be finite.
             vec![read_count(flag)[0], 0, 0]
         } else {
-            let coarse = Cube::float_into_int(
-                Cube::float_div_scalar(
-                    Cube::float_sum(Cube::int_into_float(
+            let coarse = CubeBackend::float_into_int(
+                CubeBackend::float_div_scalar(
+                    CubeBackend::float_sum(CubeBackend::int_into_float(
                         projection.tiles.clone(),
                         FloatDType::F32,
                     )),
@@ -188,7 +188,10 @@ impl SplatBackend for Cube {
                 ),
                 IntDType::I32,
             );
-            read_count(Cube::int_cat(vec![flag, depth.total.clone(), coarse], 0))
+            read_count(CubeBackend::int_cat(
+                vec![flag, depth.total.clone(), coarse],
+                0,
+            ))
         };
         if read[0] != 0 {
             return rejected(host_error(&inputs), &device, DType::F32);
@@ -260,7 +263,7 @@ impl SplatBackend for Cube {
         if dtype == burn::tensor::DType::F32 {
             return grads;
         }
-        let back = |t: FloatTensor<Cube>| Cube::float_cast(t, dtype.into());
+        let back = |t: FloatTensor<CubeBackend>| CubeBackend::float_cast(t, dtype.into());
         GaussianTensors {
             means: back(grads.means),
             log_scales: back(grads.log_scales),

@@ -15,10 +15,10 @@
 //!
 //! The result is the CPU's [`crate::cpu::TileBins`] layout: `offsets [tiles + 1]`, `ids [M]`.
 
-use burn::backend::Cube;
 use burn::backend::ops::IntTensorOps;
 use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -175,11 +175,11 @@ pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, Str
 #[derive(Clone, Debug)]
 pub struct DepthOrder {
     /// `[N]` Gaussian ids, front to back (culled ones included: they have no tiles).
-    order: IntTensor<Cube>,
+    order: IntTensor<CubeBackend>,
     /// `[N]` the exclusive scan of their tile counts in that order.
-    starts: IntTensor<Cube>,
+    starts: IntTensor<CubeBackend>,
     /// `[1]` (empty when there are no Gaussians) the number of intersections.
-    pub total: IntTensor<Cube>,
+    pub total: IntTensor<CubeBackend>,
 }
 
 impl DepthOrder {
@@ -195,8 +195,8 @@ impl DepthOrder {
 }
 
 /// Reads a small i32 tensor back to the host (negative values as 0).
-pub(crate) fn read_count(values: IntTensor<Cube>) -> Vec<usize> {
-    let data = burn::tensor::read_sync(Cube::int_into_data(values))
+pub(crate) fn read_count(values: IntTensor<CubeBackend>) -> Vec<usize> {
+    let data = burn::tensor::read_sync(CubeBackend::int_into_data(values))
         .expect("reading counts back from the device");
     data.convert::<i64>()
         .as_slice::<i64>()
@@ -254,9 +254,9 @@ pub fn depth_order(projection: &Projection) -> DepthOrder {
 #[derive(Clone, Debug)]
 pub struct TileBins {
     /// `[tiles + 1]` (row-major tiles): tile `t`'s entries are `ids[offsets[t]..offsets[t + 1]]`.
-    pub offsets: IntTensor<Cube>,
+    pub offsets: IntTensor<CubeBackend>,
     /// `[M]` Gaussian ids.
-    pub ids: IntTensor<Cube>,
+    pub ids: IntTensor<CubeBackend>,
     /// `M`, the number of Gaussian–tile intersections.
     pub count: usize,
 }
@@ -279,7 +279,7 @@ pub fn bin_tiles(
     };
     let tiles_x = width.div_ceil(TILE_SIZE as u32);
     let tile_count = (tiles_x * height.div_ceil(TILE_SIZE as u32)) as usize;
-    let offsets = Cube::int_zeros(
+    let offsets = CubeBackend::int_zeros(
         Shape::new([tile_count + 1]),
         &device,
         burn::tensor::IntDType::I32,

@@ -10,10 +10,10 @@
 //! tile column and row, inclusive), all i32. The arithmetic is f32 in a different order
 //! than the CPU's (`W M (W M)ᵀ` for `W Σ Wᵀ`), so values agree to rounding, not bit for bit.
 
-use burn::backend::Cube;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorData};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -308,22 +308,22 @@ pub fn camera_constants(camera: &Camera) -> [f32; CAMERA_FLOATS] {
 /// The projected Gaussians on the device (see the module docs for the layout).
 #[derive(Clone, Debug)]
 pub struct Projection {
-    pub screen: FloatTensor<Cube>,
-    pub radii: IntTensor<Cube>,
-    pub tiles: IntTensor<Cube>,
-    pub rects: IntTensor<Cube>,
+    pub screen: FloatTensor<CubeBackend>,
+    pub radii: IntTensor<CubeBackend>,
+    pub tiles: IntTensor<CubeBackend>,
+    pub rects: IntTensor<CubeBackend>,
 }
 
 /// Projects `inputs` (f32 tensors on a Cube device) seen by `camera`. `sh` must be `[N, K, 3]`
 /// with `K` = 1, 4, 9 or 16.
-pub fn project(inputs: &GaussianTensors<Cube>, camera: &Camera) -> Projection {
-    let contiguous = |t: &FloatTensor<Cube>| into_contiguous(t.clone());
+pub fn project(inputs: &GaussianTensors<CubeBackend>, camera: &Camera) -> Projection {
+    let contiguous = |t: &FloatTensor<CubeBackend>| into_contiguous(t.clone());
     let means = contiguous(&inputs.means);
     let n = means.meta.shape()[0];
     let sh_coeffs = inputs.sh.meta.shape()[1];
     let client = means.client.clone();
     let device = means.device.clone();
-    let cam = Cube::float_from_data(
+    let cam = CubeBackend::float_from_data(
         TensorData::new(camera_constants(camera).to_vec(), [CAMERA_FLOATS]),
         &device,
     );

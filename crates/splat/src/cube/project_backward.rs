@@ -6,10 +6,10 @@
 //! `Σ₂ᴅ = J Σc Jᵀ` with the field-of-view clamp of the Jacobian; `Σc = W R S Sᵀ Rᵀ Wᵀ`; the
 //! perspective division of the mean. Culled Gaussians get zeros.
 
-use burn::backend::Cube;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, Shape, TensorData};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -422,18 +422,18 @@ pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, Str
 /// Gradients of `inputs` (without the background, which the rasteriser's backward gives)
 /// from the screen-space gradient `grads` `[N, 10]` of their projection (`screen`, `radii`).
 pub fn project_backward(
-    inputs: &GaussianTensors<Cube>,
+    inputs: &GaussianTensors<CubeBackend>,
     camera: &Camera,
-    screen: &FloatTensor<Cube>,
-    radii: &IntTensor<Cube>,
-    grads: &FloatTensor<Cube>,
-) -> GaussianTensors<Cube> {
-    let contiguous = |t: &FloatTensor<Cube>| into_contiguous(t.clone());
+    screen: &FloatTensor<CubeBackend>,
+    radii: &IntTensor<CubeBackend>,
+    grads: &FloatTensor<CubeBackend>,
+) -> GaussianTensors<CubeBackend> {
+    let contiguous = |t: &FloatTensor<CubeBackend>| into_contiguous(t.clone());
     let means = contiguous(&inputs.means);
     let n = means.meta.shape()[0];
     let sh_coeffs = inputs.sh.meta.shape()[1];
     let (client, device) = (means.client.clone(), means.device.clone());
-    let empty = |shape: &[usize]| -> FloatTensor<Cube> {
+    let empty = |shape: &[usize]| -> FloatTensor<CubeBackend> {
         empty_device_contiguous_dtype(
             client.clone(),
             device.clone(),
@@ -441,7 +441,7 @@ pub fn project_backward(
             DType::F32,
         )
     };
-    let out: GaussianTensors<Cube> = GaussianTensors {
+    let out: GaussianTensors<CubeBackend> = GaussianTensors {
         means: empty(&[n, 3]),
         log_scales: empty(&[n, 3]),
         quats: empty(&[n, 4]),
@@ -452,7 +452,7 @@ pub fn project_backward(
     if n > 0 {
         let constants = camera_constants(camera).to_vec();
         let len = constants.len();
-        let cam = Cube::float_from_data(TensorData::new(constants, [len]), &device);
+        let cam = CubeBackend::float_from_data(TensorData::new(constants, [len]), &device);
         kernels::project_backward::launch(
             &client,
             grid(n.div_ceil(UNITS), MAX_ROW),

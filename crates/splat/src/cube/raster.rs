@@ -19,10 +19,10 @@
 //! device has one, a compare-and-swap loop on the bits where it does not. Sums over tiles
 //! arrive in any order, so gradients agree with the CPU to rounding, not bit for bit.
 
-use burn::backend::Cube;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::tensor::{DType, FloatDType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::client::Client;
 use burn_cubecl::cubecl::ir::features::{AtomicUsage, Plane};
 use burn_cubecl::cubecl::ir::{DeviceProperties, ElemType, FloatKind, Type};
@@ -508,9 +508,9 @@ pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, Str
 /// final transmittance `[H, W]` and the one-past-last contributing list position `[H, W]`.
 #[derive(Clone, Debug)]
 pub struct Raster {
-    pub image: FloatTensor<Cube>,
-    pub final_transmittance: FloatTensor<Cube>,
-    pub n_contrib: IntTensor<Cube>,
+    pub image: FloatTensor<CubeBackend>,
+    pub final_transmittance: FloatTensor<CubeBackend>,
+    pub n_contrib: IntTensor<CubeBackend>,
 }
 
 fn tile_grid(width: u32, height: u32) -> CubeCount {
@@ -522,10 +522,10 @@ fn tile_grid(width: u32, height: u32) -> CubeCount {
 /// (`[3]`) into a `width × height` image.
 #[allow(clippy::too_many_arguments)]
 pub fn rasterize(
-    screen: &FloatTensor<Cube>,
-    radii: &IntTensor<Cube>,
+    screen: &FloatTensor<CubeBackend>,
+    radii: &IntTensor<CubeBackend>,
     bins: &TileBins,
-    background: &FloatTensor<Cube>,
+    background: &FloatTensor<CubeBackend>,
     width: u32,
     height: u32,
     alpha_max: f64,
@@ -596,18 +596,18 @@ impl Accumulation {
 /// `screen`) and its background (`[3]`), given the gradient of the packed image.
 #[allow(clippy::too_many_arguments)]
 pub fn rasterize_backward(
-    screen: &FloatTensor<Cube>,
-    radii: &IntTensor<Cube>,
+    screen: &FloatTensor<CubeBackend>,
+    radii: &IntTensor<CubeBackend>,
     bins: &TileBins,
-    background: &FloatTensor<Cube>,
-    final_transmittance: &FloatTensor<Cube>,
-    n_contrib: &IntTensor<Cube>,
-    grad_image: &FloatTensor<Cube>,
+    background: &FloatTensor<CubeBackend>,
+    final_transmittance: &FloatTensor<CubeBackend>,
+    n_contrib: &IntTensor<CubeBackend>,
+    grad_image: &FloatTensor<CubeBackend>,
     width: u32,
     height: u32,
     alpha_max: f64,
     accumulation: Accumulation,
-) -> (FloatTensor<Cube>, FloatTensor<Cube>) {
+) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
     let screen = into_contiguous(screen.clone());
     let n = screen.meta.shape()[0];
     let (client, device) = (screen.client.clone(), screen.device.clone());
@@ -615,8 +615,8 @@ pub fn rasterize_backward(
     let (w, h) = (width as usize, height as usize);
     // Zero bits are 0.0 either way; the compare-and-swap path reads and writes the same bytes
     // as u32. Made flat, then reshaped: a `[n, 10]` allocation would be pitched on CUDA.
-    let grads = Cube::float_reshape(
-        Cube::float_zeros(Shape::new([n * SCREEN_FLOATS]), &device, FloatDType::F32),
+    let grads = CubeBackend::float_reshape(
+        CubeBackend::float_zeros(Shape::new([n * SCREEN_FLOATS]), &device, FloatDType::F32),
         Shape::new([n, SCREEN_FLOATS]),
     );
     if n > 0 && bins.count > 0 {
@@ -647,7 +647,7 @@ pub fn rasterize_backward(
         );
     }
     // Background: Σ over pixels of T_final · ∂L/∂colour.
-    let colour_grad = Cube::float_slice(
+    let colour_grad = CubeBackend::float_slice(
         grad_image,
         &[
             burn::tensor::Slice::from(0..h),
@@ -655,15 +655,16 @@ pub fn rasterize_backward(
             burn::tensor::Slice::from(0..3),
         ],
     );
-    let weighted = Cube::float_mul(
+    let weighted = CubeBackend::float_mul(
         colour_grad,
-        Cube::float_reshape(final_transmittance.clone(), Shape::new([h, w, 1])),
+        CubeBackend::float_reshape(final_transmittance.clone(), Shape::new([h, w, 1])),
     );
     // Rows first, then the column of row sums: without autotune Burn reduces an axis with one
     // thread per output, so one `[h·w, 3]` sum is three threads walking every pixel. (On the
     // H200 the op's backward grew with the pixels, not the Gaussians: 67 ms at 1024² for 10k
     // or 300k Gaussians; this sum was its one step on three threads.)
-    let row_sums = Cube::float_sum_dim(weighted, 1);
-    let background_grad = Cube::float_reshape(Cube::float_sum_dim(row_sums, 0), Shape::new([3]));
+    let row_sums = CubeBackend::float_sum_dim(weighted, 1);
+    let background_grad =
+        CubeBackend::float_reshape(CubeBackend::float_sum_dim(row_sums, 0), Shape::new([3]));
     (grads, background_grad)
 }

@@ -6,9 +6,9 @@
 
 #[cfg(feature = "cuda")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
-use burn::backend::Cube;
 use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -109,16 +109,18 @@ pub(crate) fn grid(cubes: usize, row: usize) -> CubeCount {
 
 /// Exclusive prefix sum of the 1-D i32 tensor `values`, and the sum of all of them (`[1]`; an
 /// empty input sums to an empty tensor).
-pub fn exclusive_scan(values: IntTensor<Cube>) -> (IntTensor<Cube>, IntTensor<Cube>) {
+pub fn exclusive_scan(
+    values: IntTensor<CubeBackend>,
+) -> (IntTensor<CubeBackend>, IntTensor<CubeBackend>) {
     exclusive_scan_in_rows(values, MAX_ROW)
 }
 
 /// [`exclusive_scan`] on grids of at most `row` cubes per row (tests force several rows, and
 /// so cubes past the work, with a small `row`).
 pub fn exclusive_scan_in_rows(
-    values: IntTensor<Cube>,
+    values: IntTensor<CubeBackend>,
     row: usize,
-) -> (IntTensor<Cube>, IntTensor<Cube>) {
+) -> (IntTensor<CubeBackend>, IntTensor<CubeBackend>) {
     let values = into_contiguous(values);
     let n = values.meta.shape()[0];
     let (client, device) = (values.client.clone(), values.device.clone());

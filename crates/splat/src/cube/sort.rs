@@ -5,9 +5,9 @@
 //! shared memory). No plane operations and no atomics, so it runs the same on lavapipe, any
 //! wgpu adapter and CUDA. Only the passes the key width needs are run (`bits`).
 
-use burn::backend::Cube;
 use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -197,21 +197,21 @@ pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, Str
 /// Sorts `(keys, values)` by the low `bits` bits of the keys (u32 and i32 tensors of one
 /// length), keeping the order of equal keys.
 pub fn sort_pairs(
-    keys: IntTensor<Cube>,
-    values: IntTensor<Cube>,
+    keys: IntTensor<CubeBackend>,
+    values: IntTensor<CubeBackend>,
     bits: u32,
-) -> (IntTensor<Cube>, IntTensor<Cube>) {
+) -> (IntTensor<CubeBackend>, IntTensor<CubeBackend>) {
     sort_pairs_in_rows(keys, values, bits, MAX_ROW)
 }
 
 /// [`sort_pairs`] on grids of at most `row` cubes per row (tests force several rows, and so
 /// cubes past the last block, with a small `row`).
 pub fn sort_pairs_in_rows(
-    keys: IntTensor<Cube>,
-    values: IntTensor<Cube>,
+    keys: IntTensor<CubeBackend>,
+    values: IntTensor<CubeBackend>,
     bits: u32,
     row: usize,
-) -> (IntTensor<Cube>, IntTensor<Cube>) {
+) -> (IntTensor<CubeBackend>, IntTensor<CubeBackend>) {
     let mut keys = into_contiguous(keys);
     let mut values = into_contiguous(values);
     let n = keys.meta.shape()[0];

@@ -3,8 +3,9 @@
 //! [`SplatBackend`] is a backend extension: [`SplatBackend::splat_forward`] renders and saves
 //! what the backward needs ([`RasterState`]); [`SplatBackend::splat_backward`] turns output
 //! gradients into input gradients. `Flex` implements both with the CPU path in
-//! [`crate::cpu`], `Cube` (features `gpu` and `cuda`: wgpu and CUDA devices) with the kernels
-//! of `crate::cube`; `Autodiff<B>` records one graph node whose backward calls
+//! [`crate::cpu`], `CubeBackend` (features `gpu` and `cuda`: wgpu and CUDA devices) with the
+//! kernels of `crate::cube`, and `Fusion<CubeBackend>` (feature `fusion`) by running that
+//! eagerly between fused blocks; `Autodiff<B>` records one graph node whose backward calls
 //! `B::splat_backward`. The saved state is plain tensors (on the device that rendered), so
 //! callers never know which backend ran.
 //!
@@ -23,6 +24,8 @@ use crate::{Camera, SplatError};
 
 mod autodiff;
 mod flex;
+#[cfg(all(feature = "fusion", any(feature = "gpu", feature = "cuda")))]
+mod fusion;
 
 /// Number of channels of the packed render: R, G, B, alpha, depth.
 pub const PACKED_CHANNELS: usize = 5;
