@@ -1,9 +1,12 @@
 //! `f3g bench train`: milliseconds per training step, phase by phase, on a device.
 //!
 //! A run of the chosen preset is created on a capture (a small synthetic one unless `--data`
-//! names one) in a temporary folder; `--warmup` steps of the chosen stage compile kernels and
-//! build the face model, then `--steps` steps are timed with the device synchronised at every
-//! phase boundary (`f3g_avatar::train::profile`). Nothing of the run is kept. On a GPU it
+//! names one) in a temporary folder; the images the steps will draw are decoded first (a
+//! training run's loader holds every view once its cache is warm, so the timed steps are a
+//! run's steady state, without JPEG decoding and resampling on the loader's thread);
+//! `--warmup` steps of the chosen stage compile kernels and build the face model, then
+//! `--steps` steps are timed with the device synchronised at every phase boundary
+//! (`f3g_avatar::train::profile`). Nothing of the run is kept. On a GPU it
 //! also counts the distinct kernels the warm-up launched (CubeCL's `LaunchedKernels`): in a
 //! fresh process, what its first steps compile — autotune's candidates included.
 
@@ -143,6 +146,8 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     let stage = Stage::from(a.stage);
     let launched = kernel_count::start(a.device.spec != DeviceSpec::Cpu);
     let start = Instant::now();
+    // The timed steps replay the warm-up's samples: every one of their images decoded now.
+    trainer.decode_ahead(stage, a.warmup.max(a.steps) as u64)?;
     trainer.bench(stage, a.warmup as u64, 0, &timer)?;
     let warmup_ms = start.elapsed().as_secs_f64() * 1e3;
     let warmup_kernels = launched.map(kernel_count::finish);

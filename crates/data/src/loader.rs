@@ -364,16 +364,20 @@ impl Loader<Sample> {
         options: LoaderOptions,
         start: u64,
     ) -> Result<Self, DataError> {
-        Self::with_preparation(ds, split, options, start, |s| s)
+        let cache = Arc::new(Mutex::new(ImageCache::new(options.cache_bytes)));
+        Self::with_preparation(ds, split, options, cache, start, |s| s)
     }
 }
 
 impl<T: Send + 'static> Loader<T> {
-    /// A loader whose worker also applies `prepare` to every sample.
+    /// A loader whose worker also applies `prepare` to every sample. `cache` may be shared
+    /// with other loaders of the same capture (a trainer's), so that a new loader finds the
+    /// images the previous ones decoded.
     pub fn with_preparation(
         ds: Arc<Dataset>,
         split: &Split,
         options: LoaderOptions,
+        cache: Arc<Mutex<ImageCache>>,
         start: u64,
         mut prepare: impl FnMut(Sample) -> T + Send + 'static,
     ) -> Result<Self, DataError> {
@@ -382,7 +386,6 @@ impl<T: Send + 'static> Loader<T> {
             return Err(DataError::Invalid("the split has no images".into()));
         }
         let (sender, receiver): (SyncSender<_>, _) = sync_channel(options.prefetch.max(1));
-        let cache = Mutex::new(ImageCache::new(options.cache_bytes));
         let worker = std::thread::spawn(move || {
             for index in start.. {
                 let sample = make_sample(&ds, &pairs, &cache, &options, index).map(&mut prepare);

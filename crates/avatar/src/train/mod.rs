@@ -45,8 +45,8 @@ mod validation;
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use burn::tensor::Device;
@@ -59,7 +59,7 @@ use crate::report;
 use crate::run::{Run, RunInfo, TrainState, load_face_base, read_state};
 use crate::setup::Setup;
 use f3g_data::Dataset;
-use f3g_data::loader::{Loader, LoaderOptions};
+use f3g_data::loader::{ImageCache, Loader, LoaderOptions};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_rig::ModelSpec;
 use profile::PhaseTimer;
@@ -127,6 +127,9 @@ pub struct Trainer {
     state: TrainState,
     last_checkpoint: Option<PathBuf>,
     validation_view: Option<(usize, usize)>,
+    /// The loaders' decoded images, kept for every loader this trainer makes (`bench` makes
+    /// several).
+    image_cache: Arc<Mutex<ImageCache>>,
 }
 
 impl Trainer {
@@ -328,6 +331,7 @@ impl Trainer {
             self.dataset.clone(),
             &self.split,
             self.loader_options(),
+            self.image_cache.clone(),
             start,
             move |sample| {
                 let replica = (sample.index / config.batch as u64) as usize % devices.len();
@@ -446,15 +450,7 @@ impl Trainer {
         steps: u64,
         timer: &PhaseTimer,
     ) -> Result<Vec<StepReport>, AvatarError> {
-        let in_stage: Vec<u64> = (0..self.total_steps())
-            .filter(|&s| self.schedule.stage(s) == stage)
-            .collect();
-        let (Some(&first), len) = (in_stage.first(), in_stage.len() as u64) else {
-            return Err(AvatarError::config(
-                "steps",
-                format!("the configuration has no {stage:?} steps to time"),
-            ));
-        };
+        let (first, len) = self.stage_steps(stage)?;
         let per_step = (self.replicas.len() * self.config.batch) as u64;
         let mut loader = self.loader(first * per_step)?;
         let mut reports = Vec::new();
@@ -472,6 +468,30 @@ impl Trainer {
             }
         }
         Ok(reports)
+    }
+
+    /// Decodes the images of the first `steps` steps of `stage` into the loaders' cache, as
+    /// [`Trainer::bench`] will draw them: a run's loader holds every training view once its
+    /// cache is warm, so a bench that times steps without decoding times a run's steady state.
+    pub fn decode_ahead(&mut self, stage: Stage, steps: u64) -> Result<(), AvatarError> {
+        let (first, _) = self.stage_steps(stage)?;
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
+        let mut loader = self.loader(first * per_step)?;
+        next_samples(&mut loader, steps * per_step).map(|_| ())
+    }
+
+    /// The first step of `stage` and how many steps it has.
+    fn stage_steps(&self, stage: Stage) -> Result<(u64, u64), AvatarError> {
+        let in_stage: Vec<u64> = (0..self.total_steps())
+            .filter(|&s| self.schedule.stage(s) == stage)
+            .collect();
+        match in_stage.first() {
+            Some(&first) => Ok((first, in_stage.len() as u64)),
+            None => Err(AvatarError::config(
+                "steps",
+                format!("the configuration has no {stage:?} steps to time"),
+            )),
+        }
     }
 
     /// Keeps only the log lines of steps before the current one (after a resume).

@@ -3,7 +3,7 @@
 //! weights), replicated onto every device from the first one's state.
 
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use burn::module::Module;
 use burn::tensor::Device;
@@ -17,6 +17,7 @@ use crate::model::{AvatarNets, Constants, FaceBase};
 use crate::run::{Run, TrainState, load_optim};
 use crate::setup::Setup;
 use f3g_data::Dataset;
+use f3g_data::loader::ImageCache;
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 
 impl Trainer {
@@ -124,6 +125,7 @@ impl Trainer {
                 .flat_map(|&f| s.cameras.iter().map(move |&c| (c, f)))
                 .find(|&(c, f)| dataset.has_image(c, f))
         });
+        let cache_bytes = config.cache_bytes;
         Ok(Self {
             schedule: Schedule::new(&config),
             config,
@@ -137,6 +139,7 @@ impl Trainer {
             state,
             last_checkpoint: checkpoint,
             validation_view,
+            image_cache: Arc::new(Mutex::new(ImageCache::new(cache_bytes))),
         })
     }
 }
