@@ -1,7 +1,7 @@
 //! The splat op's GPU kernels (CubeCL; features `gpu` for wgpu and `cuda`): one `#[cube]`
 //! source for every runtime, checked against the CPU path in `tests/gpu.rs` on a wgpu device
-//! (Mesa lavapipe in CI). [`backend`] chains them into `SplatBackend for CubeBackend` (the unfused backend;
-//! `crate::op::fusion` wraps it for Burn's `fusion` feature).
+//! (Mesa lavapipe in CI). [`backend`] chains them into `SplatBackend for CubeBackend`, the
+//! unfused backend (`crate::op::fusion` runs it for Burn's `fusion` feature).
 //!
 //! Forward: [`project`] (projection, culling, SH colour, radii, tiles touched) →
 //! [`depth_order`] (a depth sort of the Gaussians and the [`exclusive_scan`] of their tile
