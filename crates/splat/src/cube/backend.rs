@@ -76,14 +76,7 @@ fn f32_contiguous(t: &FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
 }
 
 fn f32_inputs(inputs: &GaussianTensors<CubeBackend>) -> GaussianTensors<CubeBackend> {
-    GaussianTensors {
-        means: f32_contiguous(&inputs.means),
-        log_scales: f32_contiguous(&inputs.log_scales),
-        quats: f32_contiguous(&inputs.quats),
-        opacity_logits: f32_contiguous(&inputs.opacity_logits),
-        sh: f32_contiguous(&inputs.sh),
-        background: f32_contiguous(&inputs.background),
-    }
+    inputs.clone().map_tensors(|t| f32_contiguous(&t))
 }
 
 fn host(t: &FloatTensor<CubeBackend>) -> Vec<f32> {
@@ -263,14 +256,6 @@ impl SplatBackend for CubeBackend {
         if dtype == burn::tensor::DType::F32 {
             return grads;
         }
-        let back = |t: FloatTensor<CubeBackend>| CubeBackend::float_cast(t, dtype.into());
-        GaussianTensors {
-            means: back(grads.means),
-            log_scales: back(grads.log_scales),
-            quats: back(grads.quats),
-            opacity_logits: back(grads.opacity_logits),
-            sh: back(grads.sh),
-            background: back(grads.background),
-        }
+        grads.map_tensors(|t| CubeBackend::float_cast(t, dtype.into()))
     }
 }

@@ -14,44 +14,6 @@ use super::{GaussianTensors, RasterState, SplatBackend, SplatForward};
 use crate::Camera;
 use crate::semantics::RenderOptions;
 
-/// Wraps backend-level state tensors as (untracked) autodiff tensors.
-fn lift_state<B: Backend, C: CheckpointStrategy>(s: RasterState<B>) -> RasterState<Autodiff<B, C>> {
-    RasterState {
-        screen: Autodiff::<B, C>::from_inner(s.screen),
-        radii: s.radii,
-        tile_offsets: s.tile_offsets,
-        tile_ids: s.tile_ids,
-        final_transmittance: Autodiff::<B, C>::from_inner(s.final_transmittance),
-        n_contrib: s.n_contrib,
-    }
-}
-
-fn lower_state<B: Backend, C: CheckpointStrategy>(
-    s: RasterState<Autodiff<B, C>>,
-) -> RasterState<B> {
-    RasterState {
-        screen: s.screen.into_primitive(),
-        radii: s.radii,
-        tile_offsets: s.tile_offsets,
-        tile_ids: s.tile_ids,
-        final_transmittance: s.final_transmittance.into_primitive(),
-        n_contrib: s.n_contrib,
-    }
-}
-
-fn lower_inputs<B: Backend, C: CheckpointStrategy>(
-    g: GaussianTensors<Autodiff<B, C>>,
-) -> GaussianTensors<B> {
-    GaussianTensors {
-        means: g.means.into_primitive(),
-        log_scales: g.log_scales.into_primitive(),
-        quats: g.quats.into_primitive(),
-        opacity_logits: g.opacity_logits.into_primitive(),
-        sh: g.sh.into_primitive(),
-        background: g.background.into_primitive(),
-    }
-}
-
 /// Saved for the backward: the inner-backend inputs, the raster state and the view.
 type SavedRender<B> = (GaussianTensors<B>, RasterState<B>, Camera, RenderOptions);
 
@@ -100,7 +62,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             inputs.sh.node(),
             inputs.background.node(),
         ];
-        let inner = lower_inputs(inputs);
+        let inner = inputs.map_tensors(|t| t.into_primitive());
         match SplatBackwardOp
             .prepare::<C>(nodes)
             .compute_bound()
@@ -111,7 +73,8 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                 let saved = (inner, out.state.clone(), camera, options);
                 SplatForward {
                     image: prep.finish(saved, out.image),
-                    state: lift_state(out.state),
+                    // The state is saved as plain, untracked tensors.
+                    state: out.state.map_tensors(Autodiff::<B, C>::from_inner, |t| t),
                     error: out.error,
                 }
             }
@@ -119,7 +82,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                 let out = B::splat_forward(inner, camera, options);
                 SplatForward {
                     image: prep.finish(out.image),
-                    state: lift_state(out.state),
+                    state: out.state.map_tensors(Autodiff::<B, C>::from_inner, |t| t),
                     error: out.error,
                 }
             }
@@ -133,20 +96,13 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
         camera: Camera,
         options: RenderOptions,
     ) -> GaussianTensors<Self> {
-        let g = B::splat_backward(
-            lower_inputs(inputs),
-            lower_state(state),
+        B::splat_backward(
+            inputs.map_tensors(|t| t.into_primitive()),
+            state.map_tensors(|t| t.into_primitive(), |t| t),
             grad_image.into_primitive(),
             camera,
             options,
-        );
-        GaussianTensors {
-            means: Autodiff::<B, C>::from_inner(g.means),
-            log_scales: Autodiff::<B, C>::from_inner(g.log_scales),
-            quats: Autodiff::<B, C>::from_inner(g.quats),
-            opacity_logits: Autodiff::<B, C>::from_inner(g.opacity_logits),
-            sh: Autodiff::<B, C>::from_inner(g.sh),
-            background: Autodiff::<B, C>::from_inner(g.background),
-        }
+        )
+        .map_tensors(Autodiff::<B, C>::from_inner)
     }
 }

@@ -58,31 +58,6 @@ fn fused_int(client: &Client<Runtime>, t: IntTensor<CubeBackend>) -> FusionTenso
     register(client, shape, dtype, CubeBackend::int_tensor_handle(t))
 }
 
-fn unfused(t: GaussianTensors<Fusion<CubeBackend>>) -> GaussianTensors<CubeBackend> {
-    GaussianTensors {
-        means: float(t.means),
-        log_scales: float(t.log_scales),
-        quats: float(t.quats),
-        opacity_logits: float(t.opacity_logits),
-        sh: float(t.sh),
-        background: float(t.background),
-    }
-}
-
-fn fused(
-    client: &Client<Runtime>,
-    t: GaussianTensors<CubeBackend>,
-) -> GaussianTensors<Fusion<CubeBackend>> {
-    GaussianTensors {
-        means: fused_float(client, t.means),
-        log_scales: fused_float(client, t.log_scales),
-        quats: fused_float(client, t.quats),
-        opacity_logits: fused_float(client, t.opacity_logits),
-        sh: fused_float(client, t.sh),
-        background: fused_float(client, t.background),
-    }
-}
-
 impl SplatBackend for Fusion<CubeBackend> {
     fn splat_forward(
         inputs: GaussianTensors<Self>,
@@ -90,18 +65,12 @@ impl SplatBackend for Fusion<CubeBackend> {
         options: RenderOptions,
     ) -> SplatForward<Self> {
         let client = inputs.means.client.clone();
-        let out = CubeBackend::splat_forward(unfused(inputs), camera, options);
-        let state = out.state;
+        let out = CubeBackend::splat_forward(inputs.map_tensors(float), camera, options);
         SplatForward {
             image: fused_float(&client, out.image),
-            state: RasterState {
-                screen: fused_float(&client, state.screen),
-                radii: fused_int(&client, state.radii),
-                tile_offsets: fused_int(&client, state.tile_offsets),
-                tile_ids: fused_int(&client, state.tile_ids),
-                final_transmittance: fused_float(&client, state.final_transmittance),
-                n_contrib: fused_int(&client, state.n_contrib),
-            },
+            state: out
+                .state
+                .map_tensors(|t| fused_float(&client, t), |t| fused_int(&client, t)),
             error: out.error,
         }
     }
@@ -114,16 +83,13 @@ impl SplatBackend for Fusion<CubeBackend> {
         options: RenderOptions,
     ) -> GaussianTensors<Self> {
         let client = inputs.means.client.clone();
-        let state = RasterState {
-            screen: float(state.screen),
-            radii: int(state.radii),
-            tile_offsets: int(state.tile_offsets),
-            tile_ids: int(state.tile_ids),
-            final_transmittance: float(state.final_transmittance),
-            n_contrib: int(state.n_contrib),
-        };
-        let grads =
-            CubeBackend::splat_backward(unfused(inputs), state, float(grad_image), camera, options);
-        fused(&client, grads)
+        CubeBackend::splat_backward(
+            inputs.map_tensors(float),
+            state.map_tensors(float, int),
+            float(grad_image),
+            camera,
+            options,
+        )
+        .map_tensors(|t| fused_float(&client, t))
     }
 }

@@ -99,6 +99,42 @@ pub trait SplatBackend: Backend {
     ) -> GaussianTensors<Self>;
 }
 
+impl<B: Backend> GaussianTensors<B> {
+    /// Every tensor through `f`: the one place that lists the fields, for the backends that
+    /// move the inputs or their gradients between backends, dtypes or layouts.
+    pub(crate) fn map_tensors<C: Backend>(
+        self,
+        mut f: impl FnMut(FloatTensor<B>) -> FloatTensor<C>,
+    ) -> GaussianTensors<C> {
+        GaussianTensors {
+            means: f(self.means),
+            log_scales: f(self.log_scales),
+            quats: f(self.quats),
+            opacity_logits: f(self.opacity_logits),
+            sh: f(self.sh),
+            background: f(self.background),
+        }
+    }
+}
+
+impl<B: Backend> RasterState<B> {
+    /// Every float tensor through `float` and every int tensor through `int`.
+    pub(crate) fn map_tensors<C: Backend>(
+        self,
+        mut float: impl FnMut(FloatTensor<B>) -> FloatTensor<C>,
+        mut int: impl FnMut(IntTensor<B>) -> IntTensor<C>,
+    ) -> RasterState<C> {
+        RasterState {
+            screen: float(self.screen),
+            radii: int(self.radii),
+            tile_offsets: int(self.tile_offsets),
+            tile_ids: int(self.tile_ids),
+            final_transmittance: float(self.final_transmittance),
+            n_contrib: int(self.n_contrib),
+        }
+    }
+}
+
 /// What [`SplatBackend::splat_forward`] returns for rejected inputs: the error and empty
 /// placeholders, so that a request refused for its size allocates nothing of that size.
 pub(crate) fn rejected<B: Backend>(
