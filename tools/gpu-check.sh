@@ -25,7 +25,12 @@
 #      shapes where the real ones are not installed: tools/random_lpips_vgg.py)
 #   7. tools/bench_gsplat.py                 gsplat on the same kind of scene as step 4 (its CUDA
 #      is compiled in the background from the start)
-#   8. `f3g bench nets` with autotune         the paper body network, in what is left
+#   8. the kernel profile of one `paper` step  each launch timed on the device (CubeCL's
+#      profiler, F3G_KERNEL_PROFILE), summed by kernel: profile.json, the top kernels in
+#      profile.md
+#   9. `f3g bench nets` with autotune         the paper body network, in what is left (only
+#      when the package has the autotune binary: F3G_GPU_CHECK_AUTOTUNE=0 at pack leaves it
+#      out, and 12 minutes of building)
 # and writes OUT/summary.json (each step: command, exit code, seconds, its JSON where it makes
 # one) and OUT/summary.md, with each step's output in OUT/<step>.log.
 set -uo pipefail
@@ -40,8 +45,10 @@ pack() {
     rm -rf "$dir" && mkdir -p "$dir/bin" "$dir/tests" "$dir/wheels" "$dir/tools"
     cargo build --release --locked -p f3g-cli --features cuda
     cp target/release/f3g "$dir/bin/f3g-cuda"
-    cargo build --release --locked -p f3g-cli --features cuda,autotune
-    cp target/release/f3g "$dir/bin/f3g-cuda-autotune"
+    if [ "${F3G_GPU_CHECK_AUTOTUNE:-1}" != 0 ]; then
+        cargo build --release --locked -p f3g-cli --features cuda,autotune
+        cp target/release/f3g "$dir/bin/f3g-cuda-autotune"
+    fi
     # The test binaries, by name: `cargo test --no-run` prints where it put them.
     cargo test --release --locked --no-run -p f3g-splat -p f3g-nets \
         --features f3g-splat/cuda,f3g-nets/cuda --test gpu --message-format=json \
@@ -75,7 +82,8 @@ with zipfile.ZipFile(wheel) as src, zipfile.ZipFile(wheel + ".tmp", "w", zipfile
             dst.writestr(item, src.read(item))
 os.replace(wheel + ".tmp", wheel)
 PY
-    cp tools/bench_gsplat.py tools/bench_nets_torch.py tools/random_lpips_vgg.py "$dir/tools/"
+    cp tools/bench_gsplat.py tools/bench_nets_torch.py tools/random_lpips_vgg.py \
+        tools/kernel_profile.py "$dir/tools/"
     cp "$0" "$dir/gpu-check.sh"
     local size
     size=$(du -sb "$dir" | cut -f1)
@@ -147,9 +155,14 @@ PY
     }
     # gsplat compiles its CUDA at first use (minutes of nvcc): start that now, beside the steps
     # that follow (they use one host core), and time gsplat only once it is built.
+    # (Not when F3G_GPU_CHECK_ONLY leaves gsplat out: eight compilers would share the host with
+    # the timed steps.)
     export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-8}
-    python3 -c 'from gsplat.cuda._backend import _C' >"$out/gsplat-build.log" 2>&1 &
-    local gsplat_build=$!
+    local gsplat_build=0
+    if [ -z "$only" ] || [[ " $only " == *" gsplat-build "* || " $only " == *" bench-gsplat "* ]]; then
+        python3 -c 'from gsplat.cuda._backend import _C' >"$out/gsplat-build.log" 2>&1 &
+        gsplat_build=$!
+    fi
     # The paper preset's LPIPS is VGG; its weights (59 MB) do not travel. Where they are not
     # installed, random weights of the real shapes stand in: the work timed is the same.
     export F3G_WEIGHTS=${F3G_WEIGHTS:-$PWD/$dir/weights}
@@ -184,11 +197,20 @@ PY
         cat '$out/gsplat-build.log'; python3 -c 'from gsplat.cuda._backend import _C'"
     step bench-gsplat 90 "$out/gsplat.json" python3 "$dir/tools/bench_gsplat.py" --repeats 5 \
         --json "$out/gsplat.json"
+    # Every launch timed on the device: where a `paper` step's GPU time goes, kernel by kernel.
+    # The profile holds the warm-up step's launches and the timed step's (halve its totals for
+    # one step); compiling is not a launch, so it is not in them.
+    step profile-train-paper 120 "$out/profile.json" sh -c "F3G_KERNEL_PROFILE='$out/profile.log' \
+        '$bin/f3g-cuda' bench train --preset paper --device cuda --steps 1 --warmup 1 \
+        && python3 '$dir/tools/kernel_profile.py' '$out/profile.log' --json '$out/profile.json' \
+        --markdown '$out/profile.md'"
     # Last: autotune compiles and times every candidate kernel of every shape (750 kernels for
     # the first network on the CPU machine's NVRTC); it gets what is left of the budget.
     # The paper-sized body network alone: the one Burn's untuned kernels are slowest on.
-    step bench-nets-autotune 180 "$out/nets-autotune.json" "$f3g" bench nets --device cuda \
-        --paper --image 512 --only "body paper" --json "$out/nets-autotune.json"
+    if [ -x "$bin/f3g-cuda-autotune" ]; then
+        step bench-nets-autotune 180 "$out/nets-autotune.json" "$f3g" bench nets --device cuda \
+            --paper --image 512 --only "body paper" --json "$out/nets-autotune.json"
+    fi
     python3 - "$out" "$((SECONDS - started))" <<'PY'
 import json, sys
 out, total = sys.argv[1], int(sys.argv[2])

@@ -276,6 +276,8 @@ pub mod kernel_cache {
     #[cfg(feature = "cuda")]
     use burn::cubecl::config::cache::CacheConfig;
     #[cfg(feature = "cuda")]
+    use burn::cubecl::config::profiling::ProfilingLogLevel;
+    #[cfg(feature = "cuda")]
     use burn::cubecl::config::{CubeClRuntimeConfig, RuntimeConfig};
 
     /// Where the cache goes: `F3G_KERNEL_CACHE` (a folder, or `off`), else
@@ -314,20 +316,31 @@ pub mod kernel_cache {
         }
     }
 
-    /// Turns the cache on in [`folder`], unless a CubeCL configuration file of the user's
-    /// decides (then it is CubeCL's to read, untouched). Must run before the first CUDA device
-    /// is created: CubeCL reads its configuration once per process.
+    /// Turns the cache on in [`folder`], and with `F3G_KERNEL_PROFILE=FILE` CubeCL's kernel
+    /// profile (each launch timed on the device, one `| duration | kernel` line per launch and
+    /// a summary table at each synchronisation, in FILE; the launches are serialised, so only
+    /// the shares mean anything), unless a CubeCL configuration file of the user's decides
+    /// (then it is CubeCL's to read, untouched). Must run before the first CUDA device is
+    /// created: CubeCL reads its configuration once per process.
     #[cfg(feature = "cuda")]
     pub fn configure() {
         if users_file().is_some() {
             return;
         }
-        let Some(folder) = folder(|name| std::env::var(name).ok()) else {
-            return;
-        };
         let mut config = CubeClRuntimeConfig::default().override_from_env();
-        config.compilation.cache = true;
-        config.environment.path = CacheConfig::Directory(folder);
+        if let Some(folder) = folder(|name| std::env::var(name).ok()) {
+            config.compilation.cache = true;
+            config.environment.path = CacheConfig::Directory(folder);
+        }
+        if let Some(file) = std::env::var_os("F3G_KERNEL_PROFILE").filter(|f| !f.is_empty()) {
+            // Basic unless CUBECL_DEBUG_OPTION asked for more (`profile-full` adds each
+            // launch's cube count and comptime configuration).
+            if matches!(config.profiling.logger.level, ProfilingLogLevel::Disabled) {
+                config.profiling.logger.level = ProfilingLogLevel::Basic;
+            }
+            config.profiling.logger.file = Some(file.into());
+            config.profiling.logger.append = false;
+        }
         CubeClRuntimeConfig::try_set(config);
     }
 }

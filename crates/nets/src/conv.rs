@@ -11,7 +11,9 @@
 //! gradient with the flipped kernel (stride 1) or `col2im(Wᵀ · G)`, and the weight gradient
 //! `Σ G · X̂ᵀ`, each one well-shaped GEMM per tile of output positions.
 //!
-//! `Cube` devices use Burn's kernels for all three. `Autodiff` records one node whose backward
+//! `Cube` devices use Burn's kernels for all three, with the algorithm chosen in [`cube`] (implicit
+//! GEMMs on matrix units where the device has them) unless Burn's `autotune` or `fusion` is on,
+//! where Burn's own choice stands. `Autodiff` records one node whose backward
 //! asks the inner backend for each gradient a parent needs. Layouts are Burn's: `x`
 //! `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
 
@@ -21,6 +23,8 @@ use burn::tensor::Tensor;
 use burn::tensor::ops::ConvOptions;
 
 mod autodiff;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+mod cube;
 mod flex;
 pub mod profile;
 
@@ -71,8 +75,9 @@ pub trait ConvBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// Burn's kernels (CubeCL's convolutions and their gradients) on wgpu and CUDA devices.
-#[cfg(any(feature = "gpu", feature = "cuda"))]
+/// Burn's kernels with Burn's choice of algorithm on fused wgpu and CUDA devices (the tensors
+/// are the fusion engine's; unfused devices: [`cube`]).
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 impl ConvBackend for burn::backend::Cube {
     fn conv2d_forward(
         x: FloatTensor<Self>,
