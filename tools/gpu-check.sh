@@ -25,8 +25,9 @@
 #      shapes where the real ones are not installed: tools/random_lpips_vgg.py)
 #   7. tools/bench_gsplat.py                 gsplat on the same kind of scene as step 4 (its CUDA
 #      is compiled in the background from the start)
-#   8. the kernel profile of one `paper` step  each launch timed on the device (CubeCL's
-#      profiler, F3G_KERNEL_PROFILE), summed by kernel: profile.json, the top kernels in
+#   8. the kernel profile of a `paper` run    each launch timed on the device (CubeCL's
+#      profiler at its `profile-full` level, F3G_KERNEL_PROFILE), summed by kernel family
+#      and by variant (a convolution's pass, the grid): profile.json, the top ones in
 #      profile.md
 #   9. `f3g bench nets` with autotune         the paper body network, in what is left (only
 #      when the package has the autotune binary: F3G_GPU_CHECK_AUTOTUNE=0 at pack leaves it
@@ -200,7 +201,9 @@ PY
     # Every launch timed on the device: where a `paper` step's GPU time goes, kernel by kernel.
     # The profile holds the warm-up step's launches and the timed step's (halve its totals for
     # one step); compiling is not a launch, so it is not in them.
-    step profile-train-paper 120 "$out/profile.json" sh -c "F3G_KERNEL_PROFILE='$out/profile.log' \
+    # At CubeCL's `profile-full` level, so each variant is named by its pass and grid.
+    step profile-train-paper 120 "$out/profile.json" sh -c "CUBECL_DEBUG_OPTION=profile-full \
+        F3G_KERNEL_PROFILE='$out/profile.log' \
         '$bin/f3g-cuda' bench train --preset paper --device cuda --steps 1 --warmup 1 \
         && python3 '$dir/tools/kernel_profile.py' '$out/profile.log' --json '$out/profile.json' \
         --markdown '$out/profile.md'"
