@@ -451,10 +451,8 @@ pub fn reduce_dim(
                 autotune_level: Default::default(),
             };
             let planes = client.properties().features.plane.contains(Plane::Ops);
-            let chosen = unspecified_routine(outputs, axis_length, planes).map(|routine| ReduceStrategy {
-                routine,
-                ..unit()
-            });
+            let chosen = unspecified_routine(outputs, axis_length, planes)
+                .map(|routine| ReduceStrategy { routine, ..unit() });
             let launch = |strategy| {
                 cubek::reduce::reduce(
                     &client,
