@@ -8,9 +8,10 @@
 //! weight gradient run as implicit GEMMs (`ConvStrategy::ImplicitGemm`; on CUDA, f32 as TF32 on
 //! tensor cores, as cuDNN does by default), the input gradient as an implicit GEMM at stride 1
 //! and as the transposed convolution's matmul + col2im at other strides (the implicit GEMM has
-//! no strided input gradient). Where Burn's setup declines — no matrix units (Mesa lavapipe),
-//! grouped or asymmetric padding — the direct kernels run as before. With Burn's `autotune` on,
-//! its tuner chooses among all of these and more, so this choice steps aside.
+//! no strided input gradient). On a device without matrix units (Mesa lavapipe), where Burn's
+//! setup declines, and for grouped or asymmetrically padded convolutions, the direct kernels run
+//! as before. With Burn's `autotune` on, its tuner chooses among all of these and more, so this
+//! choice steps aside.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::ModuleOps;
@@ -30,6 +31,13 @@ fn choose_here(options: &ConvOptions<2>) -> bool {
     symmetric && options.groups == 1 && matches!(ConvStrategy::default(), ConvStrategy::Direct)
 }
 
+/// Whether `t`'s device has matrix units (CMMA) at all. Without them Burn's implicit GEMM
+/// declines every problem, but only after copying the input and the weight to NHWC: asking it
+/// anyway would add those copies to every convolution before the direct kernel runs.
+fn has_matrix_units(t: &FloatTensor<CubeBackend>) -> bool {
+    !t.client.properties().features.matmul.cmma.is_empty()
+}
+
 impl ConvBackend for CubeBackend {
     fn conv2d_forward(
         x: FloatTensor<Self>,
@@ -37,6 +45,7 @@ impl ConvBackend for CubeBackend {
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
         if choose_here(&options)
+            && has_matrix_units(&x)
             && let Ok(out) = conv_forward::<2>(
                 x.clone(),
                 weight.clone(),
@@ -58,24 +67,27 @@ impl ConvBackend for CubeBackend {
     ) -> FloatTensor<Self> {
         if choose_here(&options) {
             let unit_stride = options.stride.iter().all(|&s| s == 1);
-            let fast = if unit_stride {
-                conv_data_backward(
-                    grad.clone(),
-                    weight.clone(),
-                    x.shape(),
-                    options.clone(),
-                    ConvStrategy::ImplicitGemm,
-                )
-            } else {
-                conv_transpose2d(
+            // The strided path is a plain matmul: it runs on any device.
+            let fast = if !unit_stride {
+                Some(conv_transpose2d(
                     grad.clone(),
                     weight.clone(),
                     None,
                     transpose_options(&x, &grad, &weight, &options),
                     ConvTranspose2dStrategy::Gemm,
-                )
+                ))
+            } else if has_matrix_units(&x) {
+                Some(conv_data_backward(
+                    grad.clone(),
+                    weight.clone(),
+                    x.shape(),
+                    options.clone(),
+                    ConvStrategy::ImplicitGemm,
+                ))
+            } else {
+                None
             };
-            if let Ok(input_grad) = fast {
+            if let Some(Ok(input_grad)) = fast {
                 return input_grad;
             }
         }
@@ -89,6 +101,7 @@ impl ConvBackend for CubeBackend {
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
         if choose_here(&options)
+            && has_matrix_units(&x)
             && let Ok(weight_grad) = conv_weight_backward::<2>(
                 x.clone(),
                 grad.clone(),
