@@ -7,10 +7,17 @@
 //! `(w, x, y, z)`. LBS blends the joints' transforms with each point's skin weights; Gaussians
 //! take the blend's nearest rotation (its orthogonal polar factor), as `f3g_rig::skin` does on
 //! the host, which stays the reference these tensors are tested against.
+//!
+//! On the CPU backend the skinning transforms (which need no gradient: joint transforms are
+//! inputs) are computed by one parallel loop instead ([`Skinning::new`]): the tensor chain is
+//! about 600 operations on `[N, 1]` columns, each a serial pass and an allocation on `Flex`.
+
+use std::sync::Arc;
 
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use f3g_rig::SkinWeights;
 use glam::Affine3A;
+use rayon::prelude::*;
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
 /// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
@@ -28,6 +35,9 @@ pub const POLAR_ITERATIONS: usize = 8;
 pub struct Taps {
     index: Tensor<1, Int>,
     weight: Tensor<3>,
+    /// The same taps on the host (`[width, rows]`), for the CPU path of [`Skinning::new`].
+    host_index: Arc<[u32]>,
+    host_weight: Arc<[f32]>,
     rows: usize,
     width: usize,
 }
@@ -50,6 +60,8 @@ impl Taps {
             }
         }
         Self {
+            host_index: index.iter().map(|&j| j as u32).collect(),
+            host_weight: weight.iter().copied().collect(),
             index: Tensor::from_data(TensorData::new(index, [count * width]), device),
             weight: Tensor::from_data(TensorData::new(weight, [width, count, 1]), device),
             rows: count,
@@ -70,8 +82,39 @@ impl Taps {
         self.rows
     }
 
-    /// `[rows, C]` from `x` `[M, C]`.
+    /// `[rows, C]` from `x` `[M, C]`: on the CPU backend (for `x` that needs no gradient) one
+    /// parallel loop, elsewhere tensor operations.
     pub fn apply(&self, x: Tensor<2>) -> Tensor<2> {
+        if x.device().without_autodiff() == Device::flex() && !x.is_require_grad() {
+            self.apply_on_host(x)
+        } else {
+            self.apply_as_tensors(x)
+        }
+    }
+
+    /// [`Taps::apply`] on the host, row by row in parallel, uploaded to `x`'s device.
+    fn apply_on_host(&self, x: Tensor<2>) -> Tensor<2> {
+        let (c, device) = (x.dims()[1], x.device());
+        let values = host_f32(x.into_data());
+        let rows = self.rows;
+        let mut out = vec![0.0f32; rows * c];
+        out.par_chunks_mut(c.max(1))
+            .with_min_len(256)
+            .enumerate()
+            .for_each(|(i, row)| {
+                for k in 0..self.width {
+                    let tap = k * rows + i;
+                    let (j, w) = (self.host_index[tap] as usize, self.host_weight[tap]);
+                    for (o, &v) in row.iter_mut().zip(&values[j * c..j * c + c]) {
+                        *o += w * v;
+                    }
+                }
+            });
+        Tensor::from_data(TensorData::new(out, [rows, c]), &device)
+    }
+
+    /// [`Taps::apply`] as tensor operations, for every device.
+    fn apply_as_tensors(&self, x: Tensor<2>) -> Tensor<2> {
         let c = x.dims()[1];
         let picked = x
             .select(0, self.index.clone())
@@ -215,8 +258,20 @@ pub struct Skinning {
 }
 
 impl Skinning {
-    /// The skinning of points with `skin` under joint transforms `[J, 3, 4]`.
+    /// The skinning of points with `skin` under joint transforms `[J, 3, 4]`: on the CPU
+    /// backend (joints that need no gradient) one parallel loop ([`Skinning::on_host`]),
+    /// elsewhere tensor operations ([`Skinning::from_tensors`]); the two agree to float
+    /// rounding (tested).
     pub fn new(joints: &Tensor<3>, skin: &Taps) -> Self {
+        if joints.device().without_autodiff() == Device::flex() && !joints.is_require_grad() {
+            Self::on_host(joints, skin)
+        } else {
+            Self::from_tensors(joints, skin)
+        }
+    }
+
+    /// [`Skinning::new`] as tensor operations, for every device.
+    pub fn from_tensors(joints: &Tensor<3>, skin: &Taps) -> Self {
         let (linear, translation) = split_affine(blend(joints, skin));
         let rotation = nearest_rotation(linear.clone());
         Self {
@@ -224,6 +279,52 @@ impl Skinning {
             linear,
             translation,
             rotation,
+        }
+    }
+
+    /// [`Skinning::new`] computed on the host, point by point in parallel, with the tensor
+    /// path's arithmetic ([`nearest_rotation`], [`quaternions`]), uploaded to `joints`' device.
+    pub fn on_host(joints: &Tensor<3>, skin: &Taps) -> Self {
+        let joint_values = host_f32(joints.to_data());
+        let rows = skin.rows;
+        let per_point: Vec<PointSkinning> = (0..rows)
+            .into_par_iter()
+            .with_min_len(512)
+            .map(|i| {
+                let mut blended = [0.0f32; 12];
+                for k in 0..skin.width {
+                    let tap = k * rows + i;
+                    let (j, w) = (skin.host_index[tap] as usize, skin.host_weight[tap]);
+                    for (b, &m) in blended.iter_mut().zip(&joint_values[12 * j..12 * j + 12]) {
+                        *b += w * m;
+                    }
+                }
+                PointSkinning::of_blend(&blended)
+            })
+            .collect();
+        let device = joints.device();
+        let upload = |values: Vec<f32>, width: usize| {
+            Tensor::<2>::from_data(TensorData::new(values, [rows, width]), &device)
+        };
+        let (mut linear, mut translation, mut quaternion) = (
+            Vec::with_capacity(9 * rows),
+            Vec::with_capacity(3 * rows),
+            Vec::with_capacity(4 * rows),
+        );
+        let mut rotation: [Vec<f32>; 9] = std::array::from_fn(|_| Vec::with_capacity(rows));
+        for p in &per_point {
+            linear.extend_from_slice(&p.linear);
+            translation.extend_from_slice(&p.translation);
+            quaternion.extend_from_slice(&p.quaternion);
+            for (column, &r) in rotation.iter_mut().zip(&p.rotation) {
+                column.push(r);
+            }
+        }
+        Self {
+            linear: upload(linear, 9).reshape([rows, 3, 3]),
+            translation: upload(translation, 3),
+            rotation: rotation.map(|column| upload(column, 1)),
+            quaternion: upload(quaternion, 4),
         }
     }
 
@@ -247,6 +348,95 @@ impl Skinning {
             quaternion: Tensor::cat(vec![self.quaternion, other.quaternion], 0),
         }
     }
+}
+
+/// A float tensor's values as `f32` on the host.
+fn host_f32(data: TensorData) -> Vec<f32> {
+    data.convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("a float tensor converts to f32")
+}
+
+/// One point's skinning transforms on the host (row-major, as [`Skinning`]'s tensors).
+struct PointSkinning {
+    linear: [f32; 9],
+    translation: [f32; 3],
+    rotation: [f32; 9],
+    quaternion: [f32; 4],
+}
+
+impl PointSkinning {
+    /// From a blended `[3, 4]` transform: [`nearest_rotation`]'s and [`quaternions`]'
+    /// arithmetic on one matrix, the iteration stopped once it has converged.
+    fn of_blend(m: &[f32; 12]) -> Self {
+        let linear: [f32; 9] = std::array::from_fn(|k| m[4 * (k / 3) + k % 3]);
+        let mut x = linear;
+        for _ in 0..POLAR_ITERATIONS {
+            // The cofactors written out: index arithmetic here would not fold to constants.
+            let [x00, x01, x02, x10, x11, x12, x20, x21, x22] = x;
+            let cof = [
+                x11 * x22 - x12 * x21,
+                x12 * x20 - x10 * x22,
+                x10 * x21 - x11 * x20,
+                x21 * x02 - x01 * x22,
+                x22 * x00 - x20 * x02,
+                x20 * x01 - x21 * x00,
+                x01 * x12 - x02 * x11,
+                x02 * x10 - x00 * x12,
+                x00 * x11 - x01 * x10,
+            ];
+            let det = x00 * cof[0] + x01 * cof[1] + x02 * cof[2];
+            let det = if det.abs() < 1e-20 { 1e-20 } else { det };
+            let gamma = det.abs().powf(-1.0 / 3.0);
+            let (g, h) = (gamma * 0.5, (gamma * det).recip() * 0.5);
+            let next: [f32; 9] = std::array::from_fn(|k| x[k] * g + cof[k] * h);
+            let change = next
+                .iter()
+                .zip(&x)
+                .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            x = next;
+            // Converged (two or three iterations for a blend of nearby rotations): the tensor
+            // path's remaining iterations would change nothing beyond rounding.
+            if change < 1e-7 {
+                break;
+            }
+        }
+        Self {
+            linear,
+            translation: [m[3], m[7], m[11]],
+            rotation: x,
+            quaternion: shepperd(&x),
+        }
+    }
+}
+
+/// [`quaternions`] for one row-major rotation matrix.
+fn shepperd(r: &[f32; 9]) -> [f32; 4] {
+    let e = |i: usize, j: usize| r[3 * i + j];
+    let (s01, s02, s12) = (e(0, 1) + e(1, 0), e(0, 2) + e(2, 0), e(1, 2) + e(2, 1));
+    let (d10, d02, d21) = (e(1, 0) - e(0, 1), e(0, 2) - e(2, 0), e(2, 1) - e(1, 2));
+    let pivot = |a: f32, b: f32, c: f32| (e(0, 0) * a + e(1, 1) * b + e(2, 2) * c) + 1.0;
+    let t = [
+        pivot(1.0, 1.0, 1.0),
+        pivot(1.0, -1.0, -1.0),
+        pivot(-1.0, 1.0, -1.0),
+        pivot(-1.0, -1.0, 1.0),
+    ];
+    let candidates = [
+        [t[0], d21, d02, d10],
+        [d21, t[1], s01, s02],
+        [d02, s01, t[2], s12],
+        [d10, s02, s12, t[3]],
+    ];
+    let (mut q, mut best) = (candidates[0], t[0]);
+    for (candidate, &pivot) in candidates.iter().zip(&t).skip(1) {
+        if pivot > best {
+            q = *candidate;
+        }
+        best = best.max(pivot);
+    }
+    let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+    q.map(|v| v / norm)
 }
 
 /// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
@@ -299,7 +489,10 @@ mod tests {
         );
         let rows: Vec<Vec<(usize, f32)>> = vec![vec![(2, 1.0)], vec![(0, 0.5), (1, 0.25)], vec![]];
         let taps = Taps::new(rows.iter().map(Vec::as_slice), &device);
-        assert_eq!(host(taps.apply(x)), vec![3.0, 30.0, 1.0, 10.0, 0.0, 0.0]);
+        let expected = vec![3.0, 30.0, 1.0, 10.0, 0.0, 0.0];
+        assert_eq!(host(taps.apply_on_host(x.clone())), expected);
+        assert_eq!(host(taps.apply_as_tensors(x.clone())), expected);
+        assert_eq!(host(taps.apply(x)), expected);
     }
 
     proptest! {
@@ -308,8 +501,9 @@ mod tests {
         /// Blends of up to four rotations (up to ±0.78 rad about random axes, so less than 90°
         /// apart, as LBS blends neighbouring joints; one scaled), with translations: the
         /// device's blended transforms, nearest rotations and quaternions equal
-        /// `f3g_rig::point_transforms` (Newton to 1e-7 on the host, in f32). Rotations further
-        /// apart can blend to a singular matrix, which has no nearest rotation.
+        /// `f3g_rig::point_transforms` (Newton to 1e-7 on the host, in f32), on the CPU path and
+        /// the tensor path alike. Rotations further apart can blend to a singular matrix, which
+        /// has no nearest rotation.
         #[test]
         fn device_skinning_equals_the_host_reference(
             angles in proptest::collection::vec((-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -0.78f32..0.78, 0.7f32..1.4), 4),
@@ -340,28 +534,32 @@ mod tests {
                 .collect();
             let skin = SkinWeights::from_lists(&lists, 4).unwrap();
             let expected = f3g_rig::point_transforms(&joints, &skin);
-            let skinning = Skinning::new(&affine_tensor(&joints, &device), &Taps::skin(&skin, &device));
+            let (joint_tensor, taps) = (affine_tensor(&joints, &device), Taps::skin(&skin, &device));
             let n = skin.len();
             let p = Vec3::new(point.0, point.1, point.2);
-            let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
-            let got = host(transform_points(&skinning.linear, &skinning.translation, points));
-            let q = host(skinning.quaternion.clone());
-            let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host(c.clone())).collect();
-            for (i, e) in expected.iter().enumerate() {
-                let want = e.affine.transform_point3(p);
-                prop_assert!((Vec3::from_slice(&got[3 * i..3 * i + 3]) - want).length() < 1e-5);
-                let quat = Quat::from_xyzw(q[4 * i + 1], q[4 * i + 2], q[4 * i + 3], q[4 * i]);
-                prop_assert!(quat.dot(e.rotation).abs() > 1.0 - 1e-5, "{quat:?} vs {:?}", e.rotation);
-                let m = Mat3::from_quat(e.rotation);
-                for a in 0..3 {
-                    for b in 0..3 {
-                        prop_assert!((r[3 * a + b][i] - m.col(b)[a]).abs() < 1e-4);
+            // Both paths: the CPU's loop and the tensor chain every other device runs.
+            for skinning in [Skinning::on_host(&joint_tensor, &taps), Skinning::from_tensors(&joint_tensor, &taps)] {
+                let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
+                let got = host(transform_points(&skinning.linear, &skinning.translation, points));
+                let q = host(skinning.quaternion.clone());
+                let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host(c.clone())).collect();
+                for (i, e) in expected.iter().enumerate() {
+                    let want = e.affine.transform_point3(p);
+                    prop_assert!((Vec3::from_slice(&got[3 * i..3 * i + 3]) - want).length() < 1e-5);
+                    let quat = Quat::from_xyzw(q[4 * i + 1], q[4 * i + 2], q[4 * i + 3], q[4 * i]);
+                    prop_assert!(quat.dot(e.rotation).abs() > 1.0 - 1e-5, "{quat:?} vs {:?}", e.rotation);
+                    let m = Mat3::from_quat(e.rotation);
+                    for a in 0..3 {
+                        for b in 0..3 {
+                            prop_assert!((r[3 * a + b][i] - m.col(b)[a]).abs() < 1e-4);
+                        }
                     }
                 }
             }
         }
 
-        /// Shepperd's four branches: every rotation, including half turns (w = 0), comes back.
+        /// Shepperd's four branches, as tensors and on the host: every rotation, including half
+        /// turns (w = 0), comes back.
         #[test]
         fn quaternions_of_rotation_matrices_round_trip(
             x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0,
@@ -375,9 +573,11 @@ mod tests {
             let r: [Tensor<2>; 9] = std::array::from_fn(|k| {
                 Tensor::from_data(TensorData::new(vec![m.col(k % 3)[k / 3]], [1, 1]), &device)
             });
-            let got = host(quaternions(&r));
-            let got = Quat::from_xyzw(got[1], got[2], got[3], got[0]);
-            prop_assert!(got.dot(q).abs() > 1.0 - 1e-6, "{got:?} vs {q:?}");
+            let rows: [f32; 9] = std::array::from_fn(|k| m.col(k % 3)[k / 3]);
+            for got in [host(quaternions(&r)), shepperd(&rows).to_vec()] {
+                let got = Quat::from_xyzw(got[1], got[2], got[3], got[0]);
+                prop_assert!(got.dot(q).abs() > 1.0 - 1e-6, "{got:?} vs {q:?}");
+            }
         }
     }
 

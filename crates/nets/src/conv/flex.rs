@@ -18,6 +18,7 @@
 //! sums per thread over a contiguous run of tiles); with a single tile the GEMM itself runs on
 //! all threads instead. Grouped convolutions and other float types take Burn's route.
 
+use std::cell::RefCell;
 use std::ops::Range;
 
 use burn::backend::Flex;
@@ -37,6 +38,29 @@ const TILE_FLOATS: usize = 1 << 18;
 /// The fewest output positions per tile (a dimension of every GEMM), however many rows the
 /// im2col has.
 const MIN_TILE: usize = 64;
+
+thread_local! {
+    /// Each thread's column buffer, kept from one convolution to the next: im2col and the
+    /// input gradient's GEMM write every value they use, so it needs no zeroing, whereas a
+    /// fresh 1 MiB buffer per tile was zeroed (and, past glibc's mmap threshold, faulted in
+    /// page by page) every time.
+    static COLUMNS: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` on this thread's column buffer cut to `len` values of unspecified content
+/// (a fresh zeroed one if the thread's buffer is in use further up its stack: a thread waiting
+/// in a parallel GEMM may pick up another tile).
+fn with_columns<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+    COLUMNS.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut columns) => {
+            if columns.len() < len {
+                columns.resize(len, 0.0);
+            }
+            f(&mut columns[..len])
+        }
+        Err(_) => f(&mut vec![0.0; len]),
+    })
+}
 
 impl ConvBackend for Flex {
     fn conv2d_forward(
@@ -326,29 +350,24 @@ fn forward(geometry: &Geometry, x: &[f32], weight: &[f32]) -> Vec<f32> {
     // The GEMM below reads and writes through raw pointers: the slices must hold these shapes.
     assert_eq!(x.len(), batch * channels_in * height * width, "input");
     assert_eq!(weight.len(), channels_out * rows, "weight");
-    let mut out = vec![0.0f32; batch * channels_out * positions];
+    let total = batch * channels_out * positions;
+    // Not zeroed: the GEMMs below write every output value (`read_dst` false).
+    let mut out: Vec<f32> = Vec::with_capacity(total);
     let tiling = Tiling::new(geometry);
     let parallelism = Tiling::gemm_parallelism(tiling.tasks);
     let pointwise = geometry.is_pointwise();
     let image_len = channels_in * height * width;
     let output = SharedOutput(out.as_mut_ptr());
-    (0..tiling.tasks).into_par_iter().for_each_init(
-        || vec![0.0f32; if pointwise { 0 } else { rows * tiling.tile }],
-        |columns, task| {
-            let (image, first, len) = tiling.task(task, positions);
-            let image_x = &x[image * image_len..(image + 1) * image_len];
-            let (rhs, rhs_row_stride) = if pointwise {
-                (image_x[first..].as_ptr(), positions)
-            } else {
-                let columns = &mut columns[..rows * len];
-                im2col(geometry, image_x, first, columns);
-                (columns.as_ptr(), len)
-            };
+    (0..tiling.tasks).into_par_iter().for_each(|task| {
+        let (image, first, len) = tiling.task(task, positions);
+        let image_x = &x[image * image_len..(image + 1) * image_len];
+        let multiply = |rhs: *const f32, rhs_row_stride: usize| {
             // out[image, co, first + j] = Σ_r weight[co, r] · X̂[r, j]
             // SAFETY: dst (co, j) at image·C_out·positions + co·positions + first + j lies in
-            // `out`, and no two tasks share an (image, position); lhs (co, r) at co·rows + r <
-            // C_out·rows; rhs (r, j) at r·stride + j stays inside the im2col (r·len + j <
-            // rows·len) or, pointwise, inside the image (r·positions + first + j < C_in·positions).
+            // `out`'s allocation, and no two tasks share an (image, position); lhs (co, r) at
+            // co·rows + r < C_out·rows; rhs (r, j) at r·stride + j stays inside the im2col
+            // (r·len + j < rows·len) or, pointwise, inside the image (r·positions + first + j <
+            // C_in·positions).
             unsafe {
                 gemm::gemm(
                     channels_out,
@@ -372,8 +391,19 @@ fn forward(geometry: &Geometry, x: &[f32], weight: &[f32]) -> Vec<f32> {
                     parallelism,
                 );
             }
-        },
-    );
+        };
+        if pointwise {
+            multiply(image_x[first..].as_ptr(), positions);
+        } else {
+            with_columns(rows * len, |columns| {
+                im2col(geometry, image_x, first, columns);
+                multiply(columns.as_ptr(), len);
+            });
+        }
+    });
+    // SAFETY: the tasks cover every (image, position) and each GEMM wrote all C_out channels
+    // there, so all `total` values are initialised.
+    unsafe { out.set_len(total) };
     out
 }
 
@@ -395,38 +425,39 @@ fn input_grad_col2im(geometry: &Geometry, weight: &[f32], grad: &[f32]) -> Vec<f
     dx.par_chunks_mut(image_len)
         .zip(grad.par_chunks(channels_out * positions))
         .for_each(|(dx_image, grad_image)| {
-            let mut columns = vec![0.0f32; rows * tile];
-            for first in (0..positions).step_by(tile) {
-                let len = tile.min(positions - first);
-                let columns = &mut columns[..rows * len];
-                // columns[r, j] = Σ_co weight[co, r] · grad[co, first + j]
-                // SAFETY: dst (r, j) at r·len + j < rows·len; lhs (r, co) at co·rows + r <
-                // C_out·rows; rhs (co, j) at co·positions + first + j < C_out·positions.
-                unsafe {
-                    gemm::gemm(
-                        rows,
-                        len,
-                        channels_out,
-                        columns.as_mut_ptr(),
-                        1,
-                        len as isize,
-                        false,
-                        weight.as_ptr(),
-                        rows as isize,
-                        1,
-                        grad_image[first..].as_ptr(),
-                        1,
-                        positions as isize,
-                        0.0,
-                        1.0,
-                        false,
-                        false,
-                        false,
-                        parallelism,
-                    );
+            with_columns(rows * tile, |columns| {
+                for first in (0..positions).step_by(tile) {
+                    let len = tile.min(positions - first);
+                    let columns = &mut columns[..rows * len];
+                    // columns[r, j] = Σ_co weight[co, r] · grad[co, first + j]
+                    // SAFETY: dst (r, j) at r·len + j < rows·len; lhs (r, co) at co·rows + r <
+                    // C_out·rows; rhs (co, j) at co·positions + first + j < C_out·positions.
+                    unsafe {
+                        gemm::gemm(
+                            rows,
+                            len,
+                            channels_out,
+                            columns.as_mut_ptr(),
+                            1,
+                            len as isize,
+                            false,
+                            weight.as_ptr(),
+                            rows as isize,
+                            1,
+                            grad_image[first..].as_ptr(),
+                            1,
+                            positions as isize,
+                            0.0,
+                            1.0,
+                            false,
+                            false,
+                            false,
+                            parallelism,
+                        );
+                    }
+                    col2im(geometry, columns, first, dx_image);
                 }
-                col2im(geometry, columns, first, dx_image);
-            }
+            })
         });
     dx
 }
@@ -455,45 +486,46 @@ fn weight_grad(geometry: &Geometry, x: &[f32], grad: &[f32]) -> Vec<f32> {
         .into_par_iter()
         .map(|thread| {
             let mut sum = zeros();
-            let mut columns = vec![0.0f32; rows * tiling.tile];
-            for task in thread * per_thread..((thread + 1) * per_thread).min(tiling.tasks) {
-                let (image, first, len) = tiling.task(task, positions);
-                let columns = &mut columns[..rows * len];
-                im2col(
-                    geometry,
-                    &x[image * image_len..(image + 1) * image_len],
-                    first,
-                    columns,
-                );
-                let grad_tile = &grad[image * channels_out * positions + first..];
-                // sum[co, r] += Σ_j grad[co, first + j] · columns[r, j]
-                // SAFETY: every index the GEMM reads or writes lies inside the slices above:
-                // lhs (co, j) at co·positions + j < channels_out·positions − first, rhs (j, r) at
-                // r·len + j < rows·len, dst (co, r) at co·rows + r < channels_out·rows.
-                unsafe {
-                    gemm::gemm(
-                        channels_out,
-                        rows,
-                        len,
-                        sum.as_mut_ptr(),
-                        1,
-                        rows as isize,
-                        true,
-                        grad_tile.as_ptr(),
-                        1,
-                        positions as isize,
-                        columns.as_ptr(),
-                        len as isize,
-                        1,
-                        1.0,
-                        1.0,
-                        false,
-                        false,
-                        false,
-                        parallelism,
+            with_columns(rows * tiling.tile, |columns| {
+                for task in thread * per_thread..((thread + 1) * per_thread).min(tiling.tasks) {
+                    let (image, first, len) = tiling.task(task, positions);
+                    let columns = &mut columns[..rows * len];
+                    im2col(
+                        geometry,
+                        &x[image * image_len..(image + 1) * image_len],
+                        first,
+                        columns,
                     );
+                    let grad_tile = &grad[image * channels_out * positions + first..];
+                    // sum[co, r] += Σ_j grad[co, first + j] · columns[r, j]
+                    // SAFETY: every index the GEMM reads or writes lies inside the slices above:
+                    // lhs (co, j) at co·positions + j < channels_out·positions − first, rhs (j, r) at
+                    // r·len + j < rows·len, dst (co, r) at co·rows + r < channels_out·rows.
+                    unsafe {
+                        gemm::gemm(
+                            channels_out,
+                            rows,
+                            len,
+                            sum.as_mut_ptr(),
+                            1,
+                            rows as isize,
+                            true,
+                            grad_tile.as_ptr(),
+                            1,
+                            positions as isize,
+                            columns.as_ptr(),
+                            len as isize,
+                            1,
+                            1.0,
+                            1.0,
+                            false,
+                            false,
+                            false,
+                            parallelism,
+                        );
+                    }
                 }
-            }
+            });
             sum
         })
         .reduce_with(|mut total, part| {
@@ -697,6 +729,19 @@ mod tests {
         if let Some(transposed) = transposed {
             let flipped = flip_and_swap_channels(&weight, weight_shape);
             assert_close(&forward(&transposed, &grad, &flipped), &dx, "dx as forward");
+        }
+    }
+
+    /// The column buffers are reused uninitialised from one convolution to the next: a
+    /// convolution with padding after one that filled them with values on every thread (the
+    /// test's threads and rayon's) must still see zeros in its padding.
+    #[test]
+    fn reused_column_buffers_leave_no_trace() {
+        let options = ConvOptions::new([1, 1], [0, 0], [1, 1], 1);
+        let padded = ConvOptions::new([1, 1], [2, 2], [1, 1], 1);
+        for _ in 0..2 {
+            check([4, 8, 33, 31], 6, [3, 3], options.clone(), true);
+            check([4, 8, 17, 15], 6, [5, 5], padded.clone(), true);
         }
     }
 
