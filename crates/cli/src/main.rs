@@ -18,7 +18,7 @@ mod template;
 mod train_bench;
 mod view;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 
 #[global_allocator]
@@ -83,6 +83,32 @@ enum Command {
 fn main() -> Result<()> {
     device::pin_burn_default_device();
     let cli = Cli::parse();
+    // The command runs on a worker of rayon's global pool rather than on the main thread: its
+    // parallel loops (convolution tiles, fused ops, the splat op: thousands a training step)
+    // then split work with the other workers instead of handing every loop to the pool and
+    // sleeping until it is done, and no thread idles in a spin beside it. At least two
+    // workers, so that one is free while the command's worker waits on another thread (the
+    // loader) that needs the pool; a large stack, as the main thread had. `RAYON_NUM_THREADS`
+    // is honoured as rayon would.
+    let threads = std::env::var("RAYON_NUM_THREADS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n > 0)
+        .or_else(|| std::thread::available_parallelism().ok().map(|n| n.get()))
+        .unwrap_or(2)
+        .max(2);
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .stack_size(COMMAND_STACK_BYTES)
+        .build_global()
+        .context("starting the thread pool")?;
+    rayon::scope(|_| run(cli))
+}
+
+/// Stack of each pool worker, one of which runs the command (the main thread's is 8 MiB).
+const COMMAND_STACK_BYTES: usize = 64 << 20;
+
+fn run(cli: Cli) -> Result<()> {
     match cli.command {
         Command::Demo(args) => demo::demo(&args),
         Command::Train(args) => avatar::train(&args).map(|_| ()),

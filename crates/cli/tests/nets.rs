@@ -1,5 +1,6 @@
 //! `f3g bench nets`: `--only` picks networks by name, `--profile` splits a forward+backward
-//! into its convolution phases (the weight gradient only where a weight is trained).
+//! into its convolution phases (the weight gradient only where a weight is trained). And the
+//! thread pool every command runs in.
 
 mod common;
 
@@ -58,4 +59,26 @@ fn only_matching_nothing_is_an_error() {
         stderr.contains("--only") && stderr.contains("resnet"),
         "{stderr}"
     );
+}
+
+/// Every command runs on a worker of rayon's pool, which keeps at least two workers (one may
+/// wait on the loader while the other serves the loader's parallel loops) and otherwise
+/// follows `RAYON_NUM_THREADS`.
+#[test]
+fn commands_run_in_a_pool_of_at_least_two_threads() {
+    let dir = tempfile::tempdir().unwrap();
+    for (asked, expected) in [("1", "2 host threads"), ("3", "3 host threads")] {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_f3g"))
+            .args(["bench", "lbs", "--points", "1000", "--repeats", "1"])
+            .env("RAYON_NUM_THREADS", asked)
+            .current_dir(dir.path())
+            .output()
+            .unwrap();
+        ok(&out);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            stdout.contains(expected),
+            "RAYON_NUM_THREADS={asked}: {stdout}"
+        );
+    }
 }
