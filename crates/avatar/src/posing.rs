@@ -8,9 +8,10 @@
 //! take the blend's nearest rotation (its orthogonal polar factor), as `f3g_rig::skin` does on
 //! the host, which stays the reference these tensors are tested against.
 //!
-//! On the CPU backend the skinning transforms (which need no gradient: joint transforms are
-//! inputs) are computed by one parallel loop instead ([`Skinning::new`]): the tensor chain is
-//! about 600 operations on `[N, 1]` columns, each a serial pass and an allocation on `Flex`.
+//! On the CPU backend the skinning transforms and the gathers (which need no gradient: joint
+//! transforms and the maps' inputs are data) are one parallel loop each instead
+//! ([`Skinning::new`], [`Taps::apply`]): the tensor chain is about 600 operations on `[N, 1]`
+//! columns, each a serial pass and an allocation on `Flex`.
 
 use std::sync::Arc;
 
@@ -35,11 +36,28 @@ pub const POLAR_ITERATIONS: usize = 8;
 pub struct Taps {
     index: Tensor<1, Int>,
     weight: Tensor<3>,
-    /// The same taps on the host (`[width, rows]`), for the CPU path of [`Skinning::new`].
-    host_index: Arc<[u32]>,
-    host_weight: Arc<[f32]>,
+    /// The same taps on the host, kept on the CPU backend only (for the host paths of
+    /// [`Taps::apply`] and [`Skinning::new`]).
+    host: Option<Arc<HostTaps>>,
     rows: usize,
     width: usize,
+}
+
+/// [`Taps`] on the host, tap-major (`[width, rows]`).
+#[derive(Debug)]
+struct HostTaps {
+    index: Vec<u32>,
+    weight: Vec<f32>,
+}
+
+impl HostTaps {
+    /// Tap `k` of `row` as (source row, weight), for taps of `rows` rows.
+    fn tap(&self, k: usize, row: usize, rows: usize) -> (usize, f32) {
+        (
+            self.index[k * rows + row] as usize,
+            self.weight[k * rows + row],
+        )
+    }
 }
 
 impl Taps {
@@ -59,9 +77,14 @@ impl Taps {
                 weight[k * count + i] = w;
             }
         }
+        let host = (device.clone().without_autodiff() == Device::flex()).then(|| {
+            Arc::new(HostTaps {
+                index: index.iter().map(|&j| j as u32).collect(),
+                weight: weight.clone(),
+            })
+        });
         Self {
-            host_index: index.iter().map(|&j| j as u32).collect(),
-            host_weight: weight.iter().copied().collect(),
+            host,
             index: Tensor::from_data(TensorData::new(index, [count * width]), device),
             weight: Tensor::from_data(TensorData::new(weight, [width, count, 1]), device),
             rows: count,
@@ -85,15 +108,14 @@ impl Taps {
     /// `[rows, C]` from `x` `[M, C]`: on the CPU backend (for `x` that needs no gradient) one
     /// parallel loop, elsewhere tensor operations.
     pub fn apply(&self, x: Tensor<2>) -> Tensor<2> {
-        if x.device().without_autodiff() == Device::flex() && !x.is_require_grad() {
-            self.apply_on_host(x)
-        } else {
-            self.apply_as_tensors(x)
+        match &self.host {
+            Some(host) if !x.is_require_grad() => self.apply_on_host(host, x),
+            _ => self.apply_as_tensors(x),
         }
     }
 
     /// [`Taps::apply`] on the host, row by row in parallel, uploaded to `x`'s device.
-    fn apply_on_host(&self, x: Tensor<2>) -> Tensor<2> {
+    fn apply_on_host(&self, host: &HostTaps, x: Tensor<2>) -> Tensor<2> {
         let (c, device) = (x.dims()[1], x.device());
         let values = host_f32(x.into_data());
         let rows = self.rows;
@@ -103,8 +125,7 @@ impl Taps {
             .enumerate()
             .for_each(|(i, row)| {
                 for k in 0..self.width {
-                    let tap = k * rows + i;
-                    let (j, w) = (self.host_index[tap] as usize, self.host_weight[tap]);
+                    let (j, w) = host.tap(k, i, rows);
                     for (o, &v) in row.iter_mut().zip(&values[j * c..j * c + c]) {
                         *o += w * v;
                     }
@@ -263,10 +284,9 @@ impl Skinning {
     /// elsewhere tensor operations ([`Skinning::from_tensors`]); the two agree to float
     /// rounding (tested).
     pub fn new(joints: &Tensor<3>, skin: &Taps) -> Self {
-        if joints.device().without_autodiff() == Device::flex() && !joints.is_require_grad() {
-            Self::on_host(joints, skin)
-        } else {
-            Self::from_tensors(joints, skin)
+        match &skin.host {
+            Some(host) if !joints.is_require_grad() => Self::on_host(joints, skin, host),
+            _ => Self::from_tensors(joints, skin),
         }
     }
 
@@ -284,7 +304,7 @@ impl Skinning {
 
     /// [`Skinning::new`] computed on the host, point by point in parallel, with the tensor
     /// path's arithmetic ([`nearest_rotation`], [`quaternions`]), uploaded to `joints`' device.
-    pub fn on_host(joints: &Tensor<3>, skin: &Taps) -> Self {
+    fn on_host(joints: &Tensor<3>, skin: &Taps, host: &HostTaps) -> Self {
         let joint_values = host_f32(joints.to_data());
         let rows = skin.rows;
         let per_point: Vec<PointSkinning> = (0..rows)
@@ -293,8 +313,7 @@ impl Skinning {
             .map(|i| {
                 let mut blended = [0.0f32; 12];
                 for k in 0..skin.width {
-                    let tap = k * rows + i;
-                    let (j, w) = (skin.host_index[tap] as usize, skin.host_weight[tap]);
+                    let (j, w) = host.tap(k, i, rows);
                     for (b, &m) in blended.iter_mut().zip(&joint_values[12 * j..12 * j + 12]) {
                         *b += w * m;
                     }
@@ -490,7 +509,8 @@ mod tests {
         let rows: Vec<Vec<(usize, f32)>> = vec![vec![(2, 1.0)], vec![(0, 0.5), (1, 0.25)], vec![]];
         let taps = Taps::new(rows.iter().map(Vec::as_slice), &device);
         let expected = vec![3.0, 30.0, 1.0, 10.0, 0.0, 0.0];
-        assert_eq!(host(taps.apply_on_host(x.clone())), expected);
+        let host_taps = taps.host.as_deref().expect("taps on Flex keep host copies");
+        assert_eq!(host(taps.apply_on_host(host_taps, x.clone())), expected);
         assert_eq!(host(taps.apply_as_tensors(x.clone())), expected);
         assert_eq!(host(taps.apply(x)), expected);
     }
@@ -538,7 +558,8 @@ mod tests {
             let n = skin.len();
             let p = Vec3::new(point.0, point.1, point.2);
             // Both paths: the CPU's loop and the tensor chain every other device runs.
-            for skinning in [Skinning::on_host(&joint_tensor, &taps), Skinning::from_tensors(&joint_tensor, &taps)] {
+            let host_taps = taps.host.as_deref().expect("taps on Flex keep host copies");
+            for skinning in [Skinning::on_host(&joint_tensor, &taps, host_taps), Skinning::from_tensors(&joint_tensor, &taps)] {
                 let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
                 let got = host(transform_points(&skinning.linear, &skinning.translation, points));
                 let q = host(skinning.quaternion.clone());
