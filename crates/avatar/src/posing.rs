@@ -203,14 +203,7 @@ pub fn nearest_rotation(a: Tensor<3>) -> [Tensor<2>; 9] {
     let n = a.dims()[0];
     let mut x: [Tensor<2>; 9] = columns(&a.reshape([n, 9]));
     for _ in 0..POLAR_ITERATIONS {
-        let m = |i: usize, j: usize| x[3 * i + j].clone();
-        // Cofactor (i, j): the 2×2 minor of the other rows and columns, cyclically signed.
-        let cof = |i: usize, j: usize| {
-            let (i1, i2, j1, j2) = ((i + 1) % 3, (i + 2) % 3, (j + 1) % 3, (j + 2) % 3);
-            m(i1, j1) * m(i2, j2) - m(i1, j2) * m(i2, j1)
-        };
-        let c: [Tensor<2>; 9] = std::array::from_fn(|k| cof(k / 3, k % 3));
-        let det = m(0, 0) * c[0].clone() + m(0, 1) * c[1].clone() + m(0, 2) * c[2].clone();
+        let (c, det) = cofactors_and_determinant(&x);
         // A degenerate blend (opposite rotations averaged) has no nearest rotation; keep it
         // finite rather than dividing by zero.
         let det = det.clone().mask_fill(det.abs().lower_elem(1e-20), 1e-20);
@@ -221,28 +214,79 @@ pub fn nearest_rotation(a: Tensor<3>) -> [Tensor<2>; 9] {
     x
 }
 
-/// Unit quaternions `[N, 4]` (w, x, y, z) of rotations given as nine `[N, 1]` columns
-/// (row-major). Shepperd's method: of the four formulas, each row uses the one whose pivot
-/// `1 ± r00 ± r11 ± r22` is largest, so no division is ill-conditioned; the sign of the result
-/// is arbitrary.
-pub fn quaternions(r: &[Tensor<2>; 9]) -> Tensor<2> {
+/// What the polar iteration and Shepperd's method compute with: `f32` on the host
+/// ([`Skinning::new`]'s CPU path) or `[N, 1]` columns on a device, so that both paths share
+/// one copy of the formulas below.
+trait Scalar:
+    Clone
+    + std::ops::Add<Output = Self>
+    + std::ops::Sub<Output = Self>
+    + std::ops::Mul<Output = Self>
+    + std::ops::Mul<f32, Output = Self>
+    + std::ops::Add<f32, Output = Self>
+{
+}
+
+impl<T> Scalar for T where
+    T: Clone
+        + std::ops::Add<Output = T>
+        + std::ops::Sub<Output = T>
+        + std::ops::Mul<Output = T>
+        + std::ops::Mul<f32, Output = T>
+        + std::ops::Add<f32, Output = T>
+{
+}
+
+/// The cofactor matrix (row-major) and the determinant of a row-major 3×3 matrix. The minors'
+/// indices are written out: computed as `(i + 1) % 3` they did not fold to constants on the
+/// host, where the loop then took five times as long.
+fn cofactors_and_determinant<T: Scalar>(x: &[T; 9]) -> ([T; 9], T) {
+    let m = |k: usize| x[k].clone();
+    let minor = |a: usize, b: usize, c: usize, d: usize| m(a) * m(b) - m(c) * m(d);
+    let c = [
+        minor(4, 8, 5, 7),
+        minor(5, 6, 3, 8),
+        minor(3, 7, 4, 6),
+        minor(7, 2, 1, 8),
+        minor(8, 0, 6, 2),
+        minor(6, 1, 7, 0),
+        minor(1, 5, 2, 4),
+        minor(2, 3, 0, 5),
+        minor(0, 4, 1, 3),
+    ];
+    let det = m(0) * c[0].clone() + m(1) * c[1].clone() + m(2) * c[2].clone();
+    (c, det)
+}
+
+/// Shepperd's four pivots `1 ± r00 ± r11 ± r22` and four candidate quaternions (w, x, y, z) of
+/// a row-major rotation; candidate `k` is the quaternion times 4·(its component `k`), well
+/// conditioned where pivot `k` is the largest.
+fn shepperd_candidates<T: Scalar>(r: &[T; 9]) -> ([T; 4], [[T; 4]; 4]) {
     let e = |i: usize, j: usize| r[3 * i + j].clone();
     let (s01, s02, s12) = (e(0, 1) + e(1, 0), e(0, 2) + e(2, 0), e(1, 2) + e(2, 1));
     let (d10, d02, d21) = (e(1, 0) - e(0, 1), e(0, 2) - e(2, 0), e(2, 1) - e(1, 2));
-    let pivot = |a: f32, b: f32, c: f32| (e(0, 0) * a + e(1, 1) * b + e(2, 2) * c) + 1.0;
+    let pivot = |a: f32, b: f32, c: f32| (e(0, 0) * a + e(1, 1) * b + e(2, 2) * c) + 1.0f32;
     let t = [
         pivot(1.0, 1.0, 1.0),
         pivot(1.0, -1.0, -1.0),
         pivot(-1.0, 1.0, -1.0),
         pivot(-1.0, -1.0, 1.0),
     ];
-    // Each candidate is the quaternion times 4·(its pivot component).
     let candidates = [
         [t[0].clone(), d21.clone(), d02.clone(), d10.clone()],
         [d21, t[1].clone(), s01.clone(), s02.clone()],
         [d02, s01, t[2].clone(), s12.clone()],
         [d10, s02, s12, t[3].clone()],
     ];
+    (t, candidates)
+}
+
+/// Unit quaternions `[N, 4]` (w, x, y, z) of rotations given as nine `[N, 1]` columns
+/// (row-major). Shepperd's method: of the four formulas, each row uses the one whose pivot
+/// `1 ± r00 ± r11 ± r22` is largest, so no division is ill-conditioned; the sign of the result
+/// is arbitrary.
+pub fn quaternions(r: &[Tensor<2>; 9]) -> Tensor<2> {
+    let (t, candidates) = shepperd_candidates(r);
     let [first, rest @ ..] = candidates;
     let mut q = first;
     let mut best = t[0].clone();
@@ -391,20 +435,7 @@ impl PointSkinning {
         let linear: [f32; 9] = std::array::from_fn(|k| m[4 * (k / 3) + k % 3]);
         let mut x = linear;
         for _ in 0..POLAR_ITERATIONS {
-            // The cofactors written out: index arithmetic here would not fold to constants.
-            let [x00, x01, x02, x10, x11, x12, x20, x21, x22] = x;
-            let cof = [
-                x11 * x22 - x12 * x21,
-                x12 * x20 - x10 * x22,
-                x10 * x21 - x11 * x20,
-                x21 * x02 - x01 * x22,
-                x22 * x00 - x20 * x02,
-                x20 * x01 - x21 * x00,
-                x01 * x12 - x02 * x11,
-                x02 * x10 - x00 * x12,
-                x00 * x11 - x01 * x10,
-            ];
-            let det = x00 * cof[0] + x01 * cof[1] + x02 * cof[2];
+            let (cof, det) = cofactors_and_determinant(&x);
             let det = if det.abs() < 1e-20 { 1e-20 } else { det };
             let gamma = det.abs().powf(-1.0 / 3.0);
             let (g, h) = (gamma * 0.5, (gamma * det).recip() * 0.5);
@@ -429,24 +460,9 @@ impl PointSkinning {
     }
 }
 
-/// [`quaternions`] for one row-major rotation matrix.
+/// [`quaternions`] for one row-major rotation matrix (the same candidates, chosen by a branch).
 fn shepperd(r: &[f32; 9]) -> [f32; 4] {
-    let e = |i: usize, j: usize| r[3 * i + j];
-    let (s01, s02, s12) = (e(0, 1) + e(1, 0), e(0, 2) + e(2, 0), e(1, 2) + e(2, 1));
-    let (d10, d02, d21) = (e(1, 0) - e(0, 1), e(0, 2) - e(2, 0), e(2, 1) - e(1, 2));
-    let pivot = |a: f32, b: f32, c: f32| (e(0, 0) * a + e(1, 1) * b + e(2, 2) * c) + 1.0;
-    let t = [
-        pivot(1.0, 1.0, 1.0),
-        pivot(1.0, -1.0, -1.0),
-        pivot(-1.0, 1.0, -1.0),
-        pivot(-1.0, -1.0, 1.0),
-    ];
-    let candidates = [
-        [t[0], d21, d02, d10],
-        [d21, t[1], s01, s02],
-        [d02, s01, t[2], s12],
-        [d10, s02, s12, t[3]],
-    ];
+    let (t, candidates) = shepperd_candidates(r);
     let (mut q, mut best) = (candidates[0], t[0]);
     for (candidate, &pivot) in candidates.iter().zip(&t).skip(1) {
         if pivot > best {
