@@ -24,6 +24,8 @@ use burn::tensor::ops::ConvOptions;
 
 mod autodiff;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+pub mod bands;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
 mod cube;
 mod flex;
 pub mod profile;

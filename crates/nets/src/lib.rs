@@ -10,11 +10,13 @@
 //!   GEMM per tile on the CPU.
 //! - [`fused`]: StyleGAN2's element-wise chains (bias + leaky ReLU, ×2 up-sampling, blur, Haar)
 //!   as single passes on the CPU.
+//! - [`adam`]: Adam with each parameter's update as one pass (one kernel on a GPU).
 //! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
 //!
 //! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host
 //! from a seed, so the same seed gives the same network on every backend.
 
+pub mod adam;
 pub mod checkpoint;
 pub mod conv;
 pub mod discriminator;

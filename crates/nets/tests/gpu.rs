@@ -196,6 +196,10 @@ fn the_convolution_and_its_gradients_match_the_cpu_for_every_stride() {
         // AlexNet's deep layers at LPIPS 32²: 3×3 and 1×1 feature maps, padded.
         (1, 64, 96, 3, 5, 1, 2),
         (1, 96, 64, 1, 3, 1, 1),
+        // Few channels over many positions: the weight gradient in bands (`conv::bands`), the
+        // second with bands across the batch and a last band padded.
+        (1, 4, 8, 64, 3, 1, 1),
+        (2, 3, 8, 66, 3, 2, 1),
     ];
     let run = |device: &Device, (b, cin, cout, size, k, stride, pad): (_, _, _, _, _, _, _)| {
         let device = device.clone().autodiff();
@@ -227,6 +231,122 @@ fn the_convolution_and_its_gradients_match_the_cpu_for_every_stride() {
             1e-4,
             &format!("weight gradient of {case:?}"),
         );
+    }
+}
+
+/// The banded weight gradient with bands of every kind: one band per launch, several per launch
+/// with a short last launch, bands crossing batch items, a strided dilated kernel, padding —
+/// against Burn's own weight gradient on the CPU (`conv2d_weight_backward`).
+#[cfg(not(feature = "fusion"))]
+#[test]
+fn the_weight_gradient_in_bands_matches_the_cpu() {
+    use burn::backend::ops::{FloatTensorOps, ModuleOps};
+    use burn::tensor::TensorData;
+    use burn::tensor::ops::ConvOptions;
+    use burn_cubecl::CubeBackend;
+    use f3g_nets::conv::bands::{Bands, weight_grad_in_bands};
+    type Flex = burn::backend::Flex;
+    let device = match test_device().as_dispatch() {
+        burn::backend::DispatchDevice::Cube(d) => d.clone(),
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
+    };
+    let ramp_values = |n: usize, phase: f32| -> Vec<f32> {
+        (0..n).map(|i| (i as f32 * 0.37 + phase).sin()).collect()
+    };
+    // (batch, in, out, size, kernel, stride, padding, dilation, band, bands per launch)
+    let cases = [
+        (1, 3, 5, 20, 3, 1, 1, 1, 64, 1),
+        (2, 4, 6, 17, 3, 2, 1, 1, 96, 3),
+        (3, 2, 7, 15, 5, 1, 2, 2, 32, 4),
+        (1, 5, 3, 16, 1, 1, 0, 1, 50, 2),
+    ];
+    for case @ (b, cin, cout, size, k, stride, pad, dil, band, per_launch) in cases {
+        let options = ConvOptions::new([stride; 2], [pad; 2], [dil; 2], 1);
+        let out = (size + 2 * pad - dil * (k - 1) - 1) / stride + 1;
+        let x_shape = [b, cin, size, size];
+        let g_shape = [b, cout, out, out];
+        let w_shape = [cout, cin, k, k];
+        let x = ramp_values(x_shape.iter().product(), 0.1);
+        let g = ramp_values(g_shape.iter().product(), 0.7);
+        let w = vec![0.0f32; w_shape.iter().product()];
+        let cube = weight_grad_in_bands(
+            CubeBackend::float_from_data(TensorData::new(x.clone(), x_shape), &device),
+            CubeBackend::float_from_data(TensorData::new(g.clone(), g_shape), &device),
+            w_shape.into(),
+            &options,
+            Bands {
+                band,
+                bands_per_launch: per_launch,
+            },
+        )
+        .expect("small tensors are split");
+        let flex = Default::default();
+        let cpu = Flex::conv2d_weight_backward(
+            Flex::float_from_data(TensorData::new(x, x_shape), &flex),
+            Flex::float_from_data(TensorData::new(w, w_shape), &flex),
+            Flex::float_from_data(TensorData::new(g, g_shape), &flex),
+            options,
+        );
+        let read =
+            |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
+        let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
+        let cpu = read(burn::tensor::read_sync(Flex::float_into_data(cpu)).unwrap());
+        // The bands' GEMM runs on TF32 tensor cores on CUDA: 3.7e-3 of the scale on an H100
+        // for the second case (sums of ~160 products with cancellation); a wrong index would
+        // be off by the scale itself.
+        assert_close(&cube, &cpu, 3e-4, &format!("{case:?}"));
+    }
+}
+
+/// The split chosen for the layers it is for, and not for the others.
+#[cfg(not(feature = "fusion"))]
+#[test]
+fn weight_gradients_are_split_where_the_tiles_are_few() {
+    use f3g_nets::conv::bands::{Bands, MAX_COLUMN_VALUES};
+    // A 32 → 32 3×3 layer at 1024²: 5 tiles for a million positions.
+    let plan = Bands::plan(1 << 20, 32, 288).expect("split");
+    assert!(
+        plan.band >= 1024 && plan.band.is_multiple_of(32),
+        "{plan:?}"
+    );
+    let bands = (1usize << 20).div_ceil(plan.band);
+    assert!(bands * 5 >= 1024, "{plan:?}: {bands} bands");
+    assert!(plan.bands_per_launch * 288 * plan.band <= MAX_COLUMN_VALUES);
+    // 512 → 512 at 32²: many tiles, a short reduction.
+    assert_eq!(Bands::plan(1024, 512, 4608), None);
+    // Enough tiles already: 1024 → 1024 3×3 at 64².
+    assert_eq!(Bands::plan(4096, 1024, 9216), None);
+}
+
+/// Adam's one-pass update on the device: three steps equal the CPU's (whose update is Burn's
+/// `Adam` to the bit, `adam::tests`).
+#[test]
+fn adam_in_one_pass_matches_the_cpu() {
+    use burn::optim::Optimizer;
+    use f3g_nets::adam::FusedAdam;
+    let adam = FusedAdam {
+        beta_1: 0.9,
+        beta_2: 0.999,
+        epsilon: 1e-8,
+    };
+    let run = |device: &Device| {
+        let mut p = ramp([1, 1, 7, 1001], device);
+        let mut state = None;
+        for step in 0..3 {
+            let grad = (ramp([1, 1, 7, 1001], device) * (step as f32 + 1.0)).sin() * 1e-3;
+            (p, state) = adam.step(1e-2, p, grad, state);
+        }
+        let state = state.unwrap().momentum;
+        [values(p), values(state.moment_1), values(state.moment_2)]
+    };
+    let gpu = run(&test_device());
+    let cpu = run(&Device::flex());
+    for (what, (g, c)) in ["parameter", "first moment", "second moment"]
+        .iter()
+        .zip(gpu.iter().zip(&cpu))
+    {
+        assert_close(g, c, 1e-5, what);
     }
 }
 

@@ -13,7 +13,7 @@
 //! the loader's worker thread ([`super::sample`]).
 
 use burn::module::{Module, ModuleVisitor, Param};
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::distributed::{ReduceOperation, all_reduce};
 use burn::tensor::{Device, Tensor};
 
@@ -24,17 +24,28 @@ use super::schedule::Stage;
 use crate::AvatarError;
 use crate::config::TrainConfig;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
+use f3g_nets::adam::FusedAdam;
 use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
 use f3g_nets::{Discriminator, Lpips};
 
-/// Adam of the avatar's networks.
+/// Adam of the avatar's networks (Burn's defaults for the betas), one pass per parameter.
 pub fn adam(epsilon: f32) -> ModuleOptimizer {
-    AdamConfig::new().with_epsilon(epsilon).init()
+    FusedAdam {
+        beta_1: 0.9,
+        beta_2: 0.999,
+        epsilon,
+    }
+    .init()
 }
 
-/// Adam of the discriminator (StyleGAN2's betas).
+/// Adam of the discriminator (StyleGAN2's betas; Burn's default ε).
 pub fn adam_disc() -> ModuleOptimizer {
-    AdamConfig::new().with_beta_1(0.0).with_beta_2(0.99).init()
+    FusedAdam {
+        beta_1: 0.0,
+        beta_2: 0.99,
+        epsilon: 1e-5,
+    }
+    .init()
 }
 
 /// The optimisers of one replica: body and face networks separately (so that stages can freeze

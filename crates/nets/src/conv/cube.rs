@@ -10,8 +10,10 @@
 //! and as the transposed convolution's matmul + col2im at other strides (the implicit GEMM has
 //! no strided input gradient). On a device without matrix units (Mesa lavapipe), where Burn's
 //! setup declines, and for grouped or asymmetrically padded convolutions, the direct kernels run
-//! as before. With Burn's `autotune` on, its tuner chooses among all of these and more, so this
-//! choice steps aside.
+//! as before. A weight gradient whose implicit GEMM would have too few tiles for its long
+//! reduction (few channels at a high resolution) runs split into bands of positions instead,
+//! on any device ([`super::bands`]). With Burn's `autotune` on, its tuner chooses among all of
+//! these and more, so this choice steps aside.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::ModuleOps;
@@ -24,6 +26,7 @@ use burn_cubecl::kernel::conv::{
 };
 
 use super::ConvBackend;
+use super::bands::{Bands, weight_grad_in_bands};
 
 /// Whether to pick the algorithm here: Burn's default is `Direct` unless its `autotune` is on.
 fn choose_here(options: &ConvOptions<2>) -> bool {
@@ -100,6 +103,17 @@ impl ConvBackend for CubeBackend {
         grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
+        if choose_here(&options) {
+            let [batch, c_in, _, _] = x.shape().dims();
+            let [c_out, _, kh, kw] = weight.shape().dims();
+            let [_, _, h_out, w_out] = grad.shape().dims();
+            if let Some(bands) = Bands::plan(batch * h_out * w_out, c_out, c_in * kh * kw)
+                && let Some(weight_grad) =
+                    weight_grad_in_bands(x.clone(), grad.clone(), weight.shape(), &options, bands)
+            {
+                return weight_grad;
+            }
+        }
         if choose_here(&options)
             && has_matrix_units(&x)
             && let Ok(weight_grad) = conv_weight_backward::<2>(

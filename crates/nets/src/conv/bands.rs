@@ -1,0 +1,257 @@
+//! A convolution's weight gradient on `Cube` devices as one batched GEMM over bands of output
+//! positions (split-K), for the layers whose implicit GEMM has too few tiles to fill the device.
+//!
+//! The weight gradient is `G · X̂ᵀ`: `[C_out, K] × [K, N]` with `K = B·H_out·W_out` output
+//! positions and `N = C_in·kh·kw` (im2col columns). Burn's implicit GEMM tiles only the
+//! `C_out × N` output, so a 32-channel layer at 1024² is a handful of tiles, each walking a
+//! million positions alone: on an H200 such launches took 2–16 ms on 2–36 cubes and the weight
+//! gradients half the `paper` step's convolution time (BENCHMARKS "Where the device time goes").
+//! Here the positions are cut into bands of `band` consecutive positions (flattened over batch,
+//! rows, columns; the last band padded with zeros), [`kernels::band_columns`] writes the im2col
+//! of every band (`[bands, N, band]`), [`kernels::band_gradient`] the output gradient's
+//! (`[bands, C_out, band]`), one batched matmul multiplies each band's pair (`[bands, C_out, N]`,
+//! `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
+//! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
+//! several launches, summed).
+//!
+//! Layouts: `x` `[B, C_in, H, W]` and the output gradient `[B, C_out, H_out, W_out]` are read
+//! row-major after `into_contiguous`; what the kernels write is allocated contiguous (CUDA
+//! pitches Burn's ordinary allocations: `f3g_splat::cube`'s module doc).
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::ops::ConvOptions;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::{CubeCount, CubeDim};
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+
+/// The cubes a weight gradient should occupy: about eight per multiprocessor of an H100/H200
+/// (132 and 132), so that every one has work while others wait on memory.
+const TARGET_CUBES: usize = 1024;
+/// Fewest positions in a band: below this a band's GEMM is too short to amortise its tile's
+/// loads, and the columns' extra traffic outweighs the parallelism.
+const MIN_BAND: usize = 1024;
+/// Most im2col values held at once (1 GiB of f32): more bands run as several batched GEMMs.
+pub const MAX_COLUMN_VALUES: usize = 1 << 28;
+/// Threads per cube of the two rearranging kernels.
+const UNITS: u32 = 256;
+/// Cubes per grid row: wgpu allows at most 65 535 per dimension.
+const MAX_ROW: usize = 65_535;
+
+/// How a weight gradient is split: `band` positions per band, at most `bands_per_launch`
+/// bands' columns at a time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Bands {
+    pub band: usize,
+    pub bands_per_launch: usize,
+}
+
+impl Bands {
+    /// The split for a weight gradient of `c_out × columns` over `positions`, or `None` where
+    /// the implicit GEMM alone has tiles enough (or the reduction is too short to split).
+    /// Tiles are counted as 64×64, the size of Burn's smaller CMMA tiles.
+    pub fn plan(positions: usize, c_out: usize, columns: usize) -> Option<Self> {
+        let tiles = c_out.div_ceil(64) * columns.div_ceil(64);
+        let wanted = TARGET_CUBES.div_ceil(tiles);
+        if wanted < 2 || positions < 2 * MIN_BAND {
+            return None;
+        }
+        let band = positions
+            .div_ceil(wanted)
+            .max(MIN_BAND)
+            .next_multiple_of(32);
+        let bands = positions.div_ceil(band);
+        (bands >= 2).then(|| Self {
+            band,
+            bands_per_launch: (MAX_COLUMN_VALUES / (columns * band)).clamp(1, bands),
+        })
+    }
+}
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// `columns[band, n, k]` (`[bands, C_in·kh·kw, band_len]`, bands from `first_band`): the
+    /// input value under kernel tap `n % (kh·kw)` of channel `n / (kh·kw)` at output position
+    /// `p = (first_band + band)·band_len + k` (flattened `(b, oh, ow)`), zero in the padding and
+    /// past the last position.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn band_columns(
+        x: &Tensor<f32>,
+        columns: &mut Tensor<f32>,
+        first_band: u32,
+        band_len: u32,
+        positions: u32,
+        // x: [B, C_in, H, W]; the output: H_out × W_out.
+        c_in: u32,
+        h: u32,
+        w: u32,
+        w_out: u32,
+        h_out: u32,
+        // kernel, stride, padding, dilation (rows, then columns)
+        kh: u32,
+        kw: u32,
+        sh: u32,
+        sw: u32,
+        ph: u32,
+        pw: u32,
+        dh: u32,
+        dw: u32,
+    ) {
+        let g = ABSOLUTE_POS;
+        if g >= columns.len() {
+            terminate!();
+        }
+        let g = g as u32;
+        let taps = kh * kw;
+        let k = g % band_len;
+        let n = (g / band_len) % (c_in * taps);
+        let band = g / (band_len * c_in * taps);
+        let p = (first_band + band) * band_len + k;
+        let mut value = 0.0f32;
+        if p < positions {
+            let plane = h_out * w_out;
+            let b = p / plane;
+            let oh = (p % plane) / w_out;
+            let ow = p % w_out;
+            let ci = n / taps;
+            let i = (n % taps) / kw;
+            let j = n % kw;
+            let ih = (oh * sh + i * dh) as i32 - ph as i32;
+            let iw = (ow * sw + j * dw) as i32 - pw as i32;
+            if ih >= 0 && iw >= 0 && ih < h as i32 && iw < w as i32 {
+                value = x[(((b * c_in + ci) * h + ih as u32) * w + iw as u32) as usize];
+            }
+        }
+        columns[g as usize] = value;
+    }
+
+    /// `bands[band, c, k]` (`[bands, C_out, band_len]`): the output gradient of channel `c` at
+    /// position `(first_band + band)·band_len + k`, zero past the last.
+    #[cube(launch)]
+    pub fn band_gradient(
+        grad: &Tensor<f32>,
+        bands: &mut Tensor<f32>,
+        first_band: u32,
+        band_len: u32,
+        positions: u32,
+        c_out: u32,
+        plane: u32,
+    ) {
+        let g = ABSOLUTE_POS;
+        if g >= bands.len() {
+            terminate!();
+        }
+        let g = g as u32;
+        let k = g % band_len;
+        let c = (g / band_len) % c_out;
+        let band = g / (band_len * c_out);
+        let p = (first_band + band) * band_len + k;
+        let mut value = 0.0f32;
+        if p < positions {
+            value = grad[(((p / plane) * c_out + c) * plane + p % plane) as usize];
+        }
+        bands[g as usize] = value;
+    }
+}
+
+/// A 2-D grid of at least `cubes` cubes (kernels ignore the units past their work).
+fn grid(cubes: usize) -> CubeCount {
+    let cubes = cubes.max(1) as u32;
+    CubeCount::Static(cubes.min(MAX_ROW as u32), cubes.div_ceil(MAX_ROW as u32), 1)
+}
+
+/// The weight gradient `[C_out, C_in, kh, kw]` of a convolution of `x` (groups 1, symmetric
+/// padding) given its output gradient `grad`, split as `bands` says. Values are indexed with
+/// 32 bits: `None` where a tensor is too large for that.
+pub fn weight_grad_in_bands(
+    x: FloatTensor<CubeBackend>,
+    grad: FloatTensor<CubeBackend>,
+    weight_shape: Shape,
+    options: &ConvOptions<2>,
+    bands: Bands,
+) -> Option<FloatTensor<CubeBackend>> {
+    let [batch, c_in, h, w] = x.shape().dims();
+    let [_, c_out, h_out, w_out] = grad.shape().dims();
+    let [_, _, kh, kw] = weight_shape.dims();
+    let positions = batch * h_out * w_out;
+    let columns = c_in * kh * kw;
+    let band_count = positions.div_ceil(bands.band);
+    let fits = |values: usize| u32::try_from(values).is_ok();
+    if positions == 0
+        || !fits(x.shape().num_elements())
+        || !fits(grad.shape().num_elements())
+        || !fits(band_count * bands.band * columns.max(c_out))
+    {
+        return None;
+    }
+    let u = |v: usize| v as u32;
+    let (x, grad) = (into_contiguous(x), into_contiguous(grad));
+    let (client, device) = (x.client.clone(), x.device.clone());
+    let per_launch = bands.bands_per_launch.max(1);
+    // Bands `first..first + count`: `[C_out, N]`, their share of the sum.
+    let partial = |first: usize| {
+        let count = per_launch.min(band_count - first);
+        let empty = |rows: usize| {
+            empty_device_contiguous_dtype(
+                client.clone(),
+                device.clone(),
+                Shape::new([count, rows, bands.band]),
+                DType::F32,
+            )
+        };
+        let (cols, gradient) = (empty(columns), empty(c_out));
+        kernels::band_columns::launch(
+            &client,
+            grid((count * columns * bands.band).div_ceil(UNITS as usize)),
+            CubeDim::new_1d(UNITS),
+            x.clone().into_tensor_arg(),
+            cols.clone().into_tensor_arg(),
+            u(first),
+            u(bands.band),
+            u(positions),
+            u(c_in),
+            u(h),
+            u(w),
+            u(w_out),
+            u(h_out),
+            u(kh),
+            u(kw),
+            u(options.stride[0]),
+            u(options.stride[1]),
+            u(options.padding[0].0),
+            u(options.padding[1].0),
+            u(options.dilation[0]),
+            u(options.dilation[1]),
+        );
+        kernels::band_gradient::launch(
+            &client,
+            grid((count * c_out * bands.band).div_ceil(UNITS as usize)),
+            CubeDim::new_1d(UNITS),
+            grad.clone().into_tensor_arg(),
+            gradient.clone().into_tensor_arg(),
+            u(first),
+            u(bands.band),
+            u(positions),
+            u(c_out),
+            u(h_out * w_out),
+        );
+        // [count, C_out, band] × [count, band, N] (the columns transposed: a column-major view
+        // the matmul reads as it is) → [count, C_out, N], summed over the bands.
+        let product = CubeBackend::float_matmul(gradient, CubeBackend::float_swap_dims(cols, 1, 2));
+        CubeBackend::float_sum_dim(product, 0)
+    };
+    let mut sum = partial(0);
+    for first in (per_launch..band_count).step_by(per_launch) {
+        sum = CubeBackend::float_add(sum, partial(first));
+    }
+    Some(CubeBackend::float_reshape(
+        sum,
+        Shape::new([c_out, c_in, kh, kw]),
+    ))
+}
