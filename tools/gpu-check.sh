@@ -34,7 +34,8 @@
 #      when the package has the autotune binary: F3G_GPU_CHECK_AUTOTUNE=0 at pack leaves it
 #      out, and 12 minutes of building)
 # and writes OUT/summary.json (each step: command, exit code, seconds, its JSON where it makes
-# one) and OUT/summary.md, with each step's output in OUT/<step>.log.
+# one) and OUT/summary.md, with each step's output in OUT/<step>.log, and all of OUT (less the
+# kernel cache) as OUT.tar.gz: the one file to bring back.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
@@ -112,8 +113,9 @@ PY
 run() {
     local out=${3:-$dir/results}
     mkdir -p "$out" "$dir/unpacked"
+    out=$(cd "$out" && pwd)
     # A fresh kernel cache: the first process compiles (cold), later ones load (warm).
-    export F3G_KERNEL_CACHE=$PWD/$out/kernel-cache
+    export F3G_KERNEL_CACHE=$out/kernel-cache
     rm -rf "$F3G_KERNEL_CACHE"
     xz -dc "$dir/binaries.tar.xz" | tar -C "$dir/unpacked" -xf -
     mv "$dir"/unpacked/bin/* "$dir"/unpacked/tests/* "$dir/unpacked/"
@@ -242,6 +244,12 @@ with open(f"{out}/summary.md", "w") as f:
     f.write(f"# GPU check ({total} s)\n\n" + "\n".join(rows) + "\n")
 print("\n".join(rows))
 PY
+    # Everything in one file beside OUT (a device call brings back only a few files): the
+    # logs, JSON and profile, without the kernel cache.
+    rm -rf "$out/kernel-cache"
+    [ -f "$out/profile.log" ] && gzip -f "$out/profile.log"
+    tar -C "$(dirname "$out")" -czf "$out.tar.gz" "$(basename "$out")"
+    echo "results: $out.tar.gz ($(du -h "$out.tar.gz" | cut -f1))"
 }
 
 case "$mode" in
