@@ -19,6 +19,8 @@
 pub mod adam;
 pub mod checkpoint;
 pub mod conv;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+mod cube_grid;
 pub mod discriminator;
 mod error;
 pub mod fused;

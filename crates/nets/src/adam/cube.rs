@@ -6,16 +6,11 @@ use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::DType;
 use burn_cubecl::CubeBackend;
-use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use super::{AdamBackend, AdamCoefficients};
-
-/// Threads per cube.
-const UNITS: u32 = 256;
-/// Cubes per grid row: wgpu allows at most 65 535 per dimension.
-const MAX_ROW: u32 = 65_535;
+use crate::cube_grid::one_thread_per_value;
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -71,11 +66,11 @@ impl AdamBackend for CubeBackend {
         };
         let (param_out, m_out, v_out) = (empty(), empty(), empty());
         if n > 0 {
-            let cubes = n.div_ceil(UNITS as usize) as u32;
+            let (cubes, cube) = one_thread_per_value(n);
             kernels::adam_update::launch(
                 &client,
-                CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
-                CubeDim::new_1d(UNITS),
+                cubes,
+                cube,
                 param.into_tensor_arg(),
                 grad.into_tensor_arg(),
                 moment_1.into_tensor_arg(),

@@ -24,9 +24,10 @@ use burn::backend::tensor::FloatTensor;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
-use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+
+use crate::cube_grid::one_thread_per_value;
 
 /// The cubes a weight gradient should occupy: about eight per multiprocessor of an H100/H200
 /// (132 and 132), so that every one has work while others wait on memory.
@@ -36,10 +37,6 @@ const TARGET_CUBES: usize = 1024;
 const MIN_BAND: usize = 1024;
 /// Most im2col values held at once (1 GiB of f32): more bands run as several batched GEMMs.
 pub const MAX_COLUMN_VALUES: usize = 1 << 28;
-/// Threads per cube of the two rearranging kernels.
-const UNITS: u32 = 256;
-/// Cubes per grid row: wgpu allows at most 65 535 per dimension.
-const MAX_ROW: usize = 65_535;
 
 /// How a weight gradient is split: `band` positions per band, at most `bands_per_launch`
 /// bands' columns at a time.
@@ -160,12 +157,6 @@ mod kernels {
     }
 }
 
-/// A 2-D grid of at least `cubes` cubes (kernels ignore the units past their work).
-fn grid(cubes: usize) -> CubeCount {
-    let cubes = cubes.max(1) as u32;
-    CubeCount::Static(cubes.min(MAX_ROW as u32), cubes.div_ceil(MAX_ROW as u32), 1)
-}
-
 /// The weight gradient `[C_out, C_in, kh, kw]` of a convolution of `x` (groups 1, symmetric
 /// padding) given its output gradient `grad`, split as `bands` says. Values are indexed with
 /// 32 bits: `None` where a tensor is too large for that.
@@ -206,10 +197,11 @@ pub fn weight_grad_in_bands(
             )
         };
         let (cols, gradient) = (empty(columns), empty(c_out));
+        let (cubes, cube) = one_thread_per_value(count * columns * bands.band);
         kernels::band_columns::launch(
             &client,
-            grid((count * columns * bands.band).div_ceil(UNITS as usize)),
-            CubeDim::new_1d(UNITS),
+            cubes,
+            cube,
             x.clone().into_tensor_arg(),
             cols.clone().into_tensor_arg(),
             u(first),
@@ -229,10 +221,11 @@ pub fn weight_grad_in_bands(
             u(options.dilation[0]),
             u(options.dilation[1]),
         );
+        let (cubes, cube) = one_thread_per_value(count * c_out * bands.band);
         kernels::band_gradient::launch(
             &client,
-            grid((count * c_out * bands.band).div_ceil(UNITS as usize)),
-            CubeDim::new_1d(UNITS),
+            cubes,
+            cube,
             grad.clone().into_tensor_arg(),
             gradient.clone().into_tensor_arg(),
             u(first),
