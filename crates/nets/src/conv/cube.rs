@@ -26,7 +26,7 @@ use burn_cubecl::kernel::conv::{
 };
 
 use super::ConvBackend;
-use super::bands::{Bands, weight_grad_in_bands};
+use super::bands::weight_grad_split;
 
 /// Whether to pick the algorithm here: Burn's default is `Direct` unless its `autotune` is on.
 fn choose_here(options: &ConvOptions<2>) -> bool {
@@ -104,27 +104,22 @@ impl ConvBackend for CubeBackend {
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
         if choose_here(&options) {
-            let [batch, c_in, _, _] = x.shape().dims();
-            let [c_out, _, kh, kw] = weight.shape().dims();
-            let [_, _, h_out, w_out] = grad.shape().dims();
-            if let Some(bands) = Bands::plan(batch * h_out * w_out, c_out, c_in * kh * kw)
-                && let Some(weight_grad) =
-                    weight_grad_in_bands(x.clone(), grad.clone(), weight.shape(), &options, bands)
+            if let Some(weight_grad) =
+                weight_grad_split(x.clone(), grad.clone(), weight.shape(), &options)
             {
                 return weight_grad;
             }
-        }
-        if choose_here(&options)
-            && has_matrix_units(&x)
-            && let Ok(weight_grad) = conv_weight_backward::<2>(
-                x.clone(),
-                grad.clone(),
-                weight.shape(),
-                options.clone(),
-                ConvStrategy::ImplicitGemm,
-            )
-        {
-            return weight_grad;
+            if has_matrix_units(&x)
+                && let Ok(weight_grad) = conv_weight_backward::<2>(
+                    x.clone(),
+                    grad.clone(),
+                    weight.shape(),
+                    options.clone(),
+                    ConvStrategy::ImplicitGemm,
+                )
+            {
+                return weight_grad;
+            }
         }
         <Self as ModuleOps<Self>>::conv2d_weight_backward(x, weight, grad, options)
     }
