@@ -1,4 +1,4 @@
-//! The launch shape of the crate's element-wise CubeCL kernels (`conv::bands`, `adam`): one
+//! The launch shape of the crate's element-wise CubeCL kernels (`conv::bands`, `adam`, `fused`): one
 //! thread per value, [`UNITS`] per cube, on a 2-D grid because wgpu allows at most 65 535 cubes
 //! per dimension. The last row runs past the work: every kernel ignores the units past its
 //! tensor's length.

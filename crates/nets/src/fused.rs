@@ -1,4 +1,4 @@
-//! StyleGAN2's element-wise chains as single passes on the CPU.
+//! StyleGAN2's element-wise chains as single passes: one loop on the CPU, one kernel on a GPU.
 //!
 //! Written with Burn's tensor ops, the bias + leaky ReLU of every layer, the ×2 bilinear
 //! up-sampling, the `[1, 3, 3, 1]` blur and the Haar transforms of the output are chains of
@@ -6,8 +6,9 @@
 //! on the small Haar tensors, ten ops' fixed costs), and 40–57 % of a StyleUNet's
 //! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
-//! loop over the planes, in parallel. Other devices keep the tensor-op formulation in
-//! [`crate::layers::portable`] (the extension is listed for `Flex` only; [`on_flex`] routes).
+//! loop over the planes, in parallel, and on unfused `Cube` devices (wgpu, CUDA) one kernel
+//! (`cube`). Burn's `fusion` devices keep the tensor-op formulation in
+//! [`crate::layers::portable`], which fusion fuses itself; [`runs`] routes.
 //!
 //! Layouts: `[B, C, H, W]` row-major; `bias` `[C]`.
 
@@ -16,14 +17,34 @@ use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::{Device, Tensor};
 
 mod autodiff;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+mod cube;
 mod flex;
 
-/// Whether `x` lives on the CPU backend (with or without autodiff), where the fused ops run.
+/// Whether `x` lives on the CPU backend (with or without autodiff).
 pub fn on_flex(x: &Tensor<4>) -> bool {
     x.device().without_autodiff() == Device::flex()
 }
 
-/// `leaky_relu(x + bias, 0.2) · √2` (StyleGAN2's fused activation) as one op; `x` on `Flex`.
+/// Whether a fused op on `x` runs as one op here: on the CPU, and on unfused `Cube` devices
+/// where none of the op's tensors has 2³² values or more (`largest`: the most any of them has,
+/// forward or backward), since their kernels index with 32 bits.
+pub fn runs(x: &Tensor<4>, largest: usize) -> bool {
+    if on_flex(x) {
+        return true;
+    }
+    #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+    if matches!(
+        x.device().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    ) {
+        return u32::try_from(largest.max(x.shape().num_elements())).is_ok();
+    }
+    let _ = largest;
+    false
+}
+
+/// `leaky_relu(x + bias, 0.2) · √2` (StyleGAN2's fused activation) as one op, where [`runs`].
 pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::bias_leaky_relu(
         x.into_dispatch(),
@@ -31,13 +52,13 @@ pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     ))
 }
 
-/// Bilinear ×2 up-sampling (`align_corners = false`) as one op; `x` on `Flex`.
+/// Bilinear ×2 up-sampling (`align_corners = false`) as one op, where [`runs`].
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::upsample2(x.into_dispatch()))
 }
 
 /// The separable `[1, 3, 3, 1] / 8` blur with zero padding `(before, after)` ≤ 3 on both axes as
-/// one op; `x` on `Flex`.
+/// one op, where [`runs`].
 pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::blur(
         x.into_dispatch(),
@@ -46,18 +67,22 @@ pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
     ))
 }
 
-/// Orthonormal 2-D Haar analysis `[B, C, 2H, 2W] → [B, 4C, H, W]` as one op; `x` on `Flex`.
+/// Orthonormal 2-D Haar analysis `[B, C, 2H, 2W] → [B, 4C, H, W]` as one op, where [`runs`].
 pub fn haar(x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::haar(x.into_dispatch()))
 }
 
-/// The inverse of [`haar`] as one op; `x` on `Flex`.
+/// The inverse of [`haar`] as one op, where [`runs`].
 pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::inverse_haar(x.into_dispatch()))
 }
 
 /// The fused ops and the backward passes their autodiff nodes call.
-#[backend_extension(Autodiff, Flex)]
+#[backend_extension(
+    Autodiff,
+    Flex,
+    Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))
+)]
 pub trait FusedBackend: Backend {
     /// `leaky_relu(x + bias, 0.2) · √2`.
     fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;

@@ -75,9 +75,9 @@ mod rand_distr_free {
 }
 
 /// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation):
-/// one op on the CPU ([`fused::bias_leaky_relu`]), [`portable::fused_lrelu`] elsewhere.
+/// one op where it runs ([`fused::bias_leaky_relu`]), [`portable::fused_lrelu`] elsewhere.
 pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
-    if fused::on_flex(&x) {
+    if fused::runs(&x, 0) {
         fused::bias_leaky_relu(x, bias)
     } else {
         portable::fused_lrelu(x, bias)
@@ -139,10 +139,10 @@ fn bilinear_weights(from: usize, to: usize, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(weights, [to, from]), device)
 }
 
-/// Bilinear up-sampling by 2 (`align_corners = false`): one op on the CPU
+/// Bilinear up-sampling by 2 (`align_corners = false`): one op where it runs
 /// ([`fused::upsample2`]), [`portable::upsample2`] elsewhere.
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    if fused::on_flex(&x) {
+    if fused::runs(&x, 4 * x.shape().num_elements()) {
         fused::upsample2(x)
     } else {
         portable::upsample2(x)
@@ -150,10 +150,12 @@ pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
 }
 
 /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
-/// both axes (the output grows by `before + after − 3`): one op on the CPU ([`fused::blur`]),
-/// [`portable::blur`] elsewhere.
+/// both axes (the output grows by `before + after − 3`): one op where it runs
+/// ([`fused::blur`]), [`portable::blur`] elsewhere.
 pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
-    if fused::on_flex(&x) && before <= 3 && after <= 3 {
+    let [b, c, h, w] = x.dims();
+    let grown = |n: usize| n + before + after;
+    if before <= 3 && after <= 3 && fused::runs(&x, b * c * grown(h) * grown(w)) {
         fused::blur(x, before, after)
     } else {
         portable::blur(x, before, after)
@@ -161,7 +163,8 @@ pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
 }
 
 /// The element-wise chains written with Burn's tensor ops, differentiable on every backend:
-/// what GPU devices run, and the reference the CPU's fused ops are tested against.
+/// what devices with Burn's `fusion` run, and the reference the fused ops ([`fused`]) are
+/// tested against.
 pub mod portable {
     use burn::tensor::Tensor;
     use burn::tensor::activation::leaky_relu;
@@ -512,10 +515,10 @@ impl StyledConv {
 }
 
 /// Orthonormal 2-D Haar analysis: `[B, C, 2H, 2W] → [B, 4C, H, W]`, channel `4c + k` holding
-/// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`: one op on the CPU ([`fused::haar`]),
+/// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`: one op where it runs ([`fused::haar`]),
 /// [`portable::haar`] elsewhere.
 pub fn haar(x: Tensor<4>) -> Tensor<4> {
-    if fused::on_flex(&x) {
+    if fused::runs(&x, 0) {
         fused::haar(x)
     } else {
         portable::haar(x)
@@ -524,7 +527,7 @@ pub fn haar(x: Tensor<4>) -> Tensor<4> {
 
 /// The inverse of [`haar`]: `[B, 4C, H, W] → [B, C, 2H, 2W]`.
 pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
-    if fused::on_flex(&x) {
+    if fused::runs(&x, 0) {
         fused::inverse_haar(x)
     } else {
         portable::inverse_haar(x)

@@ -377,3 +377,89 @@ fn long_reductions_with_few_outputs_match_the_cpu() {
         assert_close(g, c, 1e-4, what);
     }
 }
+
+/// StyleGAN2's element-wise chains as single kernels (`fused`, `Cube` devices without Burn's
+/// `fusion`) against the CPU's single loops, forward and backward, for the shapes and paddings
+/// the networks use, edge sizes, and an up-sampling of more cubes than one grid row holds.
+#[cfg(not(feature = "fusion"))]
+#[test]
+fn the_fused_element_wise_ops_match_the_cpu() {
+    use f3g_nets::fused;
+    /// Output and input gradient of `op` on `x` (the gradient of `sum(op(x) · r)`, with
+    /// weights `r` that give every output its own).
+    fn output_and_grad(op: &dyn Fn(Tensor<4>) -> Tensor<4>, x: Tensor<4>) -> [Vec<f32>; 2] {
+        let x = x.require_grad();
+        let y = op(x.clone());
+        let r = (ramp(y.dims(), &x.device()) * 37.0).sin();
+        let grads = (y.clone() * r).sum().backward();
+        [values(y), values(x.grad(&grads).unwrap())]
+    }
+    let gpu = test_device().autodiff();
+    let cpu = Device::flex().autodiff();
+    let compare = |op: &dyn Fn(Tensor<4>) -> Tensor<4>, shape: [usize; 4], what: &str| {
+        let x = ramp(shape, &gpu);
+        assert!(
+            fused::runs(&x, 0),
+            "{what}: the fused op runs on the device"
+        );
+        let got = output_and_grad(op, x);
+        let expected = output_and_grad(op, ramp(shape, &cpu));
+        assert_close(
+            &got[0],
+            &expected[0],
+            1e-5,
+            &format!("{what} {shape:?}: output"),
+        );
+        assert_close(
+            &got[1],
+            &expected[1],
+            1e-5,
+            &format!("{what} {shape:?}: gradient"),
+        );
+    };
+    for shape in [[1, 1, 1, 1], [2, 3, 5, 7], [1, 32, 16, 16]] {
+        let channels = shape[1];
+        let bias = |device: &Device| {
+            let v = (0..channels).map(|c| 0.3 - 0.17 * c as f32).collect();
+            Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [channels]), device)
+        };
+        // The bias's gradient too: the op's second parent.
+        let run = |device: &Device| {
+            let (x, b) = (
+                ramp(shape, device).require_grad(),
+                bias(device).require_grad(),
+            );
+            let y = fused::bias_leaky_relu(x.clone(), b.clone());
+            let grads = (y.clone() * y.clone()).sum().backward();
+            [
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(b.grad(&grads).unwrap()),
+            ]
+        };
+        let (got, expected) = (run(&gpu), run(&cpu));
+        for (what, (g, e)) in ["output", "dx", "bias gradient"]
+            .iter()
+            .zip(got.iter().zip(&expected))
+        {
+            assert_close(g, e, 1e-5, &format!("bias_leaky_relu {shape:?}: {what}"));
+        }
+        compare(&fused::upsample2, shape, "upsample2");
+    }
+    compare(&fused::upsample2, [1, 2, 1, 9], "upsample2");
+    // 4 · 2 100² outputs: 68 907 cubes of 256, past one grid row of 65 535.
+    compare(&fused::upsample2, [1, 1, 2100, 2100], "upsample2");
+    for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {
+        for (before, after) in [(2, 2), (2, 1), (1, 2), (3, 0), (0, 3), (3, 3), (1, 1)] {
+            if shape[2] + before + after >= 4 && shape[3] + before + after >= 4 {
+                let blur = |x| fused::blur(x, before, after);
+                compare(&blur, shape, &format!("blur ({before}, {after})"));
+            }
+        }
+    }
+    for shape in [[1, 1, 2, 2], [2, 3, 4, 6], [1, 3, 16, 16]] {
+        compare(&fused::haar, shape, "haar");
+        let bands = [shape[0], 4 * shape[1], shape[2] / 2, shape[3] / 2];
+        compare(&fused::inverse_haar, bands, "inverse_haar");
+    }
+}
