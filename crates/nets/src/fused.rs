@@ -1,16 +1,20 @@
-//! StyleGAN2's element-wise chains as single passes: one loop on the CPU, one kernel on a GPU.
+//! StyleGAN2's element-wise chains and modulated weights as single passes: one loop on the CPU,
+//! one kernel on a GPU.
 //!
 //! Written with Burn's tensor ops, the bias + leaky ReLU of every layer, the ×2 bilinear
 //! up-sampling, the `[1, 3, 3, 1]` blur and the Haar transforms of the output are chains of
 //! slices, concatenations, scalings and sums: about ten passes over an activation each way (or,
 //! on the small Haar tensors, ten ops' fixed costs), and 40–57 % of a StyleUNet's
-//! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). Here each is one backend op
+//! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). The modulated weight of
+//! every styled convolution is another ten small ops forward and twenty backward, each a kernel
+//! launch on a GPU. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel, and on unfused `Cube` devices (wgpu, CUDA) one kernel
 //! (`cube`). Burn's `fusion` devices keep the tensor-op formulation in
 //! [`crate::layers::portable`], which fusion fuses itself; [`runs`] routes.
 //!
-//! Layouts: `[B, C, H, W]` row-major; `bias` `[C]`.
+//! Layouts: `[B, C, H, W]` (row-major on the CPU; on a GPU row-major or channels-last, see
+//! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `[C_in]`.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
@@ -77,6 +81,18 @@ pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::inverse_haar(x.into_dispatch()))
 }
 
+/// StyleGAN2's modulated convolution weight as one op, where [`runs`] (`weight`'s device): each
+/// input channel `i` of `weight` (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then,
+/// with `demodulate`, each output channel divided by its norm `√(Σ w² + 10⁻⁸)`.
+pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: bool) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate(
+        weight.into_dispatch(),
+        style.into_dispatch(),
+        scale,
+        demodulate,
+    ))
+}
+
 /// The fused ops and the backward passes their autodiff nodes call.
 #[backend_extension(
     Autodiff,
@@ -113,4 +129,27 @@ pub trait FusedBackend: Backend {
 
     /// Haar synthesis, the inverse (and adjoint) of [`FusedBackend::haar`].
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// The modulated weight ([`modulate`]): `u = weight · style[i] · scale`, and with
+    /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
+    fn modulate(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self>;
+
+    /// The gradients of `weight` and `style` given the output gradient `grad`. With
+    /// demodulation, the gradient of `u` is `d · (g − u · d² · Σ g·u)` (sums per output channel);
+    /// then `∂weight = ∂u · style[i] · scale` and `∂style[i] = Σ_{o,taps} ∂u · weight · scale`.
+    fn modulate_grad(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
 }
+
+/// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).
+pub const DEMODULATION_EPSILON: f32 = 1e-8;

@@ -84,6 +84,17 @@ pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     }
 }
 
+/// StyleGAN2's modulated weight: input channel `i` of `weight` scaled by `style[i] · scale`,
+/// each output channel then divided by its norm if `demodulate`: one op where it runs
+/// ([`fused::modulate`]), [`portable::modulate`] elsewhere.
+pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: bool) -> Tensor<4> {
+    if fused::runs(&weight, 0) {
+        fused::modulate(weight, style, scale, demodulate)
+    } else {
+        portable::modulate(weight, style, scale, demodulate)
+    }
+}
+
 /// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`]. On the CPU
 /// (Flex) other sizes use Burn's `interpolate`; on other devices [`resize_separable`], because
 /// Burn 0.22's CubeCL backends (CUDA, wgpu) have no backward for bilinear interpolation.
@@ -170,11 +181,30 @@ pub mod portable {
     use burn::tensor::activation::leaky_relu;
 
     use super::LRELU_GAIN;
+    use crate::fused::DEMODULATION_EPSILON;
 
     /// `leaky_relu(x + bias, 0.2) · √2`.
     pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
         let c = bias.dims()[0];
         leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
+    }
+
+    /// StyleGAN2's modulated weight: `weight · style[i] · scale`, then with `demodulate` each
+    /// output channel divided by `√(Σ w² + 10⁻⁸)`.
+    pub fn modulate(
+        weight: Tensor<4>,
+        style: Tensor<1>,
+        scale: f32,
+        demodulate: bool,
+    ) -> Tensor<4> {
+        let [c_out, c_in, _, _] = weight.dims();
+        let w = weight * style.reshape([1, c_in, 1, 1]) * scale;
+        if !demodulate {
+            return w;
+        }
+        let squares = w.clone().powf_scalar(2.0).sum_dim(1).sum_dim(2).sum_dim(3);
+        let d = (squares + DEMODULATION_EPSILON).sqrt().recip();
+        w * d.reshape([c_out, 1, 1, 1])
     }
 
     /// Bilinear up-sampling by 2 (`align_corners = false`), written with slices, sums and a
@@ -442,15 +472,9 @@ impl ModulatedConv2d {
 
     /// `x`: `[B, in, H, W]`, `style`: `[1, style_dim]`.
     pub fn forward(&self, x: Tensor<4>, style: Tensor<2>) -> Tensor<4> {
-        let [cout, cin, k, _] = self.weight.dims();
-        let s = self.modulation.forward(style).reshape([1, cin, 1, 1]);
-        let mut w = self.weight.val() * s * self.scale;
-        if self.demodulate {
-            let d = (w.clone().powf_scalar(2.0).sum_dim(1).sum_dim(2).sum_dim(3) + 1e-8)
-                .sqrt()
-                .recip();
-            w = w * d.reshape([cout, 1, 1, 1]);
-        }
+        let [_, cin, k, _] = self.weight.dims();
+        let s = self.modulation.forward(style).reshape([cin]);
+        let w = modulate(self.weight.val(), s, self.scale, self.demodulate);
         let x = if self.upsample { upsample2(x) } else { x };
         conv2d(
             x,

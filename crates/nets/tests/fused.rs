@@ -165,3 +165,70 @@ fn every_backward_matches_central_differences() {
         );
     }
 }
+
+/// The modulated weight's output and the gradients of weight and style of `sum(op(w, s) · r)`.
+fn modulated(
+    op: fn(Tensor<4>, Tensor<1>, f32, bool) -> Tensor<4>,
+    shape: [usize; 4],
+    demodulate: bool,
+) -> [Vec<f32>; 3] {
+    let device = Device::flex().autodiff();
+    let weight = ramp(shape, &device).require_grad();
+    let style = bias(shape[1], &device).require_grad();
+    let y = op(weight.clone(), style.clone(), 0.37, demodulate);
+    let grads = (y.clone() * weights(shape, &device)).sum().backward();
+    [
+        values(y),
+        values(weight.grad(&grads).unwrap()),
+        values(style.grad(&grads).unwrap()),
+    ]
+}
+
+#[test]
+fn modulation_matches_the_tensor_ops() {
+    for shape in [[4, 3, 3, 3], [12, 8, 1, 1], [1, 1, 1, 1], [3, 300, 3, 3]] {
+        for demodulate in [true, false] {
+            let ours = modulated(fused::modulate, shape, demodulate);
+            let theirs = modulated(portable::modulate, shape, demodulate);
+            for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dw", "ds"]) {
+                assert_close(
+                    got,
+                    expected,
+                    &format!("{what} of {shape:?} ({demodulate})"),
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn the_modulations_backward_matches_central_differences() {
+    let device = Device::flex().autodiff();
+    let squared = |y: Tensor<4>| {
+        let r = weights(y.dims(), &y.device()) * 0.1 + 0.05;
+        (y.clone() * y * r).sum()
+    };
+    let weight = ramp([3, 4, 3, 3], &device);
+    let style = bias(4, &device);
+    for demodulate in [true, false] {
+        central_differences::check(
+            &|w| squared(fused::modulate(w, style.clone(), 0.37, demodulate)),
+            weight.clone(),
+            1e-2,
+            &format!("weight gradient ({demodulate})"),
+        );
+        central_differences::check(
+            &|s| {
+                squared(fused::modulate(
+                    weight.clone(),
+                    s.reshape([4]),
+                    0.37,
+                    demodulate,
+                ))
+            },
+            style.clone().reshape([1, 4, 1, 1]),
+            1e-2,
+            &format!("style gradient ({demodulate})"),
+        );
+    }
+}

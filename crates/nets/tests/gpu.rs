@@ -378,44 +378,54 @@ fn long_reductions_with_few_outputs_match_the_cpu() {
     }
 }
 
-/// StyleGAN2's element-wise chains as single kernels (`fused`, `Cube` devices without Burn's
-/// `fusion`) against the CPU's single loops, forward and backward, for the shapes and paddings
-/// the networks use, edge sizes, and an up-sampling of more cubes than one grid row holds.
+/// StyleGAN2's element-wise chains and modulated weights as single kernels (`fused`, `Cube`
+/// devices without Burn's `fusion`) against the CPU's single loops, forward and backward, for the
+/// shapes and paddings the networks use, edge sizes, and an up-sampling of more cubes than one
+/// grid row holds.
 #[cfg(not(feature = "fusion"))]
 #[test]
-fn the_fused_element_wise_ops_match_the_cpu() {
+fn the_fused_ops_match_the_cpu() {
     use f3g_nets::fused;
+    /// A ramp of `shape` (`[B, C, H, W]`), stored row-major or channels-last (a permuted view,
+    /// as Burn's convolutions leave their outputs on a GPU).
+    fn laid_out(shape: [usize; 4], device: &Device, channels_last: bool) -> Tensor<4> {
+        let [b, c, h, w] = shape;
+        if channels_last {
+            ramp([b, h, w, c], device).permute([0, 3, 1, 2])
+        } else {
+            ramp(shape, device)
+        }
+    }
     /// Output and input gradient of `op` on `x` (the gradient of `sum(op(x) · r)`, with
-    /// weights `r` that give every output its own).
-    fn output_and_grad(op: &dyn Fn(Tensor<4>) -> Tensor<4>, x: Tensor<4>) -> [Vec<f32>; 2] {
+    /// weights `r` in the layout `r_last` says that give every output its own).
+    fn output_and_grad(
+        op: &dyn Fn(Tensor<4>) -> Tensor<4>,
+        x: Tensor<4>,
+        r_last: bool,
+    ) -> [Vec<f32>; 2] {
         let x = x.require_grad();
         let y = op(x.clone());
-        let r = (ramp(y.dims(), &x.device()) * 37.0).sin();
+        let r = (laid_out(y.dims(), &x.device(), r_last) * 37.0).sin();
         let grads = (y.clone() * r).sum().backward();
         [values(y), values(x.grad(&grads).unwrap())]
     }
+    // Every pairing of the input's layout and the output gradient's.
+    const LAYOUTS: [(bool, bool); 4] = [(false, false), (true, true), (true, false), (false, true)];
     let gpu = test_device().autodiff();
     let cpu = Device::flex().autodiff();
     let compare = |op: &dyn Fn(Tensor<4>) -> Tensor<4>, shape: [usize; 4], what: &str| {
-        let x = ramp(shape, &gpu);
-        assert!(
-            fused::runs(&x, 0),
-            "{what}: the fused op runs on the device"
-        );
-        let got = output_and_grad(op, x);
-        let expected = output_and_grad(op, ramp(shape, &cpu));
-        assert_close(
-            &got[0],
-            &expected[0],
-            1e-5,
-            &format!("{what} {shape:?}: output"),
-        );
-        assert_close(
-            &got[1],
-            &expected[1],
-            1e-5,
-            &format!("{what} {shape:?}: gradient"),
-        );
+        for (x_last, r_last) in LAYOUTS {
+            let x = laid_out(shape, &gpu, x_last);
+            assert!(
+                fused::runs(&x, 0),
+                "{what}: the fused op runs on the device"
+            );
+            let got = output_and_grad(op, x, r_last);
+            let expected = output_and_grad(op, laid_out(shape, &cpu, x_last), r_last);
+            let what = format!("{what} {shape:?}, channels-last input {x_last}, gradient {r_last}");
+            assert_close(&got[0], &expected[0], 1e-5, &format!("{what}: output"));
+            assert_close(&got[1], &expected[1], 1e-5, &format!("{what}: gradient"));
+        }
     };
     for shape in [[1, 1, 1, 1], [2, 3, 5, 7], [1, 32, 16, 16]] {
         let channels = shape[1];
@@ -424,25 +434,32 @@ fn the_fused_element_wise_ops_match_the_cpu() {
             Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [channels]), device)
         };
         // The bias's gradient too: the op's second parent.
-        let run = |device: &Device| {
-            let (x, b) = (
-                ramp(shape, device).require_grad(),
-                bias(device).require_grad(),
-            );
-            let y = fused::bias_leaky_relu(x.clone(), b.clone());
-            let grads = (y.clone() * y.clone()).sum().backward();
-            [
-                values(y),
-                values(x.grad(&grads).unwrap()),
-                values(b.grad(&grads).unwrap()),
-            ]
-        };
-        let (got, expected) = (run(&gpu), run(&cpu));
-        for (what, (g, e)) in ["output", "dx", "bias gradient"]
-            .iter()
-            .zip(got.iter().zip(&expected))
-        {
-            assert_close(g, e, 1e-5, &format!("bias_leaky_relu {shape:?}: {what}"));
+        for (x_last, r_last) in LAYOUTS {
+            let run = |device: &Device| {
+                let x = laid_out(shape, device, x_last).require_grad();
+                let b = bias(device).require_grad();
+                let y = fused::bias_leaky_relu(x.clone(), b.clone());
+                let r = (laid_out(shape, device, r_last) * 37.0).sin();
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(b.grad(&grads).unwrap()),
+                ]
+            };
+            let (got, expected) = (run(&gpu), run(&cpu));
+            for (what, (g, e)) in ["output", "dx", "bias gradient"]
+                .iter()
+                .zip(got.iter().zip(&expected))
+            {
+                let layouts = format!("channels-last input {x_last}, gradient {r_last}");
+                assert_close(
+                    g,
+                    e,
+                    1e-5,
+                    &format!("bias_leaky_relu {shape:?}, {layouts}: {what}"),
+                );
+            }
         }
         compare(&fused::upsample2, shape, "upsample2");
     }
@@ -455,6 +472,39 @@ fn the_fused_element_wise_ops_match_the_cpu() {
                 let blur = |x| fused::blur(x, before, after);
                 compare(&blur, shape, &format!("blur ({before}, {after})"));
             }
+        }
+    }
+    // The modulated weight, both gradients: a 3×3 layer of the paper's widths (4 608 values per
+    // output channel, 18 per cube unit), a 1×1 ToRGB, and fewer values than a cube has units.
+    for (shape, demodulate) in [
+        ([16, 512, 3, 3], true),
+        ([12, 64, 1, 1], false),
+        ([3, 5, 3, 3], true),
+    ] {
+        let run = |device: &Device| {
+            let weight = ramp(shape, device).require_grad();
+            let style =
+                (ramp([1, 1, 1, shape[1]], device).reshape([shape[1]]) * 3.0 + 1.0).require_grad();
+            let y = fused::modulate(weight.clone(), style.clone(), 0.05, demodulate);
+            let r = (ramp(shape, device) * 37.0).sin();
+            let grads = (y.clone() * r).sum().backward();
+            [
+                values(y),
+                values(weight.grad(&grads).unwrap()),
+                values(style.grad(&grads).unwrap()),
+            ]
+        };
+        let (got, expected) = (run(&gpu), run(&cpu));
+        for (what, (g, e)) in ["output", "weight gradient", "style gradient"]
+            .iter()
+            .zip(got.iter().zip(&expected))
+        {
+            assert_close(
+                g,
+                e,
+                1e-5,
+                &format!("modulate {shape:?} ({demodulate}): {what}"),
+            );
         }
     }
     for shape in [[1, 1, 2, 2], [2, 3, 4, 6], [1, 3, 16, 16]] {

@@ -105,6 +105,32 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for HaarBackward {
     }
 }
 
+#[derive(Debug)]
+struct ModulateBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
+    /// The weight and the style, the scale and whether the op demodulates.
+    type State = (FloatTensor<B>, FloatTensor<B>, f32, bool);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (weight, style, scale, demodulate) = ops.state;
+        let (d_weight, d_style) = B::modulate_grad(weight, style, grad, scale, demodulate);
+        let [weight_node, style_node] = ops.parents;
+        if let Some(node) = weight_node {
+            grads.register::<B>(node.id, d_weight);
+        }
+        if let Some(node) = style_node {
+            grads.register::<B>(node.id, d_style);
+        }
+    }
+}
+
 impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff<B, C> {
     fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
         let nodes = [x.node(), bias.node()];
@@ -168,5 +194,43 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             .prepare::<C>(nodes)
             .compute_bound()
             .stateless(B::inverse_haar(x.into_primitive()))
+    }
+    fn modulate(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        let nodes = [weight.node(), style.node()];
+        let (weight, style) = (weight.into_primitive(), style.into_primitive());
+        let out = B::modulate(weight.clone(), style.clone(), scale, demodulate);
+        match ModulateBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((weight, style, scale, demodulate), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn modulate_grad(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let (d_weight, d_style) = B::modulate_grad(
+            weight.into_primitive(),
+            style.into_primitive(),
+            grad.into_primitive(),
+            scale,
+            demodulate,
+        );
+        (
+            Autodiff::<B, C>::from_inner(d_weight),
+            Autodiff::<B, C>::from_inner(d_style),
+        )
     }
 }

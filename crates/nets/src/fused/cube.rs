@@ -6,9 +6,15 @@
 //! concatenations, scalings and sums: a `paper` step launched ≈ 57 000 kernels, 35 000 of them
 //! element-wise, `SliceAssign` or leaky ReLU's `MaskWhere` (BENCHMARKS "Where the device time
 //! goes now"), and its host work per launch bounds the step on an H100. Indices are 32-bit: the
-//! callers route tensors of 2³² values or more to the portable ops (`fused::available`). Inputs
-//! are read row-major after `into_contiguous`; outputs are allocated contiguous (CUDA pitches
-//! Burn's ordinary allocations: `f3g_splat::cube`'s module doc). The arithmetic follows
+//! callers route tensors of 2³² values or more to the portable ops (`fused::runs`).
+//!
+//! Layouts: every op reads and writes gapless tensors in one of two layouts, row-major
+//! `[B, C, H, W]` or channels-last (a permuted view of a row-major `[B, H, W, C]`), and keeps
+//! its input's (`readable`, `empty_in_layout`; anything else is made row-major first). Burn's
+//! implicit-GEMM convolutions compute in channels-last and hand back such views: kept, the
+//! activation after a convolution goes through bias + leaky ReLU, blur or up-sampling into the
+//! next convolution without a copy to row-major and back. Outputs are never Burn's ordinary
+//! allocations, which CUDA pitches (`f3g_splat::cube`'s module doc). The arithmetic follows
 //! `fused::flex` term by term.
 
 use burn::backend::TensorMetadata;
@@ -19,9 +25,10 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 
-use super::FusedBackend;
-use crate::cube_grid::one_thread_per_value;
+use super::{DEMODULATION_EPSILON, FusedBackend};
+use crate::cube_grid::{UNITS, one_thread_per_value};
 use crate::layers::LRELU_GAIN;
 
 /// Leaky ReLU's slope below zero.
@@ -32,13 +39,14 @@ mod kernels {
     use burn_cubecl::cubecl::prelude::*;
 
     /// `out = gain · (x + bias[c])`, times `slope` where that is not positive; `c` is the
-    /// channel of value `i` (`(i / plane) % channels`).
+    /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
+    /// share one gapless layout).
     #[cube(launch)]
     pub fn bias_leaky_relu(
         x: &Tensor<f32>,
         bias: &Tensor<f32>,
         out: &mut Tensor<f32>,
-        plane: u32,
+        channel_stride: u32,
         channels: u32,
         gain: f32,
         slope: f32,
@@ -47,7 +55,7 @@ mod kernels {
         if i >= out.len() {
             terminate!();
         }
-        let c = (i as u32 / plane) % channels;
+        let c = (i as u32 / channel_stride) % channels;
         let pre = x[i] + bias[c as usize];
         let mut value = pre;
         if pre <= 0.0 {
@@ -56,7 +64,8 @@ mod kernels {
         out[i] = gain * value;
     }
 
-    /// `dx = grad · gain · (1 where the output is positive, else slope)`.
+    /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
+    /// offset (the three share one gapless layout).
     #[cube(launch)]
     pub fn bias_leaky_relu_grad(
         output: &Tensor<f32>,
@@ -92,25 +101,86 @@ mod kernels {
         neighbour
     }
 
-    /// `out[p, oy, ox]` (`[planes, 2h, 2w]`) from `x` (`[planes, h, w]`): bilinear along the
-    /// row, then along the column.
+    /// Where a value sits in a `[B, C, H, W]` tensor.
+    #[derive(CubeType)]
+    struct Position {
+        batch: u32,
+        channel: u32,
+        y: u32,
+        x: u32,
+    }
+
+    /// The position of buffer offset `i` in a gapless `[B, channels, h, w]` tensor, stored
+    /// row-major or, with `channels_last`, as `[B, h, w, channels]`.
+    #[cube]
+    fn position(
+        i: u32,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) -> Position {
+        if comptime![channels_last] {
+            Position {
+                batch: i / (channels * w * h),
+                channel: i % channels,
+                y: (i / (channels * w)) % h,
+                x: (i / channels) % w,
+            }
+        } else {
+            Position {
+                batch: i / (w * h * channels),
+                channel: (i / (w * h)) % channels,
+                y: (i / w) % h,
+                x: i % w,
+            }
+        }
+    }
+
+    /// The buffer offset of `(batch, channel, y, x)` in the tensor [`position`] describes.
+    #[allow(clippy::too_many_arguments)]
+    #[cube]
+    fn offset(
+        batch: u32,
+        channel: u32,
+        y: u32,
+        x: u32,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) -> usize {
+        let mut o = ((batch * channels + channel) * h + y) * w + x;
+        if comptime![channels_last] {
+            o = ((batch * h + y) * w + x) * channels + channel;
+        }
+        o as usize
+    }
+
+    /// `out` (`[B, C, 2h, 2w]`) from `x` (`[B, C, h, w]`), both in one layout: bilinear along
+    /// the row, then along the column.
     #[cube(launch)]
-    pub fn upsample2(x: &Tensor<f32>, out: &mut Tensor<f32>, h: u32, w: u32) {
+    pub fn upsample2(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
         let i = ABSOLUTE_POS;
         if i >= out.len() {
             terminate!();
         }
-        let i = i as u32;
-        let ox = i % (2 * w);
-        let oy = (i / (2 * w)) % (2 * h);
-        let base = (i / (4 * h * w)) * h * w;
-        let (x0, x1) = (ox / 2, upsample_neighbour(ox, w));
-        let (y0, y1) = (oy / 2, upsample_neighbour(oy, h));
-        let row0 = base + y0 * w;
-        let row1 = base + y1 * w;
-        let near = 0.75 * x[(row0 + x0) as usize] + 0.25 * x[(row0 + x1) as usize];
-        let far = 0.75 * x[(row1 + x0) as usize] + 0.25 * x[(row1 + x1) as usize];
-        out[i as usize] = 0.75 * near + 0.25 * far;
+        let p = position(i as u32, channels, 2 * h, 2 * w, channels_last);
+        let (x0, x1) = (p.x / 2, upsample_neighbour(p.x, w));
+        let (y0, y1) = (p.y / 2, upsample_neighbour(p.y, h));
+        let (b, c) = (p.batch, p.channel);
+        let near = 0.75 * x[offset(b, c, y0, x0, channels, h, w, channels_last)]
+            + 0.25 * x[offset(b, c, y0, x1, channels, h, w, channels_last)];
+        let far = 0.75 * x[offset(b, c, y1, x0, channels, h, w, channels_last)]
+            + 0.25 * x[offset(b, c, y1, x1, channels, h, w, channels_last)];
+        out[i] = 0.75 * near + 0.25 * far;
     }
 
     /// The weight with which output `2i + tap − 1` of the ×2 up-sampling (along an axis of `n`
@@ -139,34 +209,49 @@ mod kernels {
         weight
     }
 
-    /// `dx[p, y, x]` (`[planes, h, w]`), the adjoint of [`upsample2`]: the weighted sum of the
-    /// up to 4 × 4 outputs of `grad` (`[planes, 2h, 2w]`) that read sample `(y, x)`.
+    /// `dx` (`[B, C, h, w]`), the adjoint of [`upsample2`]: the weighted sum of the up to 4 × 4
+    /// outputs of `grad` (`[B, C, 2h, 2w]`, the same layout) that read sample `(y, x)`.
     #[cube(launch)]
-    pub fn upsample2_grad(grad: &Tensor<f32>, dx: &mut Tensor<f32>, h: u32, w: u32) {
+    pub fn upsample2_grad(
+        grad: &Tensor<f32>,
+        dx: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
         let i = ABSOLUTE_POS;
         if i >= dx.len() {
             terminate!();
         }
-        let i = i as u32;
-        let x = i % w;
-        let y = (i / w) % h;
-        let base = (i / (h * w)) * 4 * h * w;
+        let p = position(i as u32, channels, h, w, channels_last);
         let mut sum = 0.0f32;
         for ty in 0..4u32 {
-            let wy = upsample_adjoint_weight(y, h, ty);
+            let wy = upsample_adjoint_weight(p.y, h, ty);
             if wy != 0.0 {
-                let row = base + (2 * y + ty - 1) * 2 * w;
+                let oy = 2 * p.y + ty - 1;
                 let mut along = 0.0f32;
                 for tx in 0..4u32 {
-                    let wx = upsample_adjoint_weight(x, w, tx);
+                    let wx = upsample_adjoint_weight(p.x, w, tx);
                     if wx != 0.0 {
-                        along += wx * grad[(row + 2 * x + tx - 1) as usize];
+                        let ox = 2 * p.x + tx - 1;
+                        let at = offset(
+                            p.batch,
+                            p.channel,
+                            oy,
+                            ox,
+                            channels,
+                            2 * h,
+                            2 * w,
+                            channels_last,
+                        );
+                        along += wx * grad[at];
                     }
                 }
                 sum += wy * along;
             }
         }
-        dx[i as usize] = sum;
+        dx[i] = sum;
     }
 
     /// Tap `k` of the `[1, 3, 3, 1] / 8` filter.
@@ -179,61 +264,77 @@ mod kernels {
         tap
     }
 
-    /// `out[p, oy, ox]` (`[planes, out_h, out_w]`) = `Σ taps[ky] · taps[kx] · x[p, oy + ky −
-    /// before, ox + kx − before]` over the taps inside `x` (`[planes, h, w]`; zero padding).
+    /// `out` (`[B, C, out_h, out_w]`) = `Σ taps[ky] · taps[kx] · x[b, c, oy + ky − before, ox + kx
+    /// − before]` over the taps inside `x` (`[B, C, h, w]`, the same layout; zero padding).
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn blur(
         x: &Tensor<f32>,
         out: &mut Tensor<f32>,
+        channels: u32,
         h: u32,
         w: u32,
         out_h: u32,
         out_w: u32,
         before: u32,
+        #[comptime] channels_last: bool,
     ) {
         let i = ABSOLUTE_POS;
         if i >= out.len() {
             terminate!();
         }
-        let i = i as u32;
-        let ox = i % out_w;
-        let oy = (i / out_w) % out_h;
-        let base = (i / (out_h * out_w)) * h * w;
+        let p = position(i as u32, channels, out_h, out_w, channels_last);
         let mut sum = 0.0f32;
         for ky in 0..4u32 {
-            let iy = (oy + ky) as i32 - before as i32;
+            let iy = (p.y + ky) as i32 - before as i32;
             if iy >= 0 && iy < h as i32 {
-                let row = base + iy as u32 * w;
                 let mut along = 0.0f32;
                 for kx in 0..4u32 {
-                    let ix = (ox + kx) as i32 - before as i32;
+                    let ix = (p.x + kx) as i32 - before as i32;
                     if ix >= 0 && ix < w as i32 {
-                        along += blur_tap(kx) * x[(row + ix as u32) as usize];
+                        let at = offset(
+                            p.batch,
+                            p.channel,
+                            iy as u32,
+                            ix as u32,
+                            channels,
+                            h,
+                            w,
+                            channels_last,
+                        );
+                        along += blur_tap(kx) * x[at];
                     }
                 }
                 sum += blur_tap(ky) * along;
             }
         }
-        out[i as usize] = sum;
+        out[i] = sum;
     }
 
-    /// `out[p, k, i, j]` (`[planes, 4, h, w]`): sub-band `k ∈ (LL, LH, HL, HH)` of the 2 × 2
-    /// block `(p q / r s)` at `(2i, 2j)` of `x` (`[planes, 2h, 2w]`), `½(p ± q ± r ± s)`.
+    /// `out` (`[B, 4C, h, w]`): channel `4c + k` holds sub-band `k ∈ (LL, LH, HL, HH)` of the
+    /// 2 × 2 block `(p q / r s)` at `(2y, 2x)` of channel `c` of `x` (`[B, C, 2h, 2w]`, the same
+    /// layout), `½(p ± q ± r ± s)`.
     #[cube(launch)]
-    pub fn haar(x: &Tensor<f32>, out: &mut Tensor<f32>, h: u32, w: u32) {
+    pub fn haar(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
         let o = ABSOLUTE_POS;
         if o >= out.len() {
             terminate!();
         }
-        let o = o as u32;
-        let j = o % w;
-        let i = (o / w) % h;
-        let band = (o / (h * w)) % 4;
-        let top = (o / (4 * h * w)) * 4 * h * w + 2 * i * 2 * w + 2 * j;
-        let bottom = top + 2 * w;
-        let (p, q) = (x[top as usize], x[(top + 1) as usize]);
-        let (r, s) = (x[bottom as usize], x[(bottom + 1) as usize]);
+        let at = position(o as u32, 4 * channels, h, w, channels_last);
+        let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
+        let (y, x0) = (2 * at.y, 2 * at.x);
+        let (h2, w2) = (2 * h, 2 * w);
+        let p = x[offset(b, c, y, x0, channels, h2, w2, channels_last)];
+        let q = x[offset(b, c, y, x0 + 1, channels, h2, w2, channels_last)];
+        let r = x[offset(b, c, y + 1, x0, channels, h2, w2, channels_last)];
+        let s = x[offset(b, c, y + 1, x0 + 1, channels, h2, w2, channels_last)];
         // LH negates the bottom row, HL the right column, HH both (s twice).
         let mut sign_q = 1.0f32;
         if band >= 2 {
@@ -243,36 +344,174 @@ mod kernels {
         if band % 2 == 1 {
             sign_r = -1.0f32;
         }
-        out[o as usize] = 0.5 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
+        out[o] = 0.5 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
     }
 
-    /// `out[p, y, x]` (`[planes, 2h, 2w]`) from the four sub-bands `(a, b, c, d)` of `x`
-    /// (`[planes, 4, h, w]`) at `(y / 2, x / 2)`: `½(a ± b ± c ± d)`, the inverse of [`haar`].
+    /// `out` (`[B, C, 2h, 2w]`) from the four sub-bands `(a, b, c, d)` of `x` (`[B, 4C, h, w]`,
+    /// the same layout) at `(y / 2, x / 2)`: `½(a ± b ± c ± d)`, the inverse of [`haar`].
     #[cube(launch)]
-    pub fn inverse_haar(x: &Tensor<f32>, out: &mut Tensor<f32>, h: u32, w: u32) {
+    pub fn inverse_haar(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
         let o = ABSOLUTE_POS;
         if o >= out.len() {
             terminate!();
         }
-        let o = o as u32;
-        let xx = o % (2 * w);
-        let yy = (o / (2 * w)) % (2 * h);
-        let band = (o / (4 * h * w)) * 4 * h * w + (yy / 2) * w + xx / 2;
-        let (a, b) = (x[band as usize], x[(band + h * w) as usize]);
-        let (c, d) = (
-            x[(band + 2 * h * w) as usize],
-            x[(band + 3 * h * w) as usize],
-        );
+        let at = position(o as u32, channels, 2 * h, 2 * w, channels_last);
+        let (batch, first) = (at.batch, 4 * at.channel);
+        let (y, x0) = (at.y / 2, at.x / 2);
+        let c4 = 4 * channels;
+        let a = x[offset(batch, first, y, x0, c4, h, w, channels_last)];
+        let b = x[offset(batch, first + 1, y, x0, c4, h, w, channels_last)];
+        let c = x[offset(batch, first + 2, y, x0, c4, h, w, channels_last)];
+        let d = x[offset(batch, first + 3, y, x0, c4, h, w, channels_last)];
         // The bottom row negates LH, the right column HL, the corner both (HH twice).
         let mut sign_b = 1.0f32;
-        if yy % 2 == 1 {
+        if at.y % 2 == 1 {
             sign_b = -1.0f32;
         }
         let mut sign_c = 1.0f32;
-        if xx % 2 == 1 {
+        if at.x % 2 == 1 {
             sign_c = -1.0f32;
         }
-        out[o as usize] = 0.5 * (a + sign_b * b + sign_c * c + sign_b * sign_c * d);
+        out[o] = 0.5 * (a + sign_b * b + sign_c * c + sign_b * sign_c * d);
+    }
+
+    /// Sums `partial` (one value per unit, `units` a power of two) into `partial[0]`, pairwise
+    /// with doubling strides; every unit must call it.
+    #[cube]
+    fn cube_sum(partial: &mut Shared<[f32]>, #[comptime] units: u32) {
+        let t = UNIT_POS;
+        sync_cube();
+        let mut stride = 1u32;
+        while stride < units {
+            if t & (2 * stride - 1) == 0 {
+                partial[t as usize] += partial[(t + stride) as usize];
+            }
+            sync_cube();
+            stride *= 2;
+        }
+    }
+
+    /// One cube per output channel `o` (`CUBE_POS_X`): `out[o, j] = weight[o, j] · style[j /
+    /// taps] · scale`, times `(Σ_j (weight · style · scale)² + epsilon)^(−½)` if `demodulate`
+    /// (`j` over the channel's `per_output` values).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn modulate(
+        weight: &Tensor<f32>,
+        style: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+        epsilon: f32,
+        #[comptime] demodulate: bool,
+        #[comptime] units: u32,
+    ) {
+        let t = UNIT_POS;
+        let base = CUBE_POS_X * per_output;
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut d = 1.0f32;
+        if comptime![demodulate] {
+            let mut sum = 0.0f32;
+            let mut j = t;
+            while j < per_output {
+                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                sum += u * u;
+                j += units;
+            }
+            partial[t as usize] = sum;
+            cube_sum(&mut partial, units);
+            d = 1.0 / f32::sqrt(partial[0] + epsilon);
+        }
+        let mut j = t;
+        while j < per_output {
+            let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+            out[(base + j) as usize] = u * d;
+            j += units;
+        }
+    }
+
+    /// The backward of [`modulate`], one cube per output channel: `d_weight` and
+    /// `terms = ∂u · weight · scale`, whose sums over output channels and taps are the style's
+    /// gradient ([`style_grad`]).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn modulate_grad(
+        weight: &Tensor<f32>,
+        style: &Tensor<f32>,
+        grad: &Tensor<f32>,
+        d_weight: &mut Tensor<f32>,
+        terms: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+        epsilon: f32,
+        #[comptime] demodulate: bool,
+        #[comptime] units: u32,
+    ) {
+        let t = UNIT_POS;
+        let base = CUBE_POS_X * per_output;
+        let mut squares = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut projections = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut d = 1.0f32;
+        let mut projection = 0.0f32;
+        if comptime![demodulate] {
+            let mut uu = 0.0f32;
+            let mut gu = 0.0f32;
+            let mut j = t;
+            while j < per_output {
+                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                uu += u * u;
+                gu += grad[(base + j) as usize] * u;
+                j += units;
+            }
+            squares[t as usize] = uu;
+            projections[t as usize] = gu;
+            cube_sum(&mut squares, units);
+            cube_sum(&mut projections, units);
+            d = 1.0 / f32::sqrt(squares[0] + epsilon);
+            projection = projections[0] * d * d;
+        }
+        let mut j = t;
+        while j < per_output {
+            let s = style[(j / taps) as usize];
+            let w = weight[(base + j) as usize];
+            let u = w * s * scale;
+            let d_u = d * (grad[(base + j) as usize] - u * projection);
+            d_weight[(base + j) as usize] = d_u * s * scale;
+            terms[(base + j) as usize] = d_u * w * scale;
+            j += units;
+        }
+    }
+
+    /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one thread per input channel.
+    #[cube(launch)]
+    pub fn style_grad(
+        terms: &Tensor<f32>,
+        d_style: &mut Tensor<f32>,
+        outputs: u32,
+        per_output: u32,
+        taps: u32,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= d_style.len() {
+            terminate!();
+        }
+        let first = i as u32 * taps;
+        let mut sum = 0.0f32;
+        for o in 0..outputs {
+            for k in 0..taps {
+                sum += terms[(o * per_output + first + k) as usize];
+            }
+        }
+        d_style[i] = sum;
     }
 }
 
@@ -288,6 +527,44 @@ fn empty_like(like: &FloatTensor<CubeBackend>, dims: [usize; 4]) -> FloatTensor<
 
 fn dims(t: &FloatTensor<CubeBackend>) -> [usize; 4] {
     t.shape().dims()
+}
+
+/// Whether `t` (`[B, C, H, W]`) is stored channels-last without gaps (`[B, H, W, C]` row-major),
+/// as Burn's implicit-GEMM convolutions leave their outputs and input gradients (a permuted
+/// view of their NHWC result). The bias + leaky ReLU after a convolution keeps that layout, so
+/// that neither it nor the next convolution copies the activation to another.
+fn channels_last(t: &FloatTensor<CubeBackend>) -> bool {
+    let [_, c, h, w] = dims(t);
+    let strides = t.meta.strides();
+    strides[..] == [h * w * c, 1, w * c, c]
+}
+
+/// `t` as the kernels read it, and whether that is channels-last: a gapless channels-last
+/// tensor as it is, any other made row-major.
+fn readable(t: FloatTensor<CubeBackend>) -> (FloatTensor<CubeBackend>, bool) {
+    if channels_last(&t) {
+        (t, true)
+    } else {
+        (into_contiguous(t), false)
+    }
+}
+
+/// A gapless f32 tensor of `dims` (`[B, C, H, W]`) on `like`'s device, stored channels-last
+/// (a permuted view of a row-major `[B, H, W, C]`) or row-major.
+fn empty_in_layout(
+    like: &FloatTensor<CubeBackend>,
+    [b, c, h, w]: [usize; 4],
+    channels_last: bool,
+) -> FloatTensor<CubeBackend> {
+    if !channels_last {
+        return empty_like(like, [b, c, h, w]);
+    }
+    permute_nhwc_to_nchw(empty_device_contiguous_dtype(
+        like.client.clone(),
+        like.device.clone(),
+        Shape::new([b, h, w, c]),
+        DType::F32,
+    ))
 }
 
 /// A size as a kernel's 32-bit argument.
@@ -315,8 +592,10 @@ impl FusedBackend for CubeBackend {
     fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
         let shape = dims(&x);
         assert_eq!(bias.shape().dims::<1>(), [shape[1]], "one bias per channel");
-        let (x, bias) = (into_contiguous(x), into_contiguous(bias));
-        let out = empty_like(&x, shape);
+        let bias = into_contiguous(bias);
+        let (x, last) = readable(x);
+        let channel_stride = if last { 1 } else { shape[2] * shape[3] };
+        let out = empty_in_layout(&x, shape, last);
         one_thread_per_output(out, &x, |cubes, cube, out| {
             kernels::bias_leaky_relu::launch(
                 &x.client,
@@ -325,7 +604,7 @@ impl FusedBackend for CubeBackend {
                 x.clone().into_tensor_arg(),
                 bias.into_tensor_arg(),
                 out.into_tensor_arg(),
-                u32_of(shape[2] * shape[3]).max(1),
+                u32_of(channel_stride).max(1),
                 u32_of(shape[1]).max(1),
                 LRELU_GAIN,
                 SLOPE,
@@ -333,14 +612,20 @@ impl FusedBackend for CubeBackend {
         })
     }
 
+    /// In the gradient's layout; the output is copied to it where the two differ.
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         let shape = dims(&grad);
         assert_eq!(dims(&output), shape, "output and gradient shapes");
-        let (output, grad) = (into_contiguous(output), into_contiguous(grad));
-        let dx = empty_like(&grad, shape);
+        let (grad, last) = readable(grad);
+        let output = match (channels_last(&output), last) {
+            (true, true) => output,
+            (_, false) => into_contiguous(output),
+            (false, true) => permute_nhwc_to_nchw(into_contiguous(permute_nchw_to_nhwc(output))),
+        };
+        let dx = empty_in_layout(&grad, shape, last);
         one_thread_per_output(dx, &grad, |cubes, cube, dx| {
             kernels::bias_leaky_relu_grad::launch(
                 &grad.client,
@@ -356,9 +641,17 @@ impl FusedBackend for CubeBackend {
     }
 
     /// Burn's reductions (the patched `burn-cubecl` picks a plane per channel for the long
-    /// axis), the batch summed only where there is more than one.
+    /// axis): one over the positions of a channels-last `x`, else over each plane and then,
+    /// where there is more than one, the batch.
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels, height, width] = dims(&x);
+        if channels_last(&x) {
+            let rows = Self::float_reshape(
+                permute_nchw_to_nhwc(x),
+                Shape::new([batch * height * width, channels]),
+            );
+            return Self::float_reshape(Self::float_sum_dim(rows, 0), Shape::new([channels]));
+        }
         let planes = Self::float_reshape(x, Shape::new([batch, channels, height * width]));
         let mut sums = Self::float_sum_dim(planes, 2);
         if batch > 1 {
@@ -369,8 +662,8 @@ impl FusedBackend for CubeBackend {
 
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels, h, w] = dims(&x);
-        let x = into_contiguous(x);
-        let out = empty_like(&x, [batch, channels, 2 * h, 2 * w]);
+        let (x, last) = readable(x);
+        let out = empty_in_layout(&x, [batch, channels, 2 * h, 2 * w], last);
         one_thread_per_output(out, &x, |cubes, cube, out| {
             kernels::upsample2::launch(
                 &x.client,
@@ -378,8 +671,10 @@ impl FusedBackend for CubeBackend {
                 cube,
                 x.clone().into_tensor_arg(),
                 out.into_tensor_arg(),
+                u32_of(channels),
                 u32_of(h),
                 u32_of(w),
+                last,
             )
         })
     }
@@ -387,8 +682,8 @@ impl FusedBackend for CubeBackend {
     fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels, h2, w2] = dims(&grad);
         let (h, w) = (h2 / 2, w2 / 2);
-        let grad = into_contiguous(grad);
-        let dx = empty_like(&grad, [batch, channels, h, w]);
+        let (grad, last) = readable(grad);
+        let dx = empty_in_layout(&grad, [batch, channels, h, w], last);
         one_thread_per_output(dx, &grad, |cubes, cube, dx| {
             kernels::upsample2_grad::launch(
                 &grad.client,
@@ -396,8 +691,10 @@ impl FusedBackend for CubeBackend {
                 cube,
                 grad.clone().into_tensor_arg(),
                 dx.into_tensor_arg(),
+                u32_of(channels),
                 u32_of(h),
                 u32_of(w),
+                last,
             )
         })
     }
@@ -407,8 +704,8 @@ impl FusedBackend for CubeBackend {
         assert!(before <= 3 && after <= 3, "blur padding at most 3");
         let grown = |n: usize| (n + before + after).saturating_sub(3);
         let (out_h, out_w) = (grown(h), grown(w));
-        let x = into_contiguous(x);
-        let out = empty_like(&x, [batch, channels, out_h, out_w]);
+        let (x, last) = readable(x);
+        let out = empty_in_layout(&x, [batch, channels, out_h, out_w], last);
         one_thread_per_output(out, &x, |cubes, cube, out| {
             kernels::blur::launch(
                 &x.client,
@@ -416,11 +713,13 @@ impl FusedBackend for CubeBackend {
                 cube,
                 x.clone().into_tensor_arg(),
                 out.into_tensor_arg(),
+                u32_of(channels),
                 u32_of(h),
                 u32_of(w),
                 u32_of(out_h),
                 u32_of(out_w),
                 u32_of(before),
+                last,
             )
         })
     }
@@ -432,8 +731,8 @@ impl FusedBackend for CubeBackend {
             "Haar analysis of even sizes"
         );
         let (h, w) = (height / 2, width / 2);
-        let x = into_contiguous(x);
-        let out = empty_like(&x, [batch, 4 * channels, h, w]);
+        let (x, last) = readable(x);
+        let out = empty_in_layout(&x, [batch, 4 * channels, h, w], last);
         one_thread_per_output(out, &x, |cubes, cube, out| {
             kernels::haar::launch(
                 &x.client,
@@ -441,8 +740,10 @@ impl FusedBackend for CubeBackend {
                 cube,
                 x.clone().into_tensor_arg(),
                 out.into_tensor_arg(),
+                u32_of(channels),
                 u32_of(h),
                 u32_of(w),
+                last,
             )
         })
     }
@@ -453,8 +754,8 @@ impl FusedBackend for CubeBackend {
             channels4 % 4 == 0,
             "Haar synthesis of four sub-bands per channel"
         );
-        let x = into_contiguous(x);
-        let out = empty_like(&x, [batch, channels4 / 4, 2 * h, 2 * w]);
+        let (x, last) = readable(x);
+        let out = empty_in_layout(&x, [batch, channels4 / 4, 2 * h, 2 * w], last);
         one_thread_per_output(out, &x, |cubes, cube, out| {
             kernels::inverse_haar::launch(
                 &x.client,
@@ -462,9 +763,120 @@ impl FusedBackend for CubeBackend {
                 cube,
                 x.clone().into_tensor_arg(),
                 out.into_tensor_arg(),
+                u32_of(channels4 / 4),
                 u32_of(h),
                 u32_of(w),
+                last,
             )
         })
     }
+
+    fn modulate(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&weight);
+        assert_eq!(
+            style.shape().dims::<1>(),
+            [shape[1]],
+            "one style value per input"
+        );
+        let (weight, style) = (into_contiguous(weight), into_contiguous(style));
+        let out = empty_like(&weight, shape);
+        if let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) {
+            kernels::modulate::launch(
+                &weight.client,
+                cubes,
+                cube,
+                weight.clone().into_tensor_arg(),
+                style.into_tensor_arg(),
+                out.clone().into_tensor_arg(),
+                per_output,
+                taps,
+                scale,
+                DEMODULATION_EPSILON,
+                demodulate,
+                UNITS,
+            );
+        }
+        out
+    }
+
+    fn modulate_grad(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let shape = dims(&weight);
+        assert_eq!(dims(&grad), shape, "weight and gradient shapes");
+        let [weight, style, grad] = [weight, style, grad].map(into_contiguous);
+        let d_weight = empty_like(&weight, shape);
+        let terms = empty_like(&weight, shape);
+        let d_style = empty_device_contiguous_dtype(
+            weight.client.clone(),
+            weight.device.clone(),
+            Shape::new([shape[1]]),
+            DType::F32,
+        );
+        let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) else {
+            // A weight without values: no style value has any effect.
+            let zeros =
+                Self::float_zeros(Shape::new([shape[1]]), &weight.device, DType::F32.into());
+            return (d_weight, zeros);
+        };
+        kernels::modulate_grad::launch(
+            &weight.client,
+            cubes,
+            cube,
+            weight.clone().into_tensor_arg(),
+            style.into_tensor_arg(),
+            grad.into_tensor_arg(),
+            d_weight.clone().into_tensor_arg(),
+            terms.clone().into_tensor_arg(),
+            per_output,
+            taps,
+            scale,
+            DEMODULATION_EPSILON,
+            demodulate,
+            UNITS,
+        );
+        let (cubes, cube) = one_thread_per_value(shape[1]);
+        kernels::style_grad::launch(
+            &weight.client,
+            cubes,
+            cube,
+            terms.into_tensor_arg(),
+            d_style.clone().into_tensor_arg(),
+            u32_of(shape[0]),
+            per_output,
+            taps,
+        );
+        (d_weight, d_style)
+    }
+}
+
+/// The launch of [`kernels::modulate`] and its gradient for a weight of `shape`: one cube of
+/// [`UNITS`] per output channel, the values per output channel and the taps per input channel
+/// as kernel arguments; `None` for a weight without values.
+fn per_output_channel(shape: [usize; 4]) -> Option<(CubeCount, CubeDim, u32, u32)> {
+    let [c_out, c_in, kh, kw] = shape;
+    let per_output = c_in * kh * kw;
+    if c_out * per_output == 0 {
+        return None;
+    }
+    u32_of(c_out * per_output);
+    let cubes = u32::try_from(c_out)
+        .ok()
+        .filter(|&c| c <= 65_535)
+        .expect("at most 65 535 output channels");
+    Some((
+        CubeCount::Static(cubes, 1, 1),
+        CubeDim::new_1d(UNITS),
+        u32_of(per_output),
+        u32_of(kh * kw),
+    ))
 }

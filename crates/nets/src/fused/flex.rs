@@ -6,7 +6,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
-use super::FusedBackend;
+use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::host::{from_values, host_f32};
 use crate::layers::LRELU_GAIN;
 
@@ -188,6 +188,89 @@ impl FusedBackend for Flex {
         }
         from_values(out, vec![batch, channels4 / 4, 2 * h, 2 * w])
     }
+
+    fn modulate(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&weight);
+        let per_output = shape[1] * shape[2] * shape[3];
+        let taps = shape[2] * shape[3];
+        let style = host_f32(&style);
+        assert_eq!(style.len(), shape[1], "one style value per input channel");
+        let mut out = host_f32(&weight).into_owned();
+        out.par_chunks_mut(per_output.max(1)).for_each(|u| {
+            for (j, v) in u.iter_mut().enumerate() {
+                *v = *v * style[j / taps] * scale;
+            }
+            if demodulate {
+                let d = demodulation(u);
+                u.iter_mut().for_each(|v| *v *= d);
+            }
+        });
+        from_values(out, shape.to_vec())
+    }
+
+    fn modulate_grad(
+        weight: FloatTensor<Self>,
+        style: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scale: f32,
+        demodulate: bool,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let shape = dims(&weight);
+        let (c_in, taps) = (shape[1], shape[2] * shape[3]);
+        let per_output = (c_in * taps).max(1);
+        let (weight, style, grad) = (host_f32(&weight), host_f32(&style), host_f32(&grad));
+        assert_eq!(weight.len(), grad.len(), "weight and gradient shapes");
+        let mut d_weight = vec![0.0f32; weight.len()];
+        // Per output channel: ∂weight, and its share of ∂style.
+        let style_shares: Vec<Vec<f64>> = d_weight
+            .par_chunks_mut(per_output)
+            .zip(weight.par_chunks(per_output))
+            .zip(grad.par_chunks(per_output))
+            .map(|((d_weight, weight), grad)| {
+                let u: Vec<f32> = weight
+                    .iter()
+                    .enumerate()
+                    .map(|(j, &w)| w * style[j / taps] * scale)
+                    .collect();
+                let (d, projection) = if demodulate {
+                    let g_dot_u: f64 = grad
+                        .iter()
+                        .zip(&u)
+                        .map(|(&g, &u)| f64::from(g) * f64::from(u))
+                        .sum();
+                    let d = demodulation(&u);
+                    (d, (g_dot_u as f32) * d * d)
+                } else {
+                    (1.0, 0.0)
+                };
+                let mut share = vec![0.0f64; c_in];
+                for (j, ((dw, &g), &u)) in d_weight.iter_mut().zip(grad).zip(&u).enumerate() {
+                    let d_u = d * (g - u * projection);
+                    *dw = d_u * style[j / taps] * scale;
+                    share[j / taps] += f64::from(d_u * weight[j] * scale);
+                }
+                share
+            })
+            .collect();
+        let d_style = (0..c_in)
+            .map(|i| style_shares.iter().map(|share| share[i]).sum::<f64>() as f32)
+            .collect();
+        (
+            from_values(d_weight, shape.to_vec()),
+            from_values(d_style, vec![c_in]),
+        )
+    }
+}
+
+/// `(Σ u² + 10⁻⁸)^(−½)` over one output channel's modulated weights.
+fn demodulation(u: &[f32]) -> f32 {
+    let sum: f64 = u.iter().map(|&v| f64::from(v) * f64::from(v)).sum();
+    1.0 / (sum as f32 + DEMODULATION_EPSILON).sqrt()
 }
 
 fn dims(t: &FloatTensor<Flex>) -> [usize; 4] {
