@@ -21,6 +21,8 @@ pub mod checkpoint;
 pub mod conv;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
 mod cube_grid;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+mod cube_layout;
 pub mod discriminator;
 mod error;
 pub mod fused;

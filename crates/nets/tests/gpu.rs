@@ -236,7 +236,8 @@ fn the_convolution_and_its_gradients_match_the_cpu_for_every_stride() {
 
 /// The banded weight gradient with bands of every kind: one band per launch, several per launch
 /// with a short last launch, bands crossing batch items, a strided dilated kernel, padding —
-/// against Burn's own weight gradient on the CPU (`conv2d_weight_backward`).
+/// from row-major and channels-last inputs and gradients — against Burn's own weight gradient
+/// on the CPU (`conv2d_weight_backward`).
 #[cfg(not(feature = "fusion"))]
 #[test]
 fn the_weight_gradient_in_bands_matches_the_cpu() {
@@ -270,32 +271,50 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
         let x = ramp_values(x_shape.iter().product(), 0.1);
         let g = ramp_values(g_shape.iter().product(), 0.7);
         let w = vec![0.0f32; w_shape.iter().product()];
-        let cube = weight_grad_in_bands(
-            CubeBackend::float_from_data(TensorData::new(x.clone(), x_shape), &device),
-            CubeBackend::float_from_data(TensorData::new(g.clone(), g_shape), &device),
-            w_shape.into(),
-            &options,
-            Bands {
-                band,
-                bands_per_launch: per_launch,
-            },
-        )
-        .expect("small tensors are split");
         let flex = Default::default();
         let cpu = Flex::conv2d_weight_backward(
-            Flex::float_from_data(TensorData::new(x, x_shape), &flex),
+            Flex::float_from_data(TensorData::new(x.clone(), x_shape), &flex),
             Flex::float_from_data(TensorData::new(w, w_shape), &flex),
-            Flex::float_from_data(TensorData::new(g, g_shape), &flex),
-            options,
+            Flex::float_from_data(TensorData::new(g.clone(), g_shape), &flex),
+            options.clone(),
         );
         let read =
             |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
-        let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
         let cpu = read(burn::tensor::read_sync(Flex::float_into_data(cpu)).unwrap());
-        // The bands' GEMM runs on TF32 tensor cores on CUDA: 3.7e-3 of the scale on an H100
-        // for the second case (sums of ~160 products with cancellation); a wrong index would
-        // be off by the scale itself.
-        assert_close(&cube, &cpu, 3e-4, &format!("{case:?}"));
+        // `[B, C, H, W]` values on the device, row-major or channels-last (a permuted view of
+        // `[B, H, W, C]`, as Burn's convolutions leave their outputs and input gradients).
+        let upload = |values: &[f32], [b, c, h, w]: [usize; 4], channels_last: bool| {
+            if !channels_last {
+                let data = TensorData::new(values.to_vec(), [b, c, h, w]);
+                return CubeBackend::float_from_data(data, &device);
+            }
+            let mut nhwc = vec![0.0f32; values.len()];
+            for (i, &v) in values.iter().enumerate() {
+                let (x, y, ch, n) = (i % w, (i / w) % h, (i / (w * h)) % c, i / (w * h * c));
+                nhwc[((n * h + y) * w + x) * c + ch] = v;
+            }
+            let data = TensorData::new(nhwc, [b, h, w, c]);
+            CubeBackend::float_permute(CubeBackend::float_from_data(data, &device), &[0, 3, 1, 2])
+        };
+        for (x_last, g_last) in [(false, false), (true, true), (true, false), (false, true)] {
+            let cube = weight_grad_in_bands(
+                upload(&x, x_shape, x_last),
+                upload(&g, g_shape, g_last),
+                w_shape.into(),
+                &options,
+                Bands {
+                    band,
+                    bands_per_launch: per_launch,
+                },
+            )
+            .expect("small tensors are split");
+            let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
+            // The bands' GEMM runs on TF32 tensor cores on CUDA: 3.7e-3 of the scale on an H100
+            // for the second case (sums of ~160 products with cancellation); a wrong index would
+            // be off by the scale itself.
+            let layouts = format!("channels-last input {x_last}, gradient {g_last}");
+            assert_close(&cube, &cpu, 3e-4, &format!("{case:?}, {layouts}"));
+        }
     }
 }
 

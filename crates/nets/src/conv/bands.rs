@@ -14,9 +14,13 @@
 //! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
 //! several launches, summed).
 //!
-//! Layouts: `x` `[B, C_in, H, W]` and the output gradient `[B, C_out, H_out, W_out]` are read
-//! row-major after `into_contiguous`; what the kernels write is allocated contiguous (CUDA
-//! pitches Burn's ordinary allocations: `f3g_splat::cube`'s module doc).
+//! Layouts: `x` `[B, C_in, H, W]` and the output gradient `[B, C_out, H_out, W_out]` are read in
+//! either of `crate::cube_layout`'s layouts (anything else is made row-major first): from a
+//! channels-last source the bands are written transposed (`[bands, band, N]` with the columns
+//! ordered tap-major, `[bands, band, C_out]`), so that neighbouring threads still read
+//! neighbouring values, and the matmul reads the transposed operand as a view. What the kernels
+//! write is allocated contiguous (CUDA pitches Burn's ordinary allocations: `f3g_splat::cube`'s
+//! module doc).
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
@@ -24,10 +28,10 @@ use burn::backend::tensor::FloatTensor;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
-use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use crate::cube_grid::one_thread_per_value;
+use crate::cube_layout::readable;
 
 /// The cubes a weight gradient should occupy: about eight per multiprocessor of an H100/H200
 /// (132 and 132), so that every one has work while others wait on memory.
@@ -72,10 +76,11 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    /// `columns[band, n, k]` (`[bands, C_in·kh·kw, band_len]`, bands from `first_band`): the
-    /// input value under kernel tap `n % (kh·kw)` of channel `n / (kh·kw)` at output position
-    /// `p = (first_band + band)·band_len + k` (flattened `(b, oh, ow)`), zero in the padding and
-    /// past the last position.
+    /// The im2col of bands `first_band..`: the input value under kernel tap `t` (row `t / kw`,
+    /// column `t % kw`) of channel `ci` at output position `p = (first_band + band)·band_len + k`
+    /// (flattened `(b, oh, ow)`), zero in the padding and past the last position. Row-major `x`:
+    /// `columns[band, ci·kh·kw + t, k]`, `k` fastest; channels-last `x`: `columns[band, k, t·C_in
+    /// + ci]`, `ci` fastest — either way neighbouring threads read neighbouring values of `x`.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn band_columns(
@@ -99,6 +104,7 @@ mod kernels {
         pw: u32,
         dh: u32,
         dw: u32,
+        #[comptime] channels_last: bool,
     ) {
         let g = ABSOLUTE_POS;
         if g >= columns.len() {
@@ -106,9 +112,16 @@ mod kernels {
         }
         let g = g as u32;
         let taps = kh * kw;
-        let k = g % band_len;
-        let n = (g / band_len) % (c_in * taps);
-        let band = g / (band_len * c_in * taps);
+        let n = c_in * taps;
+        let mut k = g % band_len;
+        let mut ci = ((g / band_len) % n) / taps;
+        let mut t = ((g / band_len) % n) % taps;
+        let band = g / (band_len * n);
+        if comptime![channels_last] {
+            ci = g % c_in;
+            t = (g / c_in) % taps;
+            k = (g / n) % band_len;
+        }
         let p = (first_band + band) * band_len + k;
         let mut value = 0.0f32;
         if p < positions {
@@ -116,20 +129,24 @@ mod kernels {
             let b = p / plane;
             let oh = (p % plane) / w_out;
             let ow = p % w_out;
-            let ci = n / taps;
-            let i = (n % taps) / kw;
-            let j = n % kw;
-            let ih = (oh * sh + i * dh) as i32 - ph as i32;
-            let iw = (ow * sw + j * dw) as i32 - pw as i32;
+            let ih = (oh * sh + (t / kw) * dh) as i32 - ph as i32;
+            let iw = (ow * sw + (t % kw) * dw) as i32 - pw as i32;
             if ih >= 0 && iw >= 0 && ih < h as i32 && iw < w as i32 {
-                value = x[(((b * c_in + ci) * h + ih as u32) * w + iw as u32) as usize];
+                let (ih, iw) = (ih as u32, iw as u32);
+                let mut at = ((b * c_in + ci) * h + ih) * w + iw;
+                if comptime![channels_last] {
+                    at = ((b * h + ih) * w + iw) * c_in + ci;
+                }
+                value = x[at as usize];
             }
         }
         columns[g as usize] = value;
     }
 
-    /// `bands[band, c, k]` (`[bands, C_out, band_len]`): the output gradient of channel `c` at
-    /// position `(first_band + band)·band_len + k`, zero past the last.
+    /// The output gradient of channel `c` at position `(first_band + band)·band_len + k`, zero
+    /// past the last: `bands[band, c, k]` (`k` fastest) from a row-major `grad`,
+    /// `bands[band, k, c]` (`c` fastest) from a channels-last one.
+    #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn band_gradient(
         grad: &Tensor<f32>,
@@ -139,19 +156,28 @@ mod kernels {
         positions: u32,
         c_out: u32,
         plane: u32,
+        #[comptime] channels_last: bool,
     ) {
         let g = ABSOLUTE_POS;
         if g >= bands.len() {
             terminate!();
         }
         let g = g as u32;
-        let k = g % band_len;
-        let c = (g / band_len) % c_out;
+        let mut k = g % band_len;
+        let mut c = (g / band_len) % c_out;
+        if comptime![channels_last] {
+            c = g % c_out;
+            k = (g / c_out) % band_len;
+        }
         let band = g / (band_len * c_out);
         let p = (first_band + band) * band_len + k;
         let mut value = 0.0f32;
         if p < positions {
-            value = grad[(((p / plane) * c_out + c) * plane + p % plane) as usize];
+            let mut at = ((p / plane) * c_out + c) * plane + p % plane;
+            if comptime![channels_last] {
+                at = p * c_out + c;
+            }
+            value = grad[at as usize];
         }
         bands[g as usize] = value;
     }
@@ -174,8 +200,9 @@ pub fn weight_grad_split(
 }
 
 /// The weight gradient `[C_out, C_in, kh, kw]` of a convolution of `x` (groups 1, symmetric
-/// padding) given its output gradient `grad`, split as `bands` says. Values are indexed with
-/// 32 bits: `None` where a tensor is too large for that.
+/// padding) given its output gradient `grad`, split as `bands` says (a permuted view of a
+/// `[C_out, kh, kw, C_in]` tensor where `x` is channels-last). Values are indexed with 32 bits:
+/// `None` where a tensor is too large for that.
 pub fn weight_grad_in_bands(
     x: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
@@ -198,21 +225,22 @@ pub fn weight_grad_in_bands(
         return None;
     }
     let u = |v: usize| v as u32;
-    let (x, grad) = (into_contiguous(x), into_contiguous(grad));
+    let ((x, x_last), (grad, grad_last)) = (readable(x), readable(grad));
     let (client, device) = (x.client.clone(), x.device.clone());
     let per_launch = bands.bands_per_launch.max(1);
     // Bands `first..first + count`: `[C_out, N]`, their share of the sum.
     let partial = |first: usize| {
         let count = per_launch.min(band_count - first);
-        let empty = |rows: usize| {
-            empty_device_contiguous_dtype(
-                client.clone(),
-                device.clone(),
-                Shape::new([count, rows, bands.band]),
-                DType::F32,
-            )
+        // `[count, rows, band]`, or `[count, band, rows]` where the source is channels-last.
+        let empty = |rows: usize, transposed: bool| {
+            let shape = if transposed {
+                [count, bands.band, rows]
+            } else {
+                [count, rows, bands.band]
+            };
+            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.into(), DType::F32)
         };
-        let (cols, gradient) = (empty(columns), empty(c_out));
+        let (cols, gradient) = (empty(columns, x_last), empty(c_out, grad_last));
         let (cubes, cube) = one_thread_per_value(count * columns * bands.band);
         kernels::band_columns::launch(
             &client,
@@ -236,6 +264,7 @@ pub fn weight_grad_in_bands(
             u(options.padding[1].0),
             u(options.dilation[0]),
             u(options.dilation[1]),
+            x_last,
         );
         let (cubes, cube) = one_thread_per_value(count * c_out * bands.band);
         kernels::band_gradient::launch(
@@ -249,15 +278,31 @@ pub fn weight_grad_in_bands(
             u(positions),
             u(c_out),
             u(h_out * w_out),
+            grad_last,
         );
-        // [count, C_out, band] × [count, band, N] (the columns transposed: a column-major view
-        // the matmul reads as it is) → [count, C_out, N], summed over the bands.
-        let product = CubeBackend::float_matmul(gradient, CubeBackend::float_swap_dims(cols, 1, 2));
-        CubeBackend::float_sum_dim(product, 0)
+        // [count, C_out, band] × [count, band, N] → [count, C_out, N], summed over the bands;
+        // the operands stored the other way round are transposed views the matmul reads as
+        // they are.
+        let lhs = if grad_last {
+            CubeBackend::float_swap_dims(gradient, 1, 2)
+        } else {
+            gradient
+        };
+        let rhs = if x_last {
+            cols
+        } else {
+            CubeBackend::float_swap_dims(cols, 1, 2)
+        };
+        CubeBackend::float_sum_dim(CubeBackend::float_matmul(lhs, rhs), 0)
     };
     let mut sum = partial(0);
     for first in (per_launch..band_count).step_by(per_launch) {
         sum = CubeBackend::float_add(sum, partial(first));
+    }
+    if x_last {
+        // Columns ordered (tap, channel): `[C_out, kh, kw, C_in]`, seen as the weight's layout.
+        let sum = CubeBackend::float_reshape(sum, Shape::new([c_out, kh, kw, c_in]));
+        return Some(CubeBackend::float_permute(sum, &[0, 3, 1, 2]));
     }
     Some(CubeBackend::float_reshape(
         sum,

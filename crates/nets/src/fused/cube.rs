@@ -8,13 +8,10 @@
 //! goes now"), and its host work per launch bounds the step on an H100. Indices are 32-bit: the
 //! callers route tensors of 2³² values or more to the portable ops (`fused::runs`).
 //!
-//! Layouts: every op reads and writes gapless tensors in one of two layouts, row-major
-//! `[B, C, H, W]` or channels-last (a permuted view of a row-major `[B, H, W, C]`), and keeps
-//! its input's (`readable`, `empty_in_layout`; anything else is made row-major first). Burn's
-//! implicit-GEMM convolutions compute in channels-last and hand back such views: kept, the
-//! activation after a convolution goes through bias + leaky ReLU, blur or up-sampling into the
-//! next convolution without a copy to row-major and back. Outputs are never Burn's ordinary
-//! allocations, which CUDA pitches (`f3g_splat::cube`'s module doc). The arithmetic follows
+//! Layouts: every op reads and writes either of `crate::cube_layout`'s two and keeps its input's
+//! (anything else is made row-major first), so the activation after a convolution goes through
+//! bias + leaky ReLU, blur or up-sampling into the next convolution in the channels-last layout
+//! the convolutions compute in, without copies to row-major and back. The arithmetic follows
 //! `fused::flex` term by term.
 
 use burn::backend::TensorMetadata;
@@ -29,6 +26,7 @@ use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::cube_grid::{UNITS, one_thread_per_value};
+use crate::cube_layout::{channels_last, empty_in_layout, readable};
 use crate::layers::LRELU_GAIN;
 
 /// Leaky ReLU's slope below zero.
@@ -527,44 +525,6 @@ fn empty_like(like: &FloatTensor<CubeBackend>, dims: [usize; 4]) -> FloatTensor<
 
 fn dims(t: &FloatTensor<CubeBackend>) -> [usize; 4] {
     t.shape().dims()
-}
-
-/// Whether `t` (`[B, C, H, W]`) is stored channels-last without gaps (`[B, H, W, C]` row-major),
-/// as Burn's implicit-GEMM convolutions leave their outputs and input gradients (a permuted
-/// view of their NHWC result). The bias + leaky ReLU after a convolution keeps that layout, so
-/// that neither it nor the next convolution copies the activation to another.
-fn channels_last(t: &FloatTensor<CubeBackend>) -> bool {
-    let [_, c, h, w] = dims(t);
-    let strides = t.meta.strides();
-    strides[..] == [h * w * c, 1, w * c, c]
-}
-
-/// `t` as the kernels read it, and whether that is channels-last: a gapless channels-last
-/// tensor as it is, any other made row-major.
-fn readable(t: FloatTensor<CubeBackend>) -> (FloatTensor<CubeBackend>, bool) {
-    if channels_last(&t) {
-        (t, true)
-    } else {
-        (into_contiguous(t), false)
-    }
-}
-
-/// A gapless f32 tensor of `dims` (`[B, C, H, W]`) on `like`'s device, stored channels-last
-/// (a permuted view of a row-major `[B, H, W, C]`) or row-major.
-fn empty_in_layout(
-    like: &FloatTensor<CubeBackend>,
-    [b, c, h, w]: [usize; 4],
-    channels_last: bool,
-) -> FloatTensor<CubeBackend> {
-    if !channels_last {
-        return empty_like(like, [b, c, h, w]);
-    }
-    permute_nhwc_to_nchw(empty_device_contiguous_dtype(
-        like.client.clone(),
-        like.device.clone(),
-        Shape::new([b, h, w, c]),
-        DType::F32,
-    ))
 }
 
 /// A size as a kernel's 32-bit argument.
