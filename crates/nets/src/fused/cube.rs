@@ -513,16 +513,6 @@ mod kernels {
     }
 }
 
-/// A contiguous f32 tensor of `dims` on `like`'s device.
-fn empty_like(like: &FloatTensor<CubeBackend>, dims: [usize; 4]) -> FloatTensor<CubeBackend> {
-    empty_device_contiguous_dtype(
-        like.client.clone(),
-        like.device.clone(),
-        Shape::new(dims),
-        DType::F32,
-    )
-}
-
 fn dims(t: &FloatTensor<CubeBackend>) -> [usize; 4] {
     t.shape().dims()
 }
@@ -744,7 +734,7 @@ impl FusedBackend for CubeBackend {
             "one style value per input"
         );
         let (weight, style) = (into_contiguous(weight), into_contiguous(style));
-        let out = empty_like(&weight, shape);
+        let out = empty_in_layout(&weight, shape, false);
         if let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) {
             kernels::modulate::launch(
                 &weight.client,
@@ -774,8 +764,8 @@ impl FusedBackend for CubeBackend {
         let shape = dims(&weight);
         assert_eq!(dims(&grad), shape, "weight and gradient shapes");
         let [weight, style, grad] = [weight, style, grad].map(into_contiguous);
-        let d_weight = empty_like(&weight, shape);
-        let terms = empty_like(&weight, shape);
+        let d_weight = empty_in_layout(&weight, shape, false);
+        let terms = empty_in_layout(&weight, shape, false);
         let d_style = empty_device_contiguous_dtype(
             weight.client.clone(),
             weight.device.clone(),
