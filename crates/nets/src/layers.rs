@@ -23,6 +23,8 @@ use rand_distr_free::normal;
 use crate::conv::conv2d;
 use crate::fused;
 
+/// StyleGAN2's leaky ReLU slope below zero (f64, as Burn's `leaky_relu` takes it).
+pub const LRELU_SLOPE: f64 = 0.2;
 /// Gain that keeps the variance of leaky ReLU(0.2) activations at one.
 pub const LRELU_GAIN: f32 = std::f32::consts::SQRT_2;
 
@@ -180,13 +182,13 @@ pub mod portable {
     use burn::tensor::Tensor;
     use burn::tensor::activation::leaky_relu;
 
-    use super::LRELU_GAIN;
+    use super::{LRELU_GAIN, LRELU_SLOPE};
     use crate::fused::DEMODULATION_EPSILON;
 
     /// `leaky_relu(x + bias, 0.2) · √2`.
     pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
         let c = bias.dims()[0];
-        leaky_relu(x + bias.reshape([1, c, 1, 1]), 0.2) * LRELU_GAIN
+        leaky_relu(x + bias.reshape([1, c, 1, 1]), LRELU_SLOPE) * LRELU_GAIN
     }
 
     /// StyleGAN2's modulated weight: `weight · style[i] · scale`, then with `demodulate` each
@@ -389,7 +391,7 @@ impl EqualLinear {
         let y = x.matmul((self.weight.val() * self.scale).transpose())
             + (self.bias.val() * self.lr_mul).reshape([1, cout]);
         if self.activate {
-            leaky_relu(y, 0.2) * LRELU_GAIN
+            leaky_relu(y, LRELU_SLOPE) * LRELU_GAIN
         } else {
             y
         }

@@ -27,10 +27,10 @@ use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::cube_grid::{UNITS, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, readable};
-use crate::layers::LRELU_GAIN;
+use crate::layers::{LRELU_GAIN, LRELU_SLOPE};
 
-/// Leaky ReLU's slope below zero.
-const SLOPE: f32 = 0.2;
+/// Leaky ReLU's slope below zero, in the ops' f32.
+const SLOPE: f32 = LRELU_SLOPE as f32;
 
 mod kernels {
     use burn_cubecl::cubecl;

@@ -8,10 +8,11 @@ use rayon::prelude::*;
 
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::host::{from_values, host_f32};
-use crate::layers::LRELU_GAIN;
+use crate::layers::{LRELU_GAIN, LRELU_SLOPE};
 
-/// Leaky ReLU's slope below zero.
-const SLOPE: f32 = 0.2;
+/// Leaky ReLU's slope below zero, in the ops' f32.
+const SLOPE: f32 = LRELU_SLOPE as f32;
+
 /// The blur's taps.
 const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
 
