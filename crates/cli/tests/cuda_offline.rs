@@ -96,3 +96,38 @@ fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_th
         "warm-up {warm_ms:.0} ms with the cache, {cold_ms:.0} ms without"
     );
 }
+
+/// Issue #26's budget for a cold start: the first `paper`-preset training step (1536×2048
+/// synthetic capture, 400 k body + 94 k face Gaussians, without autotune) compiles at most 300
+/// distinct kernels — 293 when this test was written (BENCHMARKS "Fewer kernels to compile").
+/// Each new variant of a kernel (another layout, vector width, tile configuration or cube size)
+/// counts; the check is here so that such changes are seen.
+#[test]
+fn a_cold_paper_step_compiles_at_most_300_kernels() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = on_offline_driver(
+        d,
+        &d.join("kernel-cache"),
+        &[
+            "bench",
+            "train",
+            "--device",
+            "cuda",
+            "--preset",
+            "paper",
+            "--steps",
+            "1",
+            "--warmup",
+            "1",
+            "--json",
+            "paper.json",
+        ],
+    );
+    ok(&out);
+    let kernels = bench(d, "paper.json")["warmup_kernels"].as_u64().unwrap();
+    assert!(
+        kernels <= 300,
+        "a cold paper step compiles {kernels} kernels"
+    );
+}

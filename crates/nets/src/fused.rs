@@ -7,7 +7,8 @@
 //! on the small Haar tensors, ten ops' fixed costs), and 40–57 % of a StyleUNet's
 //! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). The modulated weight of
 //! every styled convolution is another ten small ops forward and twenty backward, each a kernel
-//! launch on a GPU. Here each is one backend op
+//! launch on a GPU. The 2 × 2 down-sampling of the encoder's input pyramid, as Burn's average
+//! pooling, compiles a GPU kernel for every pooling and input size. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel, and on unfused `Cube` devices (wgpu, CUDA) one kernel
 //! (`cube`). Burn's `fusion` devices keep the tensor-op formulation in
@@ -48,17 +49,28 @@ pub fn runs(x: &Tensor<4>, largest: usize) -> bool {
     false
 }
 
-/// `leaky_relu(x + bias, 0.2) · √2` (StyleGAN2's fused activation) as one op, where [`runs`].
-pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+/// `gain · leaky_relu(x + bias, slope)` with a per-channel bias as one op, where [`runs`]:
+/// StyleGAN2's fused activation (slope 0.2, gain √2), or a convolution's bias and ReLU (0, 1).
+/// `gain` must be positive and `slope` not negative (the backward reads the slope from the
+/// output's sign).
+pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::bias_leaky_relu(
         x.into_dispatch(),
         bias.into_dispatch(),
+        slope as f32,
+        gain,
     ))
 }
 
 /// Bilinear ×2 up-sampling (`align_corners = false`) as one op, where [`runs`].
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
     Tensor::from_dispatch(<Dispatch as FusedBackend>::upsample2(x.into_dispatch()))
+}
+
+/// The mean of each 2 × 2 block, `[B, C, H, W] → [B, C, ⌊H/2⌋, ⌊W/2⌋]` (area halving; for even
+/// sizes also bilinear halving with `align_corners = false`), as one op, where [`runs`].
+pub fn downsample2(x: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(<Dispatch as FusedBackend>::downsample2(x.into_dispatch()))
 }
 
 /// The separable `[1, 3, 3, 1] / 8` blur with zero padding `(before, after)` ≤ 3 on both axes as
@@ -100,14 +112,21 @@ pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: boo
     Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))
 )]
 pub trait FusedBackend: Backend {
-    /// `leaky_relu(x + bias, 0.2) · √2`.
-    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// `gain · leaky_relu(x + bias, slope)` (`gain > 0`, `slope ≥ 0`).
+    fn bias_leaky_relu(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self>;
 
     /// The gradient of `x + bias` from the op's `output` and the output gradient `grad`
-    /// (`grad · √2 · slope`, the slope read from the output's sign).
+    /// (`grad · gain`, times `slope` where the output is not positive).
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
     ) -> FloatTensor<Self>;
 
     /// `[C]`: the sum of `x` over batch and pixels per channel (the bias gradient).
@@ -118,6 +137,14 @@ pub trait FusedBackend: Backend {
 
     /// The adjoint of [`FusedBackend::upsample2`]: `[B, C, 2H, 2W] → [B, C, H, W]`.
     fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// `[B, C, H, W] → [B, C, ⌊H/2⌋, ⌊W/2⌋]`: the mean of each 2 × 2 block (an odd last row or
+    /// column is left out).
+    fn downsample2(x: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// The adjoint of [`FusedBackend::downsample2`] for an input of `height × width`: each value
+    /// a quarter of its block's gradient, zero on a left-out row or column.
+    fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self>;
 
     /// The blur: each axis grows by `before + after − 3`. Its adjoint is the blur with padding
     /// `(3 − before, 3 − after)` (the taps are symmetric).

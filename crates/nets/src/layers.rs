@@ -76,13 +76,19 @@ mod rand_distr_free {
     }
 }
 
-/// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation):
-/// one op where it runs ([`fused::bias_leaky_relu`]), [`portable::fused_lrelu`] elsewhere.
+/// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation).
 pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    bias_leaky_relu(x, bias, LRELU_SLOPE, LRELU_GAIN)
+}
+
+/// `gain · leaky_relu(x + bias, slope)` with a per-channel bias (`gain > 0`, `slope ≥ 0`; a
+/// ReLU with 0 and 1): one op where it runs ([`fused::bias_leaky_relu`]),
+/// [`portable::bias_leaky_relu`] elsewhere.
+pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> Tensor<4> {
     if fused::runs(&x, 0) {
-        fused::bias_leaky_relu(x, bias)
+        fused::bias_leaky_relu(x, bias, slope, gain)
     } else {
-        portable::fused_lrelu(x, bias)
+        portable::bias_leaky_relu(x, bias, slope, gain)
     }
 }
 
@@ -97,13 +103,18 @@ pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: boo
     }
 }
 
-/// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`]. On the CPU
-/// (Flex) other sizes use Burn's `interpolate`; on other devices [`resize_separable`], because
-/// Burn 0.22's CubeCL backends (CUDA, wgpu) have no backward for bilinear interpolation.
+/// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`] and halving
+/// even sizes through [`downsample2`] (there bilinear samples midway between two pixels: the
+/// 2 × 2 mean). On the CPU (Flex) other sizes use Burn's `interpolate`; on other devices
+/// [`resize_separable`], because Burn 0.22's CubeCL backends (CUDA, wgpu) have no backward for
+/// bilinear interpolation.
 pub fn resize(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
     let [_, _, h, w] = x.dims();
     if [height, width] == [2 * h, 2 * w] {
         return upsample2(x);
+    }
+    if h % 2 == 0 && w % 2 == 0 && [height, width] == [h / 2, w / 2] {
+        return downsample2(x);
     }
     if !fused::on_flex(&x) {
         return resize_separable(x, height, width);
@@ -162,6 +173,16 @@ pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
     }
 }
 
+/// The mean of each 2 × 2 block, `[B, C, H, W] → [B, C, ⌊H/2⌋, ⌊W/2⌋]`: one op where it runs
+/// ([`fused::downsample2`]), [`portable::downsample2`] elsewhere.
+pub fn downsample2(x: Tensor<4>) -> Tensor<4> {
+    if fused::runs(&x, 0) {
+        fused::downsample2(x)
+    } else {
+        portable::downsample2(x)
+    }
+}
+
 /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
 /// both axes (the output grows by `before + after − 3`): one op where it runs
 /// ([`fused::blur`]), [`portable::blur`] elsewhere.
@@ -180,15 +201,23 @@ pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
 /// tested against.
 pub mod portable {
     use burn::tensor::Tensor;
-    use burn::tensor::activation::leaky_relu;
+    use burn::tensor::activation::{leaky_relu, relu};
+    use burn::tensor::module::avg_pool2d;
+    use burn::tensor::ops::AvgPoolOptions;
 
-    use super::{LRELU_GAIN, LRELU_SLOPE};
     use crate::fused::DEMODULATION_EPSILON;
 
-    /// `leaky_relu(x + bias, 0.2) · √2`.
-    pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    /// `gain · leaky_relu(x + bias, slope)` with a per-channel bias; with slope 0 Burn's `relu`,
+    /// whose backward selects (a non-finite gradient where the output is zero does not pass;
+    /// `leaky_relu`'s multiplies it by the slope, and `∞ · 0` is NaN).
+    pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> Tensor<4> {
         let c = bias.dims()[0];
-        leaky_relu(x + bias.reshape([1, c, 1, 1]), LRELU_SLOPE) * LRELU_GAIN
+        let pre = x + bias.reshape([1, c, 1, 1]);
+        if slope == 0.0 {
+            relu(pre) * gain
+        } else {
+            leaky_relu(pre, slope) * gain
+        }
     }
 
     /// StyleGAN2's modulated weight: `weight · style[i] · scale`, then with `demodulate` each
@@ -252,6 +281,11 @@ pub mod portable {
         let grown = before + after;
         Tensor::zeros([b, c, h + grown, w + grown], &x.device())
             .slice_assign([0..b, 0..c, before..before + h, before..before + w], x)
+    }
+
+    /// The mean of each 2 × 2 block (Burn's average pooling).
+    pub fn downsample2(x: Tensor<4>) -> Tensor<4> {
+        avg_pool2d(x, AvgPoolOptions::new([2, 2]))
     }
 
     /// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
@@ -347,13 +381,26 @@ impl EqualConv2d {
     }
 
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let options = ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1);
         conv2d(
             x,
             self.weight.val() * self.scale,
             self.bias.as_ref().map(Param::val),
-            options,
+            self.options(),
         )
+    }
+
+    /// The convolution, then `leaky_relu(·, slope)` with the bias added in the activation's
+    /// single pass ([`bias_leaky_relu`]).
+    pub fn forward_leaky_relu(&self, x: Tensor<4>, slope: f64) -> Tensor<4> {
+        let y = conv2d(x, self.weight.val() * self.scale, None, self.options());
+        match &self.bias {
+            Some(bias) => bias_leaky_relu(y, bias.val(), slope, 1.0),
+            None => leaky_relu(y, slope),
+        }
+    }
+
+    fn options(&self) -> ConvOptions<2> {
+        ConvOptions::new([self.stride; 2], [self.padding; 2], [1, 1], 1)
     }
 }
 
@@ -690,6 +737,64 @@ mod tests {
                 {
                     assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn halving_equals_bilinear_interpolation_and_area_pooling() {
+        use burn::tensor::module::avg_pool2d;
+        use burn::tensor::ops::AvgPoolOptions;
+        let device = Device::flex().autodiff();
+        // Output and input gradient of `op` on a `[2, 3, h, w]` ramp.
+        let run = |op: &dyn Fn(Tensor<4>) -> Tensor<4>, h: usize, w: usize| {
+            let n = 2 * 3 * h * w;
+            let v: Vec<f32> = (0..n)
+                .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
+                .collect();
+            let x = Tensor::<4>::from_data(TensorData::new(v, [2, 3, h, w]), &device);
+            let x = x.require_grad();
+            let y = op(x.clone());
+            let r: Vec<f32> = (0..y.shape().num_elements())
+                .map(|i| ((i * 31) % 13) as f32 - 6.0)
+                .collect();
+            let r = Tensor::<4>::from_data(TensorData::new(r, y.dims()), &device);
+            let grads = (y.clone() * r).sum().backward();
+            [values(y), values(x.grad(&grads).unwrap())]
+        };
+        let assert_same = |ours: [Vec<f32>; 2], theirs: [Vec<f32>; 2], what: &str| {
+            for (ours, theirs) in ours.iter().zip(&theirs) {
+                assert_eq!(ours.len(), theirs.len(), "{what}");
+                for (a, b) in ours.iter().zip(theirs) {
+                    assert!((a - b).abs() < 1e-5, "{what}: {a} vs {b}");
+                }
+            }
+        };
+        // Even sizes: `resize` to half is bilinear interpolation.
+        for [h, w] in [[2, 2], [4, 6], [8, 8]] {
+            let bilinear = |x: Tensor<4>| {
+                let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
+                options.align_corners = false;
+                options.output_size = Some([h / 2, w / 2]);
+                interpolate(x, options)
+            };
+            let theirs = run(&bilinear, h, w);
+            let what = format!("{h}×{w} halved");
+            assert_same(
+                run(&|x| resize(x, h / 2, w / 2), h, w),
+                theirs.clone(),
+                &what,
+            );
+            assert_same(run(&portable::downsample2, h, w), theirs, &what);
+        }
+        // Any size: the 2 × 2 mean is average pooling, and halving twice pools 4 × 4.
+        let pool = |k: usize| move |x: Tensor<4>| avg_pool2d(x, AvgPoolOptions::new([k, k]));
+        for [h, w] in [[5, 7], [9, 13], [1, 4]] {
+            let what = format!("{h}×{w}");
+            assert_same(run(&downsample2, h, w), run(&pool(2), h, w), &what);
+            if h >= 4 && w >= 4 {
+                let twice = |x| downsample2(downsample2(x));
+                assert_same(run(&twice, h, w), run(&pool(4), h, w), &what);
             }
         }
     }

@@ -14,7 +14,6 @@
 
 use std::path::{Path, PathBuf};
 
-use burn::tensor::activation::relu;
 use burn::tensor::module::max_pool2d;
 use burn::tensor::ops::{ConvOptions, MaxPoolOptions};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -22,6 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
 use crate::conv::conv2d;
+use crate::layers::bias_leaky_relu;
 
 /// The AlexNet LPIPS weights, compiled in so the demo and the tests work offline.
 const ALEX_WEIGHTS: &[u8] = include_bytes!("../../../assets/lpips/alex.safetensors");
@@ -249,12 +249,9 @@ impl Lpips {
             if let Some((k, st)) = s.pool_before {
                 x = max_pool2d(x, MaxPoolOptions::new([k, k]).with_stride([st, st]));
             }
-            x = relu(conv2d(
-                x,
-                w.clone(),
-                Some(b.clone()),
-                ConvOptions::new([s.stride; 2], [s.padding; 2], [1, 1], 1),
-            ));
+            let options = ConvOptions::new([s.stride; 2], [s.padding; 2], [1, 1], 1);
+            // The bias and the ReLU in one pass.
+            x = bias_leaky_relu(conv2d(x, w.clone(), None, options), b.clone(), 0.0, 1.0);
             if s.tap {
                 let norm = x.clone().powf_scalar(2.0).sum_dim(1).sqrt() + 1e-10;
                 taps.push(x.clone() / norm);

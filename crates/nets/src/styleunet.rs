@@ -17,16 +17,15 @@
 //! colour networks) turns a map of `n · v` per side into features added to that side's decoder
 //! where its features reach `S/2` (AG adds them at 256² for S = 512).
 
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
 use crate::layers::{
-    ConvLayer, EqualConv2d, Init, Mapping, StyledConv, ToRgb, fused_lrelu, inverse_haar, resize,
+    ConvLayer, EqualConv2d, Init, LRELU_SLOPE, Mapping, StyledConv, ToRgb, downsample2,
+    fused_lrelu, inverse_haar, resize,
 };
-use burn::module::Param;
-use burn::tensor::activation::leaky_relu;
 
 /// Architecture of a [`DualStyleUNet`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -409,14 +408,14 @@ impl DualStyleUNet {
         let style = self.style(&device);
         let mut skips = Vec::new();
         let mut x = self.conv_in.forward(input.clone());
-        let mut r = c.input_size / 2;
+        // The input at each encoder level's size, each level the 2 × 2 mean of the one above.
+        let mut small = input.clone();
         for (rgb, block) in self.from_rgb.iter().zip(&self.encoder) {
-            let small = resize_area(input.clone(), c.input_size / r);
-            x = x + fused_lrelu(rgb.conv.forward(small), rgb.bias.val());
+            small = downsample2(small);
+            x = x + fused_lrelu(rgb.conv.forward(small.clone()), rgb.bias.val());
             skips.push(x.clone());
             x = block.conv1.forward(x);
             x = block.conv2.forward(x);
-            r /= 2;
         }
         skips.push(x);
         // The decoder level whose output is at S/2.
@@ -431,7 +430,7 @@ impl DualStyleUNet {
                             c.input_size, c.input_size
                         )));
                     }
-                    let y = leaky_relu(branch.conv1.forward(m), 0.2);
+                    let y = branch.conv1.forward_leaky_relu(m, LRELU_SLOPE);
                     let y = branch.conv2.forward(y);
                     Ok(resize(y, c.input_size / 2, c.input_size / 2))
                 };
@@ -444,12 +443,4 @@ impl DualStyleUNet {
             back: self.back.forward(&skips, style, vb, view_level),
         })
     }
-}
-
-/// Area down-sampling by an integer factor (average pooling).
-fn resize_area(x: Tensor<4>, factor: usize) -> Tensor<4> {
-    if factor == 1 {
-        return x;
-    }
-    burn::tensor::module::avg_pool2d(x, burn::tensor::ops::AvgPoolOptions::new([factor, factor]))
 }

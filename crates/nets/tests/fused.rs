@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use central_differences::values;
 use common::ramp;
 use f3g_nets::fused;
-use f3g_nets::layers::portable;
+use f3g_nets::layers::{LRELU_GAIN, LRELU_SLOPE, portable};
 
 fn assert_close(got: &[f32], expected: &[f32], what: &str) {
     assert_eq!(got.len(), expected.len(), "{what}: lengths");
@@ -45,24 +45,54 @@ fn bias(channels: usize, device: &Device) -> Tensor<1> {
 
 #[test]
 fn bias_leaky_relu_matches_the_tensor_ops() {
+    type Op = fn(Tensor<4>, Tensor<1>, f64, f32) -> Tensor<4>;
     let device = Device::flex().autodiff();
-    for shape in [[1, 3, 5, 7], [2, 4, 1, 1], [2, 32, 16, 16]] {
-        let run = |op: fn(Tensor<4>, Tensor<1>) -> Tensor<4>| {
-            let b = bias(shape[1], &device).require_grad();
-            let x = ramp(shape, &device).require_grad();
-            let y = op(x.clone(), b.clone());
-            let grads = (y.clone() * weights(shape, &device)).sum().backward();
-            [
-                values(y),
-                values(x.grad(&grads).unwrap()),
-                values(b.grad(&grads).unwrap()),
-            ]
-        };
-        let ours = run(fused::bias_leaky_relu);
-        let theirs = run(portable::fused_lrelu);
-        for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "db"]) {
-            assert_close(got, expected, &format!("{what} of {shape:?}"));
+    // StyleGAN2's activation and a convolution's bias + ReLU.
+    for (slope, gain) in [(LRELU_SLOPE, LRELU_GAIN), (0.0, 1.0)] {
+        for shape in [[1, 3, 5, 7], [2, 4, 1, 1], [2, 32, 16, 16]] {
+            let run = |op: Op| {
+                let b = bias(shape[1], &device).require_grad();
+                let x = ramp(shape, &device).require_grad();
+                let y = op(x.clone(), b.clone(), slope, gain);
+                let grads = (y.clone() * weights(shape, &device)).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(b.grad(&grads).unwrap()),
+                ]
+            };
+            let ours = run(fused::bias_leaky_relu);
+            let theirs = run(portable::bias_leaky_relu);
+            for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "db"]) {
+                let what = format!("{what} of {shape:?}, slope {slope}, gain {gain}");
+                assert_close(got, expected, &what);
+            }
         }
+    }
+}
+
+/// LPIPS normalises its ReLU features by `√(Σ_c x²)`, whose gradient is infinite where every
+/// channel is zero: ReLU's backward must stop it there (Burn's and PyTorch's select; a product
+/// with the slope 0 would give NaN and, one day, NaN weights).
+#[test]
+fn relus_backward_does_not_pass_an_infinite_gradient() {
+    let device = Device::flex().autodiff();
+    let shape = [1, 3, 4, 5];
+    let run = |op: fn(Tensor<4>, Tensor<1>, f64, f32) -> Tensor<4>| {
+        let x = ramp(shape, &device).require_grad();
+        let y = op(x.clone(), Tensor::zeros([3], &device), 0.0, 1.0);
+        let grads = y.sqrt().sum().backward();
+        values(x.grad(&grads).unwrap())
+    };
+    let (ours, theirs) = (run(fused::bias_leaky_relu), run(portable::bias_leaky_relu));
+    let x = values(ramp(shape, &device));
+    assert!(x.iter().any(|&v| v < 0.0), "the ramp has values ReLU cuts");
+    for ((&v, g), e) in x.iter().zip(&ours).zip(&theirs) {
+        assert!(
+            g.is_finite() && *g == *e,
+            "dx at {v}: {g}, the tensor ops give {e}"
+        );
+        assert_eq!(v <= 0.0, *g == 0.0, "dx at {v}: {g}");
     }
 }
 
@@ -72,6 +102,17 @@ fn upsample2_matches_the_tensor_ops() {
     for shape in [[1, 1, 1, 1], [2, 3, 1, 4], [1, 2, 5, 3], [1, 12, 16, 16]] {
         let ours = output_and_grad(&fused::upsample2, ramp(shape, &device));
         let theirs = output_and_grad(&portable::upsample2, ramp(shape, &device));
+        assert_close(&ours[0], &theirs[0], &format!("y of {shape:?}"));
+        assert_close(&ours[1], &theirs[1], &format!("dx of {shape:?}"));
+    }
+}
+
+#[test]
+fn downsample2_matches_the_tensor_ops() {
+    let device = Device::flex().autodiff();
+    for shape in [[1, 1, 2, 2], [2, 3, 5, 7], [1, 2, 3, 2], [1, 12, 16, 16]] {
+        let ours = output_and_grad(&fused::downsample2, ramp(shape, &device));
+        let theirs = output_and_grad(&portable::downsample2, ramp(shape, &device));
         assert_close(&ours[0], &theirs[0], &format!("y of {shape:?}"));
         assert_close(&ours[1], &theirs[1], &format!("dx of {shape:?}"));
     }
@@ -129,12 +170,26 @@ fn every_backward_matches_central_differences() {
         &device,
     );
     central_differences::check(
-        &|x| squared(fused::bias_leaky_relu(x, b.clone())),
+        &|x| {
+            squared(fused::bias_leaky_relu(
+                x,
+                b.clone(),
+                LRELU_SLOPE,
+                LRELU_GAIN,
+            ))
+        },
         x0.clone(),
         kink_free,
         "dx of bias_leaky_relu",
     );
-    let bias_loss = |b: Tensor<4>| squared(fused::bias_leaky_relu(x0.clone(), b.reshape([3])));
+    let bias_loss = |b: Tensor<4>| {
+        squared(fused::bias_leaky_relu(
+            x0.clone(),
+            b.reshape([3]),
+            LRELU_SLOPE,
+            LRELU_GAIN,
+        ))
+    };
     central_differences::check(
         &bias_loss,
         b.reshape([1, 3, 1, 1]),
@@ -146,6 +201,12 @@ fn every_backward_matches_central_differences() {
         x0.clone(),
         1e-2,
         "upsample2",
+    );
+    central_differences::check(
+        &|x| squared(fused::downsample2(x)),
+        x0.clone(),
+        1e-2,
+        "downsample2",
     );
     let even = ramp([2, 3, 4, 6], &device);
     central_differences::check(&|x| squared(fused::haar(x)), even, 1e-2, "haar");

@@ -452,12 +452,14 @@ fn the_fused_ops_match_the_cpu() {
             let v = (0..channels).map(|c| 0.3 - 0.17 * c as f32).collect();
             Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [channels]), device)
         };
-        // The bias's gradient too: the op's second parent.
-        for (x_last, r_last) in LAYOUTS {
+        // The bias's gradient too: the op's second parent. StyleGAN2's activation, and bias +
+        // ReLU on the second pairing.
+        for (pairing, (x_last, r_last)) in LAYOUTS.into_iter().enumerate() {
+            let (slope, gain) = if pairing == 1 { (0.0, 1.0) } else { (0.2, 1.5) };
             let run = |device: &Device| {
                 let x = laid_out(shape, device, x_last).require_grad();
                 let b = bias(device).require_grad();
-                let y = fused::bias_leaky_relu(x.clone(), b.clone());
+                let y = fused::bias_leaky_relu(x.clone(), b.clone(), slope, gain);
                 let r = (laid_out(shape, device, r_last) * 37.0).sin();
                 let grads = (y.clone() * r).sum().backward();
                 [
@@ -476,13 +478,22 @@ fn the_fused_ops_match_the_cpu() {
                     g,
                     e,
                     1e-5,
-                    &format!("bias_leaky_relu {shape:?}, {layouts}: {what}"),
+                    &format!("bias_leaky_relu {shape:?} ({slope}, {gain}), {layouts}: {what}"),
                 );
             }
         }
         compare(&fused::upsample2, shape, "upsample2");
     }
+    // ReLU's backward stops an infinite gradient where the output is zero (LPIPS's √Σx²).
+    let relu_sqrt = |x: Tensor<4>| {
+        let c = x.dims()[1];
+        fused::bias_leaky_relu(x.clone(), Tensor::zeros([c], &x.device()), 0.0, 1.0).sqrt()
+    };
+    compare(&relu_sqrt, [1, 3, 4, 5], "bias + ReLU under a square root");
     compare(&fused::upsample2, [1, 2, 1, 9], "upsample2");
+    for shape in [[2, 3, 5, 7], [1, 32, 16, 16], [1, 2, 2, 9]] {
+        compare(&fused::downsample2, shape, "downsample2");
+    }
     // 4 · 2 100² outputs: 68 907 cubes of 256, past one grid row of 65 535.
     compare(&fused::upsample2, [1, 1, 2100, 2100], "upsample2");
     for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {

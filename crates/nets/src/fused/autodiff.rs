@@ -8,7 +8,7 @@ use burn::backend::autodiff::{
     ops::{Backward, Ops, OpsKind},
 };
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{AutodiffBackend, Backend};
+use burn::backend::{AutodiffBackend, Backend, TensorMetadata};
 
 use super::FusedBackend;
 
@@ -16,8 +16,8 @@ use super::FusedBackend;
 struct BiasLeakyReluBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
-    /// The op's output: its sign gives the slope.
-    type State = FloatTensor<B>;
+    /// The op's output (its sign gives the slope), the slope and the gain.
+    type State = (FloatTensor<B>, f32, f32);
 
     fn backward(
         self,
@@ -26,7 +26,8 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let pre_activation = B::bias_leaky_relu_grad(ops.state, grad);
+        let (output, slope, gain) = ops.state;
+        let pre_activation = B::bias_leaky_relu_grad(output, grad, slope, gain);
         let [x_node, bias_node] = ops.parents;
         if let Some(node) = bias_node {
             grads.register::<B>(node.id, B::channel_sum(pre_activation.clone()));
@@ -52,6 +53,27 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for Upsample2Backward {
         let grad = grads.consume::<B>(&ops.node);
         if let [Some(node)] = ops.parents {
             grads.register::<B>(node.id, B::upsample2_grad(grad));
+        }
+    }
+}
+
+#[derive(Debug)]
+struct Downsample2Backward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for Downsample2Backward {
+    /// The input's height and width.
+    type State = (usize, usize);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (height, width) = ops.state;
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, B::downsample2_grad(grad, height, width));
         }
     }
 }
@@ -132,15 +154,20 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
 }
 
 impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff<B, C> {
-    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn bias_leaky_relu(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
         let nodes = [x.node(), bias.node()];
-        let out = B::bias_leaky_relu(x.into_primitive(), bias.into_primitive());
+        let out = B::bias_leaky_relu(x.into_primitive(), bias.into_primitive(), slope, gain);
         match BiasLeakyReluBackward
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish(out.clone(), out),
+            OpsKind::Tracked(prep) => prep.finish((out.clone(), slope, gain), out),
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
@@ -148,10 +175,14 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
     ) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::bias_leaky_relu_grad(
             output.into_primitive(),
             grad.into_primitive(),
+            slope,
+            gain,
         ))
     }
 
@@ -169,6 +200,24 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
 
     fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::upsample2_grad(grad.into_primitive()))
+    }
+
+    fn downsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        let [.., height, width] = x.shape().dims::<4>();
+        let out = B::downsample2(x.into_primitive());
+        match Downsample2Backward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((height, width), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::downsample2_grad(grad.into_primitive(), height, width))
     }
 
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {

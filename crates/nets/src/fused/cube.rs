@@ -27,10 +27,6 @@ use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::cube_grid::{UNITS, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, readable};
-use crate::layers::{LRELU_GAIN, LRELU_SLOPE};
-
-/// Leaky ReLU's slope below zero, in the ops' f32.
-const SLOPE: f32 = LRELU_SLOPE as f32;
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -63,7 +59,8 @@ mod kernels {
     }
 
     /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
-    /// offset (the three share one gapless layout).
+    /// offset (the three share one gapless layout); with slope 0 a selection, as `fused::flex`'s
+    /// `leaky_relu_grad`, so that a non-finite gradient where the output is zero does not pass.
     #[cube(launch)]
     pub fn bias_leaky_relu_grad(
         output: &Tensor<f32>,
@@ -76,11 +73,13 @@ mod kernels {
         if i >= dx.len() {
             terminate!();
         }
-        let mut factor = gain;
-        if output[i] <= 0.0 {
-            factor = gain * slope;
+        let mut value = 0.0f32;
+        if output[i] > 0.0 {
+            value = gain * grad[i];
+        } else if slope != 0.0 {
+            value = gain * slope * grad[i];
         }
-        dx[i] = grad[i] * factor;
+        dx[i] = value;
     }
 
     /// The sample `2i ∓ 1`'s neighbour along an axis of `n` samples: output `o` of the ×2
@@ -250,6 +249,61 @@ mod kernels {
             }
         }
         dx[i] = sum;
+    }
+
+    /// `out` (`[B, C, h, w]`) from `x` (`[B, C, height, width]`, the same layout, `h = ⌊height / 2⌋`,
+    /// `w = ⌊width / 2⌋`): the mean of each 2 × 2 block.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn downsample2(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        height: u32,
+        width: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= out.len() {
+            terminate!();
+        }
+        let at = position(i as u32, channels, h, w, channels_last);
+        let (b, c, y, x0) = (at.batch, at.channel, 2 * at.y, 2 * at.x);
+        let p = x[offset(b, c, y, x0, channels, height, width, channels_last)];
+        let q = x[offset(b, c, y, x0 + 1, channels, height, width, channels_last)];
+        let r = x[offset(b, c, y + 1, x0, channels, height, width, channels_last)];
+        let s = x[offset(b, c, y + 1, x0 + 1, channels, height, width, channels_last)];
+        out[i] = 0.25 * (p + q + r + s);
+    }
+
+    /// `dx` (`[B, C, height, width]`), the adjoint of [`downsample2`]: a quarter of the gradient
+    /// (`[B, C, h, w]`, the same layout) of the block a value falls in, zero outside the blocks.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn downsample2_grad(
+        grad: &Tensor<f32>,
+        dx: &mut Tensor<f32>,
+        channels: u32,
+        height: u32,
+        width: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= dx.len() {
+            terminate!();
+        }
+        let at = position(i as u32, channels, height, width, channels_last);
+        let (y, x) = (at.y / 2, at.x / 2);
+        let mut value = 0.0f32;
+        if y < h && x < w {
+            let o = offset(at.batch, at.channel, y, x, channels, h, w, channels_last);
+            value = 0.25 * grad[o];
+        }
+        dx[i] = value;
     }
 
     /// Tap `k` of the `[1, 3, 3, 1] / 8` filter.
@@ -539,7 +593,12 @@ fn one_thread_per_output(
 }
 
 impl FusedBackend for CubeBackend {
-    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn bias_leaky_relu(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
         let shape = dims(&x);
         assert_eq!(bias.shape().dims::<1>(), [shape[1]], "one bias per channel");
         let bias = into_contiguous(bias);
@@ -556,8 +615,8 @@ impl FusedBackend for CubeBackend {
                 out.into_tensor_arg(),
                 u32_of(channel_stride).max(1),
                 u32_of(shape[1]).max(1),
-                LRELU_GAIN,
-                SLOPE,
+                gain,
+                slope,
             )
         })
     }
@@ -566,6 +625,8 @@ impl FusedBackend for CubeBackend {
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
     ) -> FloatTensor<Self> {
         let shape = dims(&grad);
         assert_eq!(dims(&output), shape, "output and gradient shapes");
@@ -584,8 +645,8 @@ impl FusedBackend for CubeBackend {
                 output.into_tensor_arg(),
                 grad.clone().into_tensor_arg(),
                 dx.into_tensor_arg(),
-                LRELU_GAIN,
-                SLOPE,
+                gain,
+                slope,
             )
         })
     }
@@ -642,6 +703,54 @@ impl FusedBackend for CubeBackend {
                 grad.clone().into_tensor_arg(),
                 dx.into_tensor_arg(),
                 u32_of(channels),
+                u32_of(h),
+                u32_of(w),
+                last,
+            )
+        })
+    }
+
+    fn downsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        let (h, w) = (height / 2, width / 2);
+        let (x, last) = readable(x);
+        let out = empty_in_layout(&x, [batch, channels, h, w], last);
+        one_thread_per_output(out, &x, |cubes, cube, out| {
+            kernels::downsample2::launch(
+                &x.client,
+                cubes,
+                cube,
+                x.clone().into_tensor_arg(),
+                out.into_tensor_arg(),
+                u32_of(channels),
+                u32_of(height),
+                u32_of(width),
+                u32_of(h),
+                u32_of(w),
+                last,
+            )
+        })
+    }
+
+    fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        let [batch, channels, h, w] = dims(&grad);
+        assert_eq!(
+            [h, w],
+            [height / 2, width / 2],
+            "the gradient of a 2 × 2 mean"
+        );
+        let (grad, last) = readable(grad);
+        let dx = empty_in_layout(&grad, [batch, channels, height, width], last);
+        one_thread_per_output(dx, &grad, |cubes, cube, dx| {
+            kernels::downsample2_grad::launch(
+                &grad.client,
+                cubes,
+                cube,
+                grad.clone().into_tensor_arg(),
+                dx.into_tensor_arg(),
+                u32_of(channels),
+                u32_of(height),
+                u32_of(width),
                 u32_of(h),
                 u32_of(w),
                 last,

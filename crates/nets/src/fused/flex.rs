@@ -8,16 +8,16 @@ use rayon::prelude::*;
 
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::host::{from_values, host_f32};
-use crate::layers::{LRELU_GAIN, LRELU_SLOPE};
-
-/// Leaky ReLU's slope below zero, in the ops' f32.
-const SLOPE: f32 = LRELU_SLOPE as f32;
-
 /// The blur's taps.
 const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
 
 impl FusedBackend for Flex {
-    fn bias_leaky_relu(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn bias_leaky_relu(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
         let shape = dims(&x);
         let plane = shape[2] * shape[3];
         let (bias, channels) = (host_f32(&bias), shape[1]);
@@ -29,7 +29,7 @@ impl FusedBackend for Flex {
                 let b = bias[index % channels];
                 for v in values {
                     let pre = *v + b;
-                    *v = LRELU_GAIN * if pre > 0.0 { pre } else { SLOPE * pre };
+                    *v = gain * if pre > 0.0 { pre } else { slope * pre };
                 }
             });
         from_values(out, shape.to_vec())
@@ -38,6 +38,8 @@ impl FusedBackend for Flex {
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
     ) -> FloatTensor<Self> {
         let shape = dims(&grad);
         let output = host_f32(&output);
@@ -47,7 +49,7 @@ impl FusedBackend for Flex {
             .zip(output.par_chunks(1 << 14))
             .for_each(|(dx, y)| {
                 for (d, &y) in dx.iter_mut().zip(y) {
-                    *d *= LRELU_GAIN * if y > 0.0 { 1.0 } else { SLOPE };
+                    *d = leaky_relu_grad(*d, y, slope, gain);
                 }
             });
         from_values(dx, shape.to_vec())
@@ -99,6 +101,52 @@ impl FusedBackend for Flex {
                     let mut rows = vec![0.0f32; 2 * dx.len()];
                     upsample_axis_adjoint(plane, 1, height, 2 * width, &mut rows);
                     upsample_axis_adjoint(&rows, height, width, 1, dx);
+                });
+        }
+        from_values(dx, vec![batch, channels, height, width])
+    }
+
+    fn downsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let [batch, channels, height, width] = dims(&x);
+        let (h, w) = (height / 2, width / 2);
+        let x = host_f32(&x);
+        let mut out = vec![0.0f32; batch * channels * h * w];
+        if h * w > 0 {
+            out.par_chunks_mut(h * w)
+                .zip(x.par_chunks(height * width))
+                .for_each(|(out, plane)| {
+                    for (i, row) in out.chunks_mut(w).enumerate() {
+                        let (top, bottom) =
+                            (&plane[2 * i * width..], &plane[(2 * i + 1) * width..]);
+                        for (j, o) in row.iter_mut().enumerate() {
+                            let (p, q) = (top[2 * j], top[2 * j + 1]);
+                            let (r, s) = (bottom[2 * j], bottom[2 * j + 1]);
+                            *o = 0.25 * (p + q + r + s);
+                        }
+                    }
+                });
+        }
+        from_values(out, vec![batch, channels, h, w])
+    }
+
+    fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        let [batch, channels, h, w] = dims(&grad);
+        assert_eq!(
+            [h, w],
+            [height / 2, width / 2],
+            "the gradient of a 2 × 2 mean"
+        );
+        let grad = host_f32(&grad);
+        let mut dx = vec![0.0f32; batch * channels * height * width];
+        if h * w > 0 {
+            dx.par_chunks_mut(height * width)
+                .zip(grad.par_chunks(h * w))
+                .for_each(|(dx, plane)| {
+                    for (y, row) in dx.chunks_mut(width).take(2 * h).enumerate() {
+                        for (x, d) in row[..2 * w].iter_mut().enumerate() {
+                            *d = 0.25 * plane[(y / 2) * w + x / 2];
+                        }
+                    }
                 });
         }
         from_values(dx, vec![batch, channels, height, width])
@@ -272,6 +320,19 @@ impl FusedBackend for Flex {
 fn demodulation(u: &[f32]) -> f32 {
     let sum: f64 = u.iter().map(|&v| f64::from(v) * f64::from(v)).sum();
     1.0 / (sum as f32 + DEMODULATION_EPSILON).sqrt()
+}
+
+/// One value of [`FusedBackend::bias_leaky_relu_grad`]: with slope 0 (a ReLU) a selection, not a
+/// product, so that a gradient that is infinite or NaN where the output is zero does not pass
+/// (`∞ · 0` is NaN), as in Burn's and PyTorch's ReLU.
+fn leaky_relu_grad(grad: f32, output: f32, slope: f32, gain: f32) -> f32 {
+    if output > 0.0 {
+        gain * grad
+    } else if slope == 0.0 {
+        0.0
+    } else {
+        gain * slope * grad
+    }
 }
 
 fn dims(t: &FloatTensor<Flex>) -> [usize; 4] {

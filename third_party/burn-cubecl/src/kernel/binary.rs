@@ -242,7 +242,7 @@ pub(crate) fn launch_binop<O: BinaryOpFamily>(lhs: CubeTensor, rhs: CubeTensor) 
         let num_elems = shape_out.num_elements();
         let working_units = num_elems / vector_size as usize;
 
-        let cube_dim = CubeDim::new(&lhs.client, working_units);
+        let cube_dim = crate::kernel::utils::elementwise_cube_dim(&lhs.client);
         let cube_count = calculate_cube_count_elemwise(&lhs.client, working_units, cube_dim);
 
         unsafe {
@@ -309,7 +309,7 @@ pub(crate) fn launch_scalar_binop<O: BinaryOpFamily>(
         let dtype = tensor.dtype;
 
         let working_units = num_elems / vector_size as usize;
-        let cube_dim = CubeDim::new(&tensor.client, working_units);
+        let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
         let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
         unsafe {

@@ -72,7 +72,7 @@ pub(crate) fn launch_binop_float<O: BinaryOpFloatFamily>(
         let num_elems = shape_out.num_elements();
         let working_units = num_elems / vector_size as usize;
 
-        let cube_dim = CubeDim::new(&lhs.client, working_units);
+        let cube_dim = crate::kernel::utils::elementwise_cube_dim(&lhs.client);
         let cube_count = calculate_cube_count_elemwise(&lhs.client, working_units, cube_dim);
 
         unsafe {

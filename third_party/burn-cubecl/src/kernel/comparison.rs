@@ -162,7 +162,7 @@ pub(crate) fn launch_cmp<O: ComparisonOpFamily>(
     let num_elems = shape_out.num_elements();
 
     let working_units = num_elems / vector_size as usize;
-    let cube_dim = CubeDim::new(&lhs.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&lhs.client);
     let cube_count = calculate_cube_count_elemwise(&lhs.client, working_units, cube_dim);
 
     let dtypes = [
@@ -250,7 +250,7 @@ pub(crate) fn launch_scalar_cmp<O: ComparisonOpFamily>(
     let num_elems = tensor.meta.num_elements();
 
     let working_units = num_elems / vector_size as usize;
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     let dtypes = [
@@ -421,7 +421,7 @@ pub(crate) fn launch_predicate<O: PredicateOpFamily>(
         dtype_to_storage_type(dtype_bool),
     ];
     let working_units = num_elems / vector_size as usize;
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     let output = empty_device_dtype(

@@ -92,7 +92,7 @@ pub(crate) fn cross(lhs: CubeTensor, rhs: CubeTensor, dim: usize) -> CubeTensor 
     // Number of vectors to process
     let num_vectors = output_shape.num_elements() / 3;
 
-    let cube_dim = CubeDim::new(&lhs.client, num_vectors);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&lhs.client);
     let cube_count = calculate_cube_count_elemwise(&lhs.client, num_vectors, cube_dim);
     let dtype = lhs.dtype;
 

@@ -78,7 +78,7 @@ pub(crate) fn fill_device_dtype(tensor: CubeTensor, value: InputScalar) -> CubeT
     let vector_size = max_vector_size(&tensor);
 
     let working_units = num_elems / vector_size as usize;
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     unsafe {
@@ -483,7 +483,7 @@ fn cumulative_op<O: CumulativeOpFamily>(input: CubeTensor, dim: usize) -> CubeTe
 
     let num_elems = output.meta.num_elements();
     let working_units = num_elems;
-    let cube_dim = CubeDim::new(&client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&client);
     let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
     let shape = shape_divmod(&input);
 

@@ -525,25 +525,21 @@ impl FloatTensorOps<Self> for CubeBackend {
         .unwrap()
     }
 
+    // f3g patch (F3G-PATCH.md): a mean is the sum's reduction and one division, so that means
+    // and sums share their compiled reduction kernels.
     fn float_mean_dim(tensor: FloatTensor<Self>, dim: usize) -> FloatTensor<Self> {
-        reduce::reduce_dim(
-            tensor,
-            None,
-            dim,
-            Default::default(),
-            ReduceOperationConfig::Mean,
-        )
-        .unwrap()
+        let length = tensor.meta.shape()[dim];
+        let sum = Self::float_sum_dim(tensor, dim);
+        let dtype = sum.dtype;
+        numeric::div_scalar(sum, InputScalar::new(length, dtype_to_storage_type(dtype)))
     }
 
     fn float_mean(tensor: FloatTensor<Self>) -> FloatTensor<Self> {
-        reduce::reduce(
-            tensor,
-            None,
-            Default::default(),
-            ReduceOperationConfig::Mean,
-        )
-        .unwrap()
+        let count = tensor.meta.num_elements();
+        let sum = reduce::reduce(tensor, None, Default::default(), ReduceOperationConfig::Sum)
+            .unwrap();
+        let dtype = sum.dtype;
+        numeric::div_scalar(sum, InputScalar::new(count, dtype_to_storage_type(dtype)))
     }
 
     fn float_cumsum(tensor: FloatTensor<Self>, dim: usize) -> FloatTensor<Self> {

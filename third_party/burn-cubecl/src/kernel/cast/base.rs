@@ -47,7 +47,7 @@ pub fn cast(input: CubeTensor, dtype: DType) -> CubeTensor {
         let num_elems: usize = input.meta.num_elements();
 
         let working_units = num_elems / vector_size as usize;
-        let cube_dim = CubeDim::new(&client, working_units);
+        let cube_dim = crate::kernel::utils::elementwise_cube_dim(&client);
         let cube_count = calculate_cube_count_elemwise(&client, working_units, cube_dim);
 
         let output = empty_device_dtype(

@@ -46,7 +46,7 @@ pub fn bool_cast(tensor: CubeTensor, out_dtype: DType) -> CubeTensor {
     let vector_size = max_vector_size(&tensor);
     let num_elems = tensor.meta.num_elements();
     let working_units = num_elems / vector_size as usize;
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     let dtype = tensor.dtype;

@@ -73,7 +73,7 @@ pub(crate) fn flip_on_output(
     }
 
     let num_elements = output.meta.num_elements();
-    let cube_dim = CubeDim::new(&tensor.client, num_elements);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, num_elements, cube_dim);
 
     let shape = shape_divmod(&tensor);

@@ -49,7 +49,7 @@ pub(crate) fn gather(dim: usize, tensor: CubeTensor, indices: CubeTensor) -> Cub
         tensor.dtype,
     );
 
-    let cube_dim = CubeDim::new(&tensor.client, total_elem);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, total_elem, cube_dim);
     let mut in_strides = broadcast_strides(&output, &tensor);
     in_strides.values[dim] = 0; // Zero `dim` to exclude it from the indexing

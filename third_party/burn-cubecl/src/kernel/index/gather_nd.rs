@@ -86,7 +86,7 @@ pub(crate) fn gather_nd(tensor: CubeTensor, indices: CubeTensor) -> CubeTensor {
         tensor.dtype,
     );
 
-    let cube_dim = CubeDim::new(&tensor.client, total_elem);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, total_elem, cube_dim);
 
     let (dtype, indices_dtype) = (tensor.dtype, indices.dtype);

@@ -63,7 +63,7 @@ pub(crate) fn repeat_dim(input: CubeTensor, dim: usize, times: usize) -> CubeTen
     );
 
     let working_units = output.meta.num_elements();
-    let cube_dim = CubeDim::new(&input.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&input.client);
     let cube_count = calculate_cube_count_elemwise(&input.client, working_units, cube_dim);
 
     let shape_arg = input.meta.shape()[dim];

@@ -132,7 +132,7 @@ fn scatter_add_atomic(
     };
 
     let working_units = value.meta.num_elements();
-    let cube_dim = CubeDim::new(&indices.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&indices.client);
     let cube_count = calculate_cube_count_elemwise(&indices.client, working_units, cube_dim);
     let (tensor_dtype, indices_dtype) = (tensor.dtype, indices.dtype);
     let value_shape = shape_divmod(&value);
@@ -182,7 +182,7 @@ fn scatter_op<Op: BinaryOpFamily>(
     let num_elems = tensor.meta.num_elements() / tensor.meta.shape()[dim];
 
     let working_units = num_elems;
-    let cube_dim = CubeDim::new(&indices.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&indices.client);
     let cube_count = calculate_cube_count_elemwise(&indices.client, working_units, cube_dim);
 
     let (tensor_dtype, indices_dtype) = (tensor.dtype, indices.dtype);

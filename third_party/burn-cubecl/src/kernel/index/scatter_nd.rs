@@ -108,7 +108,7 @@ pub(crate) fn scatter_nd(
     let slice_size: usize = data_shape.as_slice()[k..].iter().product();
     let working_units = num_updates * slice_size;
 
-    let cube_dim = CubeDim::new(&indices.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&indices.client);
     let cube_count = calculate_cube_count_elemwise(&indices.client, working_units, cube_dim);
 
     let (tensor_dtype, indices_dtype) = (tensor.dtype, indices.dtype);

@@ -55,7 +55,7 @@ pub(crate) fn select(tensor: CubeTensor, dim: usize, indices: CubeTensor) -> Cub
     );
 
     let working_units = total_elem;
-    let cube_dim = CubeDim::new(&indices.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&indices.client);
     let cube_count = calculate_cube_count_elemwise(&indices.client, working_units, cube_dim);
 
     let (tensor_dtype, indices_dtype) = (tensor.dtype, indices.dtype);

@@ -71,7 +71,7 @@ fn select_assign_op<Op: BinaryOpFamily>(
     };
 
     let working_units = tensor.meta.num_elements() / tensor.meta.shape()[dim];
-    let cube_dim = CubeDim::new(&indices.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&indices.client);
     let cube_count = calculate_cube_count_elemwise(&indices.client, working_units, cube_dim);
 
     let (tensor_dtype, indices_dtype) = (tensor.dtype, indices.dtype);

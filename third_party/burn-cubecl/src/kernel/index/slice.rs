@@ -103,7 +103,7 @@ pub(crate) fn slice_on_output(
     }
 
     let working_units = output.meta.num_elements();
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
     let dtype = tensor.dtype;
 
@@ -218,7 +218,7 @@ pub fn slice_with_steps(tensor: CubeTensor, slices: &[Slice]) -> CubeTensor {
 
     // Launch kernel
     let working_units = shape_output.num_elements();
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
     let dtype = tensor.dtype;
 

@@ -160,7 +160,7 @@ pub(crate) fn slice_assign(
     }
 
     let working_units = value.meta.num_elements() / vector_size;
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     unsafe {
@@ -221,7 +221,7 @@ pub(crate) fn slice_assign_with_steps(
 
     // Launch kernel
     let working_units = value.meta.num_elements();
-    let cube_dim = CubeDim::new(&tensor.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&tensor.client);
     let cube_count = calculate_cube_count_elemwise(&tensor.client, working_units, cube_dim);
 
     let shape = shape_divmod(&value);

@@ -73,7 +73,7 @@ pub fn mask_where(
 
     let vector_size = max_vector_size_many(&[&input, &mask, &value], input.meta.num_dims() - 1);
     let working_units = out_shape.num_elements() / vector_size as usize;
-    let cube_dim = CubeDim::new(&input.client, working_units);
+    let cube_dim = crate::kernel::utils::elementwise_cube_dim(&input.client);
     let cube_count = calculate_cube_count_elemwise(&input.client, working_units, cube_dim);
 
     let output = match strategy {
