@@ -121,7 +121,8 @@ pub trait FusedBackend: Backend {
     ) -> FloatTensor<Self>;
 
     /// The gradient of `x + bias` from the op's `output` and the output gradient `grad`
-    /// (`grad · gain`, times `slope` where the output is not positive).
+    /// (`grad · gain`, times `slope` where the output is not positive; with slope 0 there zero,
+    /// whatever `grad` holds, as ReLU's backward selects: `∞ · 0` would be NaN).
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,

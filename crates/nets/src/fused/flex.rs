@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::{DEMODULATION_EPSILON, FusedBackend};
 use crate::host::{from_values, host_f32};
+
 /// The blur's taps.
 const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
 
