@@ -10,7 +10,7 @@
 #                                         # the kernel cache (crates/cli/tests/cuda_offline.rs)
 #   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
 #                                         # the offline driver, e.g. `bench train --device cuda`
-#   tools/cuda-offline.sh features        # the cargo features `test` builds with
+#   tools/cuda-offline.sh features        # every GPU feature of the crates with GPU tests
 #
 # The wheels (about 130 MB, pinned): nvidia-cuda-nvrtc (libnvrtc.so.13 and its builtins),
 # nvidia-cuda-runtime and nvidia-cuda-crt (CUDA's headers, which NVRTC includes: the tensor-core
@@ -25,8 +25,8 @@ cd "$(dirname "$0")/.."
 
 mode=${1:-}
 dir=${2:-target/cuda-offline}
-# Every GPU feature of the crates with GPU tests (`features` prints it: .ci/run builds its
-# lavapipe tests with the same).
+# Every GPU feature of the crates with GPU tests (`features` prints it): tools/gpu-check.sh
+# builds the GPU machine's f3g and parity tests with it, one build for CUDA and wgpu.
 GPU_TEST_FEATURES=f3g-cli/gpu,f3g-cli/cuda,f3g-nets/gpu,f3g-nets/cuda,f3g-splat/gpu,f3g-splat/cuda
 
 setup() {
@@ -71,13 +71,14 @@ test)
     export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
     export F3G_OFFLINE_CUDA_DRIVER=$driver
     # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
-    # it all of Burn) when CUDA_PATH changes. The feature set of CI's GPU tests (GPU_TEST_FEATURES
-    # below, also `wgpu`), so one build of Burn and CubeCL serves the lavapipe tests that follow
-    # in CI: a GPU build recompiles nearly every dependency (about 30 min on two cores), and two
-    # feature sets cost two of them. Then the test binaries run with it.
-    tests=$(env -u CUDA_PATH cargo test --release --locked -p f3g-nets -p f3g-splat -p f3g-cli \
-        --features "$GPU_TEST_FEATURES" --test cuda_kernels --test cuda_offline --no-run \
-        --message-format=json-render-diagnostics | python3 -c '
+    # it all of Burn) when CUDA_PATH changes. The f3g binary exactly as the README's CUDA build
+    # line builds it (`-p f3g-cli --features cuda`), so what users build is what is checked;
+    # the splat kernels' test adds only f3g-splat's test-only `cuda-source` (Burn's features
+    # are the same, so Burn is not rebuilt for it).
+    tests=$( (env -u CUDA_PATH cargo test --release --locked -p f3g-cli --features cuda \
+        --test cuda_offline --no-run --message-format=json-render-diagnostics &&
+        env -u CUDA_PATH cargo test --release --locked -p f3g-splat --features cuda-source \
+            --test cuda_kernels --no-run --message-format=json-render-diagnostics) | python3 -c '
 import json, sys
 for line in sys.stdin:
     m = json.loads(line)

@@ -372,7 +372,7 @@ fn adam_in_one_pass_matches_the_cpu() {
 /// Reductions with few outputs over long axes — a bias gradient (autodiff sums `[B, C, H, W]`
 /// over `B·H·W` in one folded axis), a loss's mean, a sum along rows — against the CPU: on
 /// GPUs they run the cube and plane routines of the patched `burn-cubecl`
-/// (`third_party/burn-cubecl/F3G-PATCH.md`) instead of one thread per output.
+/// (`third_party/burn-cubecl.md`) instead of one thread per output.
 #[test]
 fn long_reductions_with_few_outputs_match_the_cpu() {
     let run = |device: &Device| {

@@ -7,20 +7,20 @@
 //!
 //! ```text
 //! tools/cuda-offline.sh test     # or, by hand:
-//! CUDA_PATH=… LD_LIBRARY_PATH=…/lib cargo test --release -p f3g-splat --features cuda \
+//! CUDA_PATH=… LD_LIBRARY_PATH=…/lib cargo test --release -p f3g-splat --features cuda-source \
 //!     --test cuda_kernels -- --nocapture
 //! ```
 //!
 //! With `--nocapture` it prints a table of every kernel: NVRTC time, registers, spills, shared
 //! memory (BENCHMARKS.md "CUDA kernels, compiled offline").
-#![cfg(feature = "cuda")]
 
 use std::ffi::{CStr, CString};
 use std::path::PathBuf;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use f3g_splat::cube::cuda_source::{CudaTarget, KernelSource, kernel_sources};
+use f3g_splat::cube::cuda_source::{CudaTarget, KernelSource};
+use f3g_splat::cube::kernel_sources;
 
 /// Where NVRTC's headers and ptxas are, from `CUDA_PATH` as cubecl-cuda reads it.
 struct Toolkit {

@@ -14,7 +14,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 
 use super::bin::{TileBins, bin_tiles, depth_order, read_count};
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::{Projection, project};
 use super::project_backward::project_backward;
@@ -50,7 +50,7 @@ mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check.
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     let (settings, properties, target_properties) = target.settings(CubeDim::new_1d(UNITS as u32));
     Ok(vec![target.source(

@@ -23,7 +23,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::Projection;
 use super::scan::{MAX_ROW, exclusive_scan, grid};
@@ -123,7 +123,7 @@ mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check.
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     use kernels::{depth_keys, gather, intersect, tile_offsets};
     let (s, p, t) = target.settings(CubeDim::new_1d(UNITS as u32));

@@ -1,5 +1,6 @@
-//! The CUDA C of every splat kernel, as cubecl-cuda would hand it to NVRTC on a Hopper GPU,
-//! made without a device: a CPU machine can then compile each one with NVRTC and read its
+//! The CUDA C of a splat kernel, as cubecl-cuda would hand it to NVRTC on a Hopper GPU,
+//! made without a device (each kernel file expands its own kernels with it; the parent's
+//! `kernel_sources` gathers them): a CPU machine can then compile each one with NVRTC and read its
 //! registers, spills and shared memory with `ptxas -v` (`tests/cuda_kernels.rs`, run in CI),
 //! so a kernel that does not compile for `sm_90` is found before a GPU is at hand.
 //!
@@ -169,20 +170,4 @@ pub(crate) fn tensor() -> TensorCompilationArg {
         meta: TensorMetaCompilationArg { len: (), rank: () },
         buffer: BufferCompilationArg { inplace: None },
     }
-}
-
-/// The CUDA C of every kernel the splat op launches on `target`, in every variant it launches.
-///
-/// # Errors
-/// The first kernel whose expansion or code generation failed, named.
-pub fn kernel_sources(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
-    let mut sources = Vec::new();
-    sources.extend(super::backend::cuda_kernels(target)?);
-    sources.extend(super::project::cuda_kernels(target)?);
-    sources.extend(super::bin::cuda_kernels(target)?);
-    sources.extend(super::sort::cuda_kernels(target)?);
-    sources.extend(super::scan::cuda_kernels(target)?);
-    sources.extend(super::raster::cuda_kernels(target)?);
-    sources.extend(super::project_backward::cuda_kernels(target)?);
-    Ok(sources)
 }

@@ -19,7 +19,7 @@
 
 mod backend;
 pub mod bin;
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub mod cuda_source;
 pub mod project;
 pub mod project_backward;
@@ -33,3 +33,23 @@ pub use project_backward::project_backward;
 pub use raster::{Accumulation, Raster, rasterize, rasterize_backward};
 pub use scan::{exclusive_scan, exclusive_scan_in_rows};
 pub use sort::{sort_pairs, sort_pairs_in_rows};
+
+/// The CUDA C of every kernel the splat op launches on `target`, in every variant it launches
+/// (tests only: feature `cuda-source`).
+///
+/// # Errors
+/// The first kernel whose expansion or code generation failed, named.
+#[cfg(feature = "cuda-source")]
+pub fn kernel_sources(
+    target: &cuda_source::CudaTarget,
+) -> Result<Vec<cuda_source::KernelSource>, String> {
+    let mut sources = Vec::new();
+    sources.extend(backend::cuda_kernels(target)?);
+    sources.extend(project::cuda_kernels(target)?);
+    sources.extend(bin::cuda_kernels(target)?);
+    sources.extend(sort::cuda_kernels(target)?);
+    sources.extend(scan::cuda_kernels(target)?);
+    sources.extend(raster::cuda_kernels(target)?);
+    sources.extend(project_backward::cuda_kernels(target)?);
+    Ok(sources)
+}

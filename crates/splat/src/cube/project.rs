@@ -18,7 +18,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::scan::{MAX_ROW, grid};
 use crate::Camera;
@@ -231,7 +231,7 @@ pub(super) mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check: one per SH degree (0 to 3).
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     (0..=3)
         .map(|degree| {

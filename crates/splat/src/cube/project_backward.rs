@@ -14,7 +14,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::project::camera_constants;
 use super::scan::{MAX_ROW, grid};
@@ -387,7 +387,7 @@ mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check: one per SH degree (0 to 3).
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     (0..=3)
         .map(|degree| {

@@ -31,7 +31,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use super::bin::TileBins;
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use crate::op::{PACKED_CHANNELS, SCREEN_FLOATS};
 use crate::semantics::{ALPHA_MIN, TILE_SIZE, TRANSMITTANCE_MIN};
@@ -430,7 +430,7 @@ mod kernels {
 
 /// The kernels above as CUDA C, for the offline NVRTC check: the backward in the variant
 /// [`Accumulation::for_properties`] picks for `target`, as a launch on it would.
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     let (s, p, t) = target.settings(CubeDim::new_2d(TILE_SIZE as u32, TILE_SIZE as u32));
     let forward = target.source(

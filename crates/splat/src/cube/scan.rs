@@ -4,7 +4,7 @@
 //! scans 256 values in shared memory and writes its total; the totals are scanned the same
 //! way (recursively); each value then gets its cube's offset.
 
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use burn::backend::tensor::IntTensor;
 use burn::tensor::{DType, Shape};
@@ -74,7 +74,7 @@ mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check.
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     let (s, p, t) = target.settings(CubeDim::new_1d(BLOCK as u32));
     Ok(vec![

@@ -12,7 +12,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 use super::cuda_source::{CudaTarget, KernelSource, tensor};
 use super::scan::{MAX_ROW, exclusive_scan_in_rows, grid};
 
@@ -156,7 +156,7 @@ mod kernels {
 }
 
 /// The kernels above as CUDA C, for the offline NVRTC check.
-#[cfg(feature = "cuda")]
+#[cfg(feature = "cuda-source")]
 pub(super) fn cuda_kernels(target: &CudaTarget) -> Result<Vec<KernelSource>, String> {
     let (s, p, t) = target.settings(CubeDim::new_1d(UNITS as u32));
     Ok(vec![

@@ -134,7 +134,7 @@ macro_rules! address_type {
 }
 pub(crate) use address_type;
 
-/// f3g patch (`F3G-PATCH.md`): the cube of every one-thread-per-element launch, whatever the
+/// f3g patch (../burn-cubecl.md): the cube of every one-thread-per-element launch, whatever the
 /// tensor's size. `CubeDim::new` sizes the cube to the tensor (one plane for a few values, up to
 /// eight), and the cube's size is part of a kernel's identity: every element-wise kernel was
 /// compiled again for each small tensor it met. Eight planes, what `CubeDim::new` gives every

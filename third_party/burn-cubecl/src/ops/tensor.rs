@@ -525,9 +525,21 @@ impl FloatTensorOps<Self> for CubeBackend {
         .unwrap()
     }
 
-    // f3g patch (F3G-PATCH.md): a mean is the sum's reduction and one division, so that means
-    // and sums share their compiled reduction kernels.
+    // f3g patch (../burn-cubecl.md, change 3): a mean of f32 or f64 values is the
+    // sum's reduction and one division, so that means and sums share their compiled reduction
+    // kernels. Half-precision means keep the `Mean` kernels: their sum, written out in f16 or
+    // bf16 before the division, could overflow where the mean does not.
     fn float_mean_dim(tensor: FloatTensor<Self>, dim: usize) -> FloatTensor<Self> {
+        if !mean_as_sum(tensor.dtype) {
+            return reduce::reduce_dim(
+                tensor,
+                None,
+                dim,
+                Default::default(),
+                ReduceOperationConfig::Mean,
+            )
+            .unwrap();
+        }
         let length = tensor.meta.shape()[dim];
         let sum = Self::float_sum_dim(tensor, dim);
         let dtype = sum.dtype;
@@ -535,6 +547,15 @@ impl FloatTensorOps<Self> for CubeBackend {
     }
 
     fn float_mean(tensor: FloatTensor<Self>) -> FloatTensor<Self> {
+        if !mean_as_sum(tensor.dtype) {
+            return reduce::reduce(
+                tensor,
+                None,
+                Default::default(),
+                ReduceOperationConfig::Mean,
+            )
+            .unwrap();
+        }
         let count = tensor.meta.num_elements();
         let sum = reduce::reduce(tensor, None, Default::default(), ReduceOperationConfig::Sum)
             .unwrap();
@@ -861,4 +882,10 @@ impl FloatTensorOps<Self> for CubeBackend {
     ) -> FloatTensor<Self> {
         kernel::grid_sample::grid_sample(tensor, grid, options)
     }
+}
+
+/// f3g patch (change 3): whether a mean of `dtype` values is computed as a sum and a division
+/// (full precision only).
+fn mean_as_sum(dtype: DType) -> bool {
+    matches!(dtype, DType::F32 | DType::F64)
 }

@@ -439,7 +439,7 @@ pub fn reduce_dim(
     }
 
     let result = match strategy {
-        // f3g patch (see F3G-PATCH.md): a routine for the shape rather than the unit routine
+        // f3g patch (../burn-cubecl.md): a routine for the shape rather than the unit routine
         // for every shape, with the unit routine as the fallback where the other declines.
         KernelReduceStrategy::Unspecified => {
             let outputs = output.meta.num_elements() / accumulator_len;
@@ -640,7 +640,7 @@ pub fn init_reduce_output_dtype(
     })
 }
 
-/// f3g patch (see F3G-PATCH.md): the routine [`KernelReduceStrategy::Unspecified`] uses for
+/// f3g patch (../burn-cubecl.md): the routine [`KernelReduceStrategy::Unspecified`] uses for
 /// `outputs` reductions of `axis_length` values each, `None` for the unit routine.
 ///
 /// The unit routine gives each output one thread that walks the whole axis: right for many
