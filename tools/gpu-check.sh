@@ -23,7 +23,9 @@
 #   5. `f3g bench nets --device cuda --paper --image 512` cold (first process, empty kernel
 #      cache) and warm (second process), without autotune, then tools/bench_nets_torch.py
 #   6. `f3g bench train --preset paper`      5 steps (random LPIPS VGG weights of the real
-#      shapes where the real ones are not installed: tools/random_lpips_vgg.py)
+#      shapes where the real ones are not installed: tools/random_lpips_vgg.py), then its
+#      PyTorch twin tools/paper_step_torch.py (the same step's work with gsplat, once gsplat's
+#      CUDA is built); the summary gives f3g's step ÷ the twin's
 #   7. tools/bench_gsplat.py                 gsplat on the same kind of scene as step 4 (its CUDA
 #      is compiled in the background from the start)
 #   8. the kernel profile of a `paper` run    each launch timed on the device (CubeCL's
@@ -92,7 +94,7 @@ with zipfile.ZipFile(wheel) as src, zipfile.ZipFile(wheel + ".tmp", "w", zipfile
 os.replace(wheel + ".tmp", wheel)
 PY
     cp tools/bench_gsplat.py tools/bench_nets_torch.py tools/random_lpips_vgg.py \
-        tools/kernel_profile.py "$dir/tools/"
+        tools/kernel_profile.py tools/paper_step_torch.py "$dir/tools/"
     cp "$0" "$dir/gpu-check.sh"
     # What a device call carries is the package and the working tree (tracked files and
     # untracked ones git does not ignore) together.
@@ -175,7 +177,9 @@ PY
     # the timed steps.)
     export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-8}
     local gsplat_build=0
-    if [ -z "$only" ] || [[ " $only " == *" gsplat-build "* || " $only " == *" bench-gsplat "* ]]; then
+    # (F3G_GPU_CHECK_ONLY="gsplat-build bench-step-torch" reruns the PyTorch twin alone.)
+    if [ -z "$only" ] || [[ " $only " == *" gsplat-build "* || " $only " == *" bench-gsplat "* \
+        || " $only " == *" bench-step-torch "* ]]; then
         python3 -c 'from gsplat.cuda._backend import _C' >"$out/gsplat-build.log" 2>&1 &
         gsplat_build=$!
     fi
@@ -211,6 +215,14 @@ PY
         --preset paper --device cuda --steps 5 --warmup 1 --json "$out/train-paper.json"
     step gsplat-build 120 - sh -c "while kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
         cat '$out/gsplat-build.log'; python3 -c 'from gsplat.cuda._backend import _C'"
+    # The PyTorch twin of the `paper` step just timed (same networks, Gaussians, render sizes,
+    # LPIPS, discriminator step and Adam; tools/paper_step_torch.py's docstring maps its phases
+    # to f3g's), with the same 1 warm-up + 5 timed steps. It renders with gsplat: its build
+    # awaited first (done by the step above unless F3G_GPU_CHECK_ONLY left that out).
+    step bench-step-torch 75 "$out/step-torch.json" sh -c "while [ $gsplat_build -gt 0 ] \
+        && kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
+        python3 '$dir/tools/paper_step_torch.py' --device cuda --steps 5 --warmup 1 \
+        --json '$out/step-torch.json'"
     step bench-gsplat 90 "$out/gsplat.json" python3 "$dir/tools/bench_gsplat.py" --repeats 5 \
         --json "$out/gsplat.json"
     # Every launch timed on the device: where a `paper` step's GPU time goes, kernel by kernel.
@@ -233,13 +245,31 @@ PY
 import json, sys
 out, total = sys.argv[1], int(sys.argv[2])
 steps = [json.loads(l) for l in open(f"{out}/steps.jsonl")]
+# f3g's `paper` step against its PyTorch twin, when both ran in this check and wrote their
+# JSON: f3g's `step_ms` is the mean wall clock of its timed steps, so the twin's mean is the
+# one compared (its median, its own `step_ms`, is shown beside it).
+ratio, ratio_line = None, ""
+ran = {s["step"]: s["result"] for s in steps if s["exit"] == 0 and s["result"]}
+try:
+    f3g_ms = ran["bench-train-paper"]["step_ms"]
+    twin = ran["bench-step-torch"]
+    torch_ms, torch_median = twin.get("step_ms_mean", twin["step_ms"]), twin["step_ms"]
+    ratio = {"f3g_step_ms": f3g_ms, "torch_step_ms_mean": torch_ms,
+             "torch_step_ms_median": torch_median, "ratio": f3g_ms / torch_ms}
+    ratio_line = (f"f3g paper step ÷ PyTorch twin step (means): {f3g_ms:.1f} ms / "
+                  f"{torch_ms:.1f} ms = {f3g_ms / torch_ms:.2f}× (twin's median "
+                  f"{torch_median:.1f} ms)")
+except (KeyError, TypeError, ZeroDivisionError):
+    pass
 with open(f"{out}/summary.json", "w") as f:
-    json.dump({"seconds": total, "steps": steps}, f, indent=1)
+    json.dump({"seconds": total, "steps": steps, "paper_step_vs_torch": ratio}, f, indent=1)
 rows = ["| step | exit | seconds | note |", "|---|---|---|---|"]
 for s in steps:
     note = ("timed out" if s["timed_out"] else "skipped (budget)" if s["exit"] == 125
             else "ok" if s["exit"] == 0 else "failed: see the log")
     rows.append(f"| {s['step']} | {s['exit']} | {s['seconds']} | {note} |")
+if ratio_line:
+    rows += ["", ratio_line]
 with open(f"{out}/summary.md", "w") as f:
     f.write(f"# GPU check ({total} s)\n\n" + "\n".join(rows) + "\n")
 print("\n".join(rows))
