@@ -19,7 +19,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
-use crate::layers::{ConvLayer, EqualLinear, Init};
+use crate::init::Init;
+use crate::layers::{ConvLayer, EqualLinear};
 
 /// Architecture of a [`Discriminator`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

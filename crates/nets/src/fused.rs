@@ -1,5 +1,6 @@
-//! StyleGAN2's element-wise chains and modulated weights as single passes: one loop on the CPU,
-//! one kernel on a GPU.
+//! StyleGAN2's element-wise chains and modulated weights, each op choosing its path: one pass
+//! where [`runs`] says it can (one loop on the CPU, one kernel on a GPU), elsewhere the same maths
+//! in Burn's tensor ops ([`portable`]).
 //!
 //! Written with Burn's tensor ops, the bias + leaky ReLU of every layer, the ×2 bilinear
 //! up-sampling, the `[1, 3, 3, 1]` blur and the Haar transforms of the output are chains of
@@ -10,9 +11,9 @@
 //! launch on a GPU. The 2 × 2 down-sampling of the encoder's input pyramid, as Burn's average
 //! pooling, compiles a GPU kernel for every pooling and input size. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
-//! loop over the planes, in parallel, and on unfused `Cube` devices (wgpu, CUDA) one kernel
-//! (`cube`). Burn's `fusion` devices keep the tensor-op formulation in
-//! [`crate::layers::portable`], which fusion fuses itself; [`runs`] routes.
+//! loop over the planes, in parallel (`flex`), and on unfused `Cube` devices (wgpu, CUDA) one
+//! kernel (`cube`, a file per op). Burn's `fusion` devices keep the tensor-op formulation
+//! ([`portable`]), which fusion fuses itself.
 //!
 //! Layouts: `[B, C, H, W]` (row-major on the CPU; on a GPU row-major or channels-last, see
 //! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `[C_in]`.
@@ -25,6 +26,7 @@ mod autodiff;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
 mod cube;
 mod flex;
+pub mod portable;
 
 /// Whether `x` lives on the CPU backend (with or without autodiff).
 pub fn on_flex(x: &Tensor<4>) -> bool {
@@ -49,60 +51,97 @@ pub fn runs(x: &Tensor<4>, largest: usize) -> bool {
     false
 }
 
-/// `gain · leaky_relu(x + bias, slope)` with a per-channel bias as one op, where [`runs`]:
-/// StyleGAN2's fused activation (slope 0.2, gain √2), or a convolution's bias and ReLU (0, 1).
-/// `gain` must be positive and `slope` not negative (the backward reads the slope from the
-/// output's sign).
+/// `gain · leaky_relu(x + bias, slope)` with a per-channel bias: StyleGAN2's fused activation
+/// (slope 0.2, gain √2), or a convolution's bias and ReLU (0, 1). `gain` must be positive and
+/// `slope` not negative (the fused backward reads the slope from the output's sign). One op
+/// where it [`runs`], [`portable::bias_leaky_relu`] elsewhere.
 pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::bias_leaky_relu(
-        x.into_dispatch(),
-        bias.into_dispatch(),
-        slope as f32,
-        gain,
-    ))
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::bias_leaky_relu(
+            x.into_dispatch(),
+            bias.into_dispatch(),
+            slope as f32,
+            gain,
+        ))
+    } else {
+        portable::bias_leaky_relu(x, bias, slope, gain)
+    }
 }
 
-/// Bilinear ×2 up-sampling (`align_corners = false`) as one op, where [`runs`].
+/// Bilinear ×2 up-sampling (`align_corners = false`): one op where it [`runs`],
+/// [`portable::upsample2`] elsewhere.
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::upsample2(x.into_dispatch()))
+    if runs(&x, 4 * x.shape().num_elements()) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::upsample2(x.into_dispatch()))
+    } else {
+        portable::upsample2(x)
+    }
 }
 
 /// The mean of each 2 × 2 block, `[B, C, H, W] → [B, C, ⌊H/2⌋, ⌊W/2⌋]` (area halving; for even
-/// sizes also bilinear halving with `align_corners = false`), as one op, where [`runs`].
+/// sizes also bilinear halving with `align_corners = false`): one op where it [`runs`],
+/// [`portable::downsample2`] elsewhere.
 pub fn downsample2(x: Tensor<4>) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::downsample2(x.into_dispatch()))
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::downsample2(x.into_dispatch()))
+    } else {
+        portable::downsample2(x)
+    }
 }
 
-/// The separable `[1, 3, 3, 1] / 8` blur with zero padding `(before, after)` ≤ 3 on both axes as
-/// one op, where [`runs`].
+/// The separable `[1, 3, 3, 1] / 8` blur of StyleGAN2, with zero padding `(before, after)` on
+/// both axes (the output grows by `before + after − 3`): one op where it [`runs`] and the
+/// padding is at most 3, [`portable::blur`] elsewhere.
 pub fn blur(x: Tensor<4>, before: usize, after: usize) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::blur(
-        x.into_dispatch(),
-        before,
-        after,
-    ))
+    let [b, c, h, w] = x.dims();
+    let grown = |n: usize| n + before + after;
+    if before <= 3 && after <= 3 && runs(&x, b * c * grown(h) * grown(w)) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::blur(
+            x.into_dispatch(),
+            before,
+            after,
+        ))
+    } else {
+        portable::blur(x, before, after)
+    }
 }
 
-/// Orthonormal 2-D Haar analysis `[B, C, 2H, 2W] → [B, 4C, H, W]` as one op, where [`runs`].
+/// Orthonormal 2-D Haar analysis: `[B, C, 2H, 2W] → [B, 4C, H, W]`, channel `4c + k` holding
+/// sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`: one op where it [`runs`],
+/// [`portable::haar`] elsewhere.
 pub fn haar(x: Tensor<4>) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::haar(x.into_dispatch()))
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::haar(x.into_dispatch()))
+    } else {
+        portable::haar(x)
+    }
 }
 
-/// The inverse of [`haar`] as one op, where [`runs`].
+/// The inverse of [`haar`], `[B, 4C, H, W] → [B, C, 2H, 2W]`: one op where it [`runs`],
+/// [`portable::inverse_haar`] elsewhere.
 pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::inverse_haar(x.into_dispatch()))
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::inverse_haar(x.into_dispatch()))
+    } else {
+        portable::inverse_haar(x)
+    }
 }
 
-/// StyleGAN2's modulated convolution weight as one op, where [`runs`] (`weight`'s device): each
-/// input channel `i` of `weight` (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then,
-/// with `demodulate`, each output channel divided by its norm `√(Σ w² + 10⁻⁸)`.
+/// StyleGAN2's modulated convolution weight: each input channel `i` of `weight`
+/// (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then, with `demodulate`, each output
+/// channel divided by its norm `√(Σ w² + 10⁻⁸)`. One op where it [`runs`] (`weight`'s device),
+/// [`portable::modulate`] elsewhere.
 pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: bool) -> Tensor<4> {
-    Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate(
-        weight.into_dispatch(),
-        style.into_dispatch(),
-        scale,
-        demodulate,
-    ))
+    if runs(&weight, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate(
+            weight.into_dispatch(),
+            style.into_dispatch(),
+            scale,
+            demodulate,
+        ))
+    } else {
+        portable::modulate(weight, style, scale, demodulate)
+    }
 }
 
 /// The fused ops and the backward passes their autodiff nodes call.
@@ -181,3 +220,80 @@ pub trait FusedBackend: Backend {
 
 /// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).
 pub const DEMODULATION_EPSILON: f32 = 1e-8;
+
+#[cfg(test)]
+mod tests {
+    use burn::tensor::module::interpolate;
+    use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+    use burn::tensor::{Device, TensorData};
+
+    use super::*;
+    use crate::init::Init;
+
+    fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+        t.into_data().try_into_vec::<f32>().unwrap()
+    }
+
+    #[test]
+    fn haar_is_orthonormal_and_inverted_exactly() {
+        let device = Device::flex();
+        let init = Init::new(1, &device);
+        let x = init.tensor(init_values(2 * 3 * 8 * 6), [2, 3, 8, 6]);
+        let y = haar(x.clone());
+        assert_eq!(y.dims(), [2, 12, 4, 3]);
+        // Orthonormal: the energy is preserved.
+        let e = |t: Tensor<4>| values(t.powf_scalar(2.0).sum())[0];
+        assert!((e(x.clone()) - e(y.clone())).abs() < 1e-3);
+        let back = inverse_haar(y);
+        for (a, b) in values(x).iter().zip(values(back)) {
+            assert!((a - b).abs() < 1e-5);
+        }
+        // A constant image has only the LL band, equal to 2× the value.
+        let c = init.tensor(vec![0.25; 16], [1, 1, 4, 4]);
+        let bands = values(haar(c));
+        assert!(bands[..4].iter().all(|&v| (v - 0.5).abs() < 1e-6));
+        assert!(bands[4..].iter().all(|&v| v.abs() < 1e-6));
+
+        fn init_values(n: usize) -> Vec<f32> {
+            (0..n).map(|i| ((i * 37) % 11) as f32 - 5.0).collect()
+        }
+    }
+
+    #[test]
+    fn upsample2_equals_bilinear_interpolation_forward_and_backward() {
+        let device = Device::flex().autodiff();
+        for [h, w] in [[1, 1], [1, 5], [4, 3], [7, 8]] {
+            let n = 2 * 3 * h * w;
+            let v: Vec<f32> = (0..n)
+                .map(|i| ((i * 7919) % 97) as f32 / 97.0 - 0.5)
+                .collect();
+            let x = Tensor::<4>::from_data(TensorData::new(v, [2, 3, h, w]), &device);
+            let weights: Vec<f32> = (0..4 * n).map(|i| ((i * 31) % 13) as f32 - 6.0).collect();
+            let weights =
+                Tensor::<4>::from_data(TensorData::new(weights, [2, 3, 2 * h, 2 * w]), &device);
+            let run = |up: &dyn Fn(Tensor<4>) -> Tensor<4>| {
+                let x = x.clone().require_grad();
+                let y = up(x.clone());
+                let grads = (y.clone() * weights.clone()).sum().backward();
+                (values(y), values(x.grad(&grads).unwrap()))
+            };
+            let (theirs, theirs_grad) = run(&|x| {
+                let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
+                options.align_corners = false;
+                options.output_size = Some([2 * h, 2 * w]);
+                interpolate(x, options)
+            });
+            // The CPU's fused op and the tensor-op formulation of other devices.
+            for up in [upsample2 as fn(Tensor<4>) -> Tensor<4>, portable::upsample2] {
+                let (ours, ours_grad) = run(&up);
+                for (a, b) in ours
+                    .iter()
+                    .zip(&theirs)
+                    .chain(ours_grad.iter().zip(&theirs_grad))
+                {
+                    assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+                }
+            }
+        }
+    }
+}

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
 use crate::conv::conv2d;
-use crate::layers::bias_leaky_relu;
+use crate::fused::bias_leaky_relu;
 
 /// The AlexNet LPIPS weights, compiled in so the demo and the tests work offline.
 const ALEX_WEIGHTS: &[u8] = include_bytes!("../../../assets/lpips/alex.safetensors");

@@ -175,24 +175,6 @@ pub fn image_tensor(img: &Image, device: &Device) -> Tensor<4> {
     .unsqueeze()
 }
 
-/// A `[1, C, H, W]` or `[C, H, W]`-like tensor back to a host image `[H, W, C]`.
-pub fn tensor_image(t: Tensor<4>) -> Image {
-    let [_, c, h, w] = t.dims();
-    let data = t
-        .slice([0..1, 0..c, 0..h, 0..w])
-        .reshape([c, h, w])
-        .permute([1, 2, 0])
-        .into_data()
-        .try_into_vec::<f32>()
-        .expect("f32 tensor");
-    Image {
-        width: w,
-        height: h,
-        channels: c,
-        data,
-    }
-}
-
 fn same_shape(a: &Image, b: &Image) -> Result<(), NetsError> {
     if (a.width, a.height, a.channels) != (b.width, b.height, b.channels) {
         return Err(NetsError::Input(format!(

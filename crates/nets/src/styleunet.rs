@@ -22,10 +22,10 @@ use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
-use crate::layers::{
-    ConvLayer, EqualConv2d, Init, LRELU_SLOPE, Mapping, StyledConv, ToRgb, downsample2,
-    fused_lrelu, inverse_haar, resize,
-};
+use crate::fused::{downsample2, inverse_haar};
+use crate::init::Init;
+use crate::layers::{ConvLayer, EqualConv2d, LRELU_SLOPE, Mapping, StyledConv, ToRgb, fused_lrelu};
+use crate::resample::resize;
 
 /// Architecture of a [`DualStyleUNet`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

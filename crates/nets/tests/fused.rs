@@ -1,5 +1,5 @@
 //! The CPU's fused element-wise ops (`f3g_nets::fused`) against the tensor-op formulation other
-//! devices run (`layers::portable`): outputs and gradients within float tolerance for the shapes
+//! devices run (`fused::portable`): outputs and gradients within float tolerance for the shapes
 //! and paddings the networks use and for edge sizes; each hand-written backward against central
 //! differences.
 
@@ -9,8 +9,8 @@ mod common;
 use burn::tensor::{Device, Tensor, TensorData};
 use central_differences::values;
 use common::ramp;
-use f3g_nets::fused;
-use f3g_nets::layers::{LRELU_GAIN, LRELU_SLOPE, portable};
+use f3g_nets::fused::{self, portable};
+use f3g_nets::layers::{LRELU_GAIN, LRELU_SLOPE};
 
 fn assert_close(got: &[f32], expected: &[f32], what: &str) {
     assert_eq!(got.len(), expected.len(), "{what}: lengths");

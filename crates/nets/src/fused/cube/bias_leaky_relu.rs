@@ -1,0 +1,150 @@
+//! Bias + leaky ReLU (StyleGAN2's activation; LPIPS's bias + ReLU with slope 0): the forward and
+//! the input gradient one kernel each, the bias gradient Burn's reductions.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::Shape;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
+
+use super::{dims, one_thread_per_output, u32_of};
+use crate::cube_layout::{channels_last, empty_in_layout, readable};
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// `out = gain · (x + bias[c])`, times `slope` where that is not positive; `c` is the
+    /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
+    /// share one gapless layout).
+    #[cube(launch)]
+    pub fn bias_leaky_relu(
+        x: &Tensor<f32>,
+        bias: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channel_stride: u32,
+        channels: u32,
+        gain: f32,
+        slope: f32,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= out.len() {
+            terminate!();
+        }
+        let c = (i as u32 / channel_stride) % channels;
+        let pre = x[i] + bias[c as usize];
+        let mut value = pre;
+        if pre <= 0.0 {
+            value = slope * pre;
+        }
+        out[i] = gain * value;
+    }
+
+    /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
+    /// offset (the three share one gapless layout); with slope 0 a selection, as `fused::flex`'s
+    /// `leaky_relu_grad`, so that a non-finite gradient where the output is zero does not pass.
+    #[cube(launch)]
+    pub fn bias_leaky_relu_grad(
+        output: &Tensor<f32>,
+        grad: &Tensor<f32>,
+        dx: &mut Tensor<f32>,
+        gain: f32,
+        slope: f32,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= dx.len() {
+            terminate!();
+        }
+        let mut value = 0.0f32;
+        if output[i] > 0.0 {
+            value = gain * grad[i];
+        } else if slope != 0.0 {
+            value = gain * slope * grad[i];
+        }
+        dx[i] = value;
+    }
+}
+
+/// One kernel, in `x`'s layout.
+pub(super) fn bias_leaky_relu(
+    x: FloatTensor<CubeBackend>,
+    bias: FloatTensor<CubeBackend>,
+    slope: f32,
+    gain: f32,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&x);
+    assert_eq!(bias.shape().dims::<1>(), [shape[1]], "one bias per channel");
+    let bias = into_contiguous(bias);
+    let (x, last) = readable(x);
+    let channel_stride = if last { 1 } else { shape[2] * shape[3] };
+    let out = empty_in_layout(&x, shape, last);
+    one_thread_per_output(out, &x, |cubes, cube, out| {
+        kernels::bias_leaky_relu::launch(
+            &x.client,
+            cubes,
+            cube,
+            x.clone().into_tensor_arg(),
+            bias.into_tensor_arg(),
+            out.into_tensor_arg(),
+            u32_of(channel_stride).max(1),
+            u32_of(shape[1]).max(1),
+            gain,
+            slope,
+        )
+    })
+}
+
+/// In the gradient's layout; the output is copied to it where the two differ.
+pub(super) fn bias_leaky_relu_grad(
+    output: FloatTensor<CubeBackend>,
+    grad: FloatTensor<CubeBackend>,
+    slope: f32,
+    gain: f32,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&grad);
+    assert_eq!(dims(&output), shape, "output and gradient shapes");
+    let (grad, last) = readable(grad);
+    let output = match (channels_last(&output), last) {
+        (true, true) => output,
+        (_, false) => into_contiguous(output),
+        (false, true) => permute_nhwc_to_nchw(into_contiguous(permute_nchw_to_nhwc(output))),
+    };
+    let dx = empty_in_layout(&grad, shape, last);
+    one_thread_per_output(dx, &grad, |cubes, cube, dx| {
+        kernels::bias_leaky_relu_grad::launch(
+            &grad.client,
+            cubes,
+            cube,
+            output.into_tensor_arg(),
+            grad.clone().into_tensor_arg(),
+            dx.into_tensor_arg(),
+            gain,
+            slope,
+        )
+    })
+}
+
+/// Burn's reductions (the patched `burn-cubecl` picks a plane per channel for the long
+/// axis): one over the positions of a channels-last `x`, else over each plane and then,
+/// where there is more than one, the batch.
+pub(super) fn channel_sum(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [batch, channels, height, width] = dims(&x);
+    if channels_last(&x) {
+        let rows = CubeBackend::float_reshape(
+            permute_nchw_to_nhwc(x),
+            Shape::new([batch * height * width, channels]),
+        );
+        return CubeBackend::float_reshape(
+            CubeBackend::float_sum_dim(rows, 0),
+            Shape::new([channels]),
+        );
+    }
+    let planes = CubeBackend::float_reshape(x, Shape::new([batch, channels, height * width]));
+    let mut sums = CubeBackend::float_sum_dim(planes, 2);
+    if batch > 1 {
+        sums = CubeBackend::float_sum_dim(sums, 0);
+    }
+    CubeBackend::float_reshape(sums, Shape::new([channels]))
+}

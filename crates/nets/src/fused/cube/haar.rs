@@ -1,0 +1,135 @@
+//! Haar analysis and synthesis, each the other's inverse and adjoint, one thread per output
+//! value.
+
+use burn::backend::tensor::FloatTensor;
+use burn_cubecl::CubeBackend;
+
+use super::{dims, one_thread_per_output, u32_of};
+use crate::cube_layout::{empty_in_layout, readable};
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    use crate::fused::cube::position::{offset, position};
+
+    /// `out` (`[B, 4C, h, w]`): channel `4c + k` holds sub-band `k ∈ (LL, LH, HL, HH)` of the
+    /// 2 × 2 block `(p q / r s)` at `(2y, 2x)` of channel `c` of `x` (`[B, C, 2h, 2w]`, the same
+    /// layout), `½(p ± q ± r ± s)`.
+    #[cube(launch)]
+    pub fn haar(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
+        let o = ABSOLUTE_POS;
+        if o >= out.len() {
+            terminate!();
+        }
+        let at = position(o as u32, 4 * channels, h, w, channels_last);
+        let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
+        let (y, x0) = (2 * at.y, 2 * at.x);
+        let (h2, w2) = (2 * h, 2 * w);
+        let p = x[offset(b, c, y, x0, channels, h2, w2, channels_last)];
+        let q = x[offset(b, c, y, x0 + 1, channels, h2, w2, channels_last)];
+        let r = x[offset(b, c, y + 1, x0, channels, h2, w2, channels_last)];
+        let s = x[offset(b, c, y + 1, x0 + 1, channels, h2, w2, channels_last)];
+        // LH negates the bottom row, HL the right column, HH both (s twice).
+        let mut sign_q = 1.0f32;
+        if band >= 2 {
+            sign_q = -1.0f32;
+        }
+        let mut sign_r = 1.0f32;
+        if band % 2 == 1 {
+            sign_r = -1.0f32;
+        }
+        out[o] = 0.5 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
+    }
+
+    /// `out` (`[B, C, 2h, 2w]`) from the four sub-bands `(a, b, c, d)` of `x` (`[B, 4C, h, w]`,
+    /// the same layout) at `(y / 2, x / 2)`: `½(a ± b ± c ± d)`, the inverse of [`haar`].
+    #[cube(launch)]
+    pub fn inverse_haar(
+        x: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channels: u32,
+        h: u32,
+        w: u32,
+        #[comptime] channels_last: bool,
+    ) {
+        let o = ABSOLUTE_POS;
+        if o >= out.len() {
+            terminate!();
+        }
+        let at = position(o as u32, channels, 2 * h, 2 * w, channels_last);
+        let (batch, first) = (at.batch, 4 * at.channel);
+        let (y, x0) = (at.y / 2, at.x / 2);
+        let c4 = 4 * channels;
+        let a = x[offset(batch, first, y, x0, c4, h, w, channels_last)];
+        let b = x[offset(batch, first + 1, y, x0, c4, h, w, channels_last)];
+        let c = x[offset(batch, first + 2, y, x0, c4, h, w, channels_last)];
+        let d = x[offset(batch, first + 3, y, x0, c4, h, w, channels_last)];
+        // The bottom row negates LH, the right column HL, the corner both (HH twice).
+        let mut sign_b = 1.0f32;
+        if at.y % 2 == 1 {
+            sign_b = -1.0f32;
+        }
+        let mut sign_c = 1.0f32;
+        if at.x % 2 == 1 {
+            sign_c = -1.0f32;
+        }
+        out[o] = 0.5 * (a + sign_b * b + sign_c * c + sign_b * sign_c * d);
+    }
+}
+
+/// One kernel, in `x`'s layout.
+pub(super) fn haar(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [batch, channels, height, width] = dims(&x);
+    assert!(
+        height % 2 == 0 && width % 2 == 0,
+        "Haar analysis of even sizes"
+    );
+    let (h, w) = (height / 2, width / 2);
+    let (x, last) = readable(x);
+    let out = empty_in_layout(&x, [batch, 4 * channels, h, w], last);
+    one_thread_per_output(out, &x, |cubes, cube, out| {
+        kernels::haar::launch(
+            &x.client,
+            cubes,
+            cube,
+            x.clone().into_tensor_arg(),
+            out.into_tensor_arg(),
+            u32_of(channels),
+            u32_of(h),
+            u32_of(w),
+            last,
+        )
+    })
+}
+
+/// One kernel, in `x`'s layout.
+pub(super) fn inverse_haar(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [batch, channels4, h, w] = dims(&x);
+    assert!(
+        channels4 % 4 == 0,
+        "Haar synthesis of four sub-bands per channel"
+    );
+    let (x, last) = readable(x);
+    let out = empty_in_layout(&x, [batch, channels4 / 4, 2 * h, 2 * w], last);
+    one_thread_per_output(out, &x, |cubes, cube, out| {
+        kernels::inverse_haar::launch(
+            &x.client,
+            cubes,
+            cube,
+            x.clone().into_tensor_arg(),
+            out.into_tensor_arg(),
+            u32_of(channels4 / 4),
+            u32_of(h),
+            u32_of(w),
+            last,
+        )
+    })
+}

@@ -1,0 +1,267 @@
+//! StyleGAN2's modulated weight and its gradients: one cube per output channel, which sums the
+//! demodulation's squares (and, backward, its projection) in shared memory; the style's gradient
+//! a second kernel's sums over output channels.
+
+use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::tensor::FloatTensor;
+use burn::tensor::{DType, Shape};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::{CubeCount, CubeDim};
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+
+use super::{dims, u32_of};
+use crate::cube_grid::{UNITS, one_thread_per_value};
+use crate::cube_layout::empty_in_layout;
+use crate::fused::DEMODULATION_EPSILON;
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// Sums `partial` (one value per unit, `units` a power of two) into `partial[0]`, pairwise
+    /// with doubling strides; every unit must call it.
+    #[cube]
+    fn cube_sum(partial: &mut Shared<[f32]>, #[comptime] units: u32) {
+        let t = UNIT_POS;
+        sync_cube();
+        let mut stride = 1u32;
+        while stride < units {
+            if t & (2 * stride - 1) == 0 {
+                partial[t as usize] += partial[(t + stride) as usize];
+            }
+            sync_cube();
+            stride *= 2;
+        }
+    }
+
+    /// One cube per output channel `o` (`CUBE_POS_X`): `out[o, j] = weight[o, j] · style[j /
+    /// taps] · scale`, times `(Σ_j (weight · style · scale)² + epsilon)^(−½)` if `demodulate`
+    /// (`j` over the channel's `per_output` values).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn modulate(
+        weight: &Tensor<f32>,
+        style: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+        epsilon: f32,
+        #[comptime] demodulate: bool,
+        #[comptime] units: u32,
+    ) {
+        let t = UNIT_POS;
+        let base = CUBE_POS_X * per_output;
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut d = 1.0f32;
+        if comptime![demodulate] {
+            let mut sum = 0.0f32;
+            let mut j = t;
+            while j < per_output {
+                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                sum += u * u;
+                j += units;
+            }
+            partial[t as usize] = sum;
+            cube_sum(&mut partial, units);
+            d = 1.0 / f32::sqrt(partial[0] + epsilon);
+        }
+        let mut j = t;
+        while j < per_output {
+            let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+            out[(base + j) as usize] = u * d;
+            j += units;
+        }
+    }
+
+    /// The backward of [`modulate`], one cube per output channel: `d_weight` and
+    /// `terms = ∂u · weight · scale`, whose sums over output channels and taps are the style's
+    /// gradient ([`style_grad`]).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn modulate_grad(
+        weight: &Tensor<f32>,
+        style: &Tensor<f32>,
+        grad: &Tensor<f32>,
+        d_weight: &mut Tensor<f32>,
+        terms: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+        epsilon: f32,
+        #[comptime] demodulate: bool,
+        #[comptime] units: u32,
+    ) {
+        let t = UNIT_POS;
+        let base = CUBE_POS_X * per_output;
+        let mut squares = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut projections = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut d = 1.0f32;
+        let mut projection = 0.0f32;
+        if comptime![demodulate] {
+            let mut uu = 0.0f32;
+            let mut gu = 0.0f32;
+            let mut j = t;
+            while j < per_output {
+                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                uu += u * u;
+                gu += grad[(base + j) as usize] * u;
+                j += units;
+            }
+            squares[t as usize] = uu;
+            projections[t as usize] = gu;
+            cube_sum(&mut squares, units);
+            cube_sum(&mut projections, units);
+            d = 1.0 / f32::sqrt(squares[0] + epsilon);
+            projection = projections[0] * d * d;
+        }
+        let mut j = t;
+        while j < per_output {
+            let s = style[(j / taps) as usize];
+            let w = weight[(base + j) as usize];
+            let u = w * s * scale;
+            let d_u = d * (grad[(base + j) as usize] - u * projection);
+            d_weight[(base + j) as usize] = d_u * s * scale;
+            terms[(base + j) as usize] = d_u * w * scale;
+            j += units;
+        }
+    }
+
+    /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one thread per input channel.
+    #[cube(launch)]
+    pub fn style_grad(
+        terms: &Tensor<f32>,
+        d_style: &mut Tensor<f32>,
+        outputs: u32,
+        per_output: u32,
+        taps: u32,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= d_style.len() {
+            terminate!();
+        }
+        let first = i as u32 * taps;
+        let mut sum = 0.0f32;
+        for o in 0..outputs {
+            for k in 0..taps {
+                sum += terms[(o * per_output + first + k) as usize];
+            }
+        }
+        d_style[i] = sum;
+    }
+}
+
+/// One cube per output channel ([`per_output_channel`]), on the weight and style made
+/// row-major.
+pub(super) fn modulate(
+    weight: FloatTensor<CubeBackend>,
+    style: FloatTensor<CubeBackend>,
+    scale: f32,
+    demodulate: bool,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&weight);
+    assert_eq!(
+        style.shape().dims::<1>(),
+        [shape[1]],
+        "one style value per input"
+    );
+    let (weight, style) = (into_contiguous(weight), into_contiguous(style));
+    let out = empty_in_layout(&weight, shape, false);
+    if let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) {
+        kernels::modulate::launch(
+            &weight.client,
+            cubes,
+            cube,
+            weight.clone().into_tensor_arg(),
+            style.into_tensor_arg(),
+            out.clone().into_tensor_arg(),
+            per_output,
+            taps,
+            scale,
+            DEMODULATION_EPSILON,
+            demodulate,
+            UNITS,
+        );
+    }
+    out
+}
+
+/// [`kernels::modulate_grad`] per output channel, then [`kernels::style_grad`]'s sums, on the
+/// inputs made row-major.
+pub(super) fn modulate_grad(
+    weight: FloatTensor<CubeBackend>,
+    style: FloatTensor<CubeBackend>,
+    grad: FloatTensor<CubeBackend>,
+    scale: f32,
+    demodulate: bool,
+) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
+    let shape = dims(&weight);
+    assert_eq!(dims(&grad), shape, "weight and gradient shapes");
+    let [weight, style, grad] = [weight, style, grad].map(into_contiguous);
+    let d_weight = empty_in_layout(&weight, shape, false);
+    let terms = empty_in_layout(&weight, shape, false);
+    let d_style = empty_device_contiguous_dtype(
+        weight.client.clone(),
+        weight.device.clone(),
+        Shape::new([shape[1]]),
+        DType::F32,
+    );
+    let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) else {
+        // A weight without values: no style value has any effect.
+        let zeros =
+            CubeBackend::float_zeros(Shape::new([shape[1]]), &weight.device, DType::F32.into());
+        return (d_weight, zeros);
+    };
+    kernels::modulate_grad::launch(
+        &weight.client,
+        cubes,
+        cube,
+        weight.clone().into_tensor_arg(),
+        style.into_tensor_arg(),
+        grad.into_tensor_arg(),
+        d_weight.clone().into_tensor_arg(),
+        terms.clone().into_tensor_arg(),
+        per_output,
+        taps,
+        scale,
+        DEMODULATION_EPSILON,
+        demodulate,
+        UNITS,
+    );
+    let (cubes, cube) = one_thread_per_value(shape[1]);
+    kernels::style_grad::launch(
+        &weight.client,
+        cubes,
+        cube,
+        terms.into_tensor_arg(),
+        d_style.clone().into_tensor_arg(),
+        u32_of(shape[0]),
+        per_output,
+        taps,
+    );
+    (d_weight, d_style)
+}
+
+/// The launch of [`kernels::modulate`] and its gradient for a weight of `shape`: one cube of
+/// [`UNITS`] per output channel, the values per output channel and the taps per input channel
+/// as kernel arguments; `None` for a weight without values.
+fn per_output_channel(shape: [usize; 4]) -> Option<(CubeCount, CubeDim, u32, u32)> {
+    let [c_out, c_in, kh, kw] = shape;
+    let per_output = c_in * kh * kw;
+    if c_out * per_output == 0 {
+        return None;
+    }
+    u32_of(c_out * per_output);
+    let cubes = u32::try_from(c_out)
+        .ok()
+        .filter(|&c| c <= 65_535)
+        .expect("at most 65 535 output channels");
+    Some((
+        CubeCount::Static(cubes, 1, 1),
+        CubeDim::new_1d(UNITS),
+        u32_of(per_output),
+        u32_of(kh * kw),
+    ))
+}
