@@ -8,9 +8,9 @@
 
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::Device;
-use f3g_avatar::TrainConfig;
-use f3g_avatar::run::{Run, load_face_base, load_optim, read_state};
-use f3g_avatar::setup::Setup;
+use f3g_avatar::infer::{Run, load_face_base, read_state};
+use f3g_avatar::model::Setup;
+use f3g_avatar::train::{TrainConfig, load_optim};
 use f3g_nets::StyleUNetConfig;
 use f3g_testkit::{
     AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, read_arrays,
@@ -156,11 +156,11 @@ fn pca() -> Vec<Array> {
 }
 
 /// A small model of the built-in human (face branch on) and its stored setup's folder.
-static SETUP: std::sync::LazyLock<(f3g_avatar::ModelConfig, tempfile::TempDir)> =
+static SETUP: std::sync::LazyLock<(f3g_avatar::model::ModelConfig, tempfile::TempDir)> =
     std::sync::LazyLock::new(|| {
         let mut model = TrainConfig::cpu().model;
         model.map_resolution = 32;
-        model.template = f3g_avatar::config::TemplateChoice::Body;
+        model.template = f3g_avatar::model::TemplateChoice::Body;
         let dir = tempfile::tempdir().unwrap();
         Setup::new("builtin", &[0.0; 5], &model)
             .unwrap()
@@ -331,7 +331,7 @@ fn small_avatar_file() -> Vec<u8> {
     let ramp = |k: usize, scale: f32| -> Vec<f32> {
         (0..k).map(|i| (i as f32 * 0.37).sin() * scale).collect()
     };
-    let baked = f3g_avatar::bake::BakedAvatar {
+    let baked = f3g_avatar::infer::bake::BakedAvatar {
         canonical: rig.zero_params(),
         rig,
         means: ramp(3 * n, 0.5),
@@ -342,7 +342,7 @@ fn small_avatar_file() -> Vec<u8> {
         sh_degree: 1,
         skin_joints: vec![[0, 1, 0, 0]; n],
         skin_weights: vec![[0.5, 0.5, 0.0, 0.0]; n],
-        correctives: ramp(2 * n * f3g_avatar::bake::CORRECTIVE_VALUES, 0.01),
+        correctives: ramp(2 * n * f3g_avatar::infer::bake::CORRECTIVE_VALUES, 0.01),
         feature_joints: vec![1],
         feature_used: vec![0, 4, 8],
         feature_mean: vec![0.0; 3],
@@ -354,12 +354,12 @@ fn small_avatar_file() -> Vec<u8> {
         face_crop_size: 64,
         step: 7,
     };
-    f3g_avatar::avatar_file::to_bytes(&baked).unwrap()
+    f3g_avatar::infer::avatar_file::to_bytes(&baked).unwrap()
 }
 
 #[test]
 fn the_small_avatar_file_reads() {
-    let avatar = f3g_avatar::avatar_file::from_bytes(&small_avatar_file()).unwrap();
+    let avatar = f3g_avatar::infer::avatar_file::from_bytes(&small_avatar_file()).unwrap();
     assert_eq!(
         (avatar.len(), avatar.corrective_count(), avatar.step),
         (5, 2, 7)
@@ -377,7 +377,7 @@ proptest! {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("avatar.glb");
         std::fs::write(&path, &bytes).unwrap();
-        match f3g_avatar::avatar_file::read(&path) {
+        match f3g_avatar::infer::avatar_file::read(&path) {
             Ok(avatar) => {
                 let posed = avatar.posed(&avatar.rig.zero_params());
                 prop_assert!(posed.is_ok(), "{:?}", posed.err());

@@ -5,10 +5,8 @@
 //! articulation.
 
 use burn::tensor::{Device, Tensor};
-use f3g_avatar::TrainConfig;
-use f3g_avatar::config::BodyLayout;
-use f3g_avatar::model::{AvatarNets, Canonical, Constants, canonical};
-use f3g_avatar::setup::Setup;
+use f3g_avatar::model::{AvatarNets, BodyLayout, Canonical, Constants, Setup, canonical};
+use f3g_avatar::train::TrainConfig;
 use f3g_rig::RigParams;
 use f3g_splat::Camera;
 
@@ -250,7 +248,7 @@ fn device_inputs_equal_the_host_reference() {
         .flat_map(|(t, p)| t.affine.transform_point3(*p).to_array())
         .collect();
     close(
-        host(f3g_avatar::posing::transform_points(
+        host(f3g_avatar::model::posing::transform_points(
             &inputs.skinning.linear,
             &inputs.skinning.translation,
             Tensor::from_data(

@@ -1,16 +1,15 @@
 //! A body model added through the contract alone, and a run folder that needs nothing else:
 //! a rigged glTF whose joints have names no table knows (`bone000`, …) becomes an avatar's
 //! body model through its role map; the run keeps its setup, so after the glTF and the role map
-//! are deleted and the run is moved, the avatar loads and renders the same image.
+//! are deleted and the run is moved, the avatar loads and renders the same image. A run folder
+//! of another format is refused with an error naming it and saying what to do.
 
 use std::path::Path;
 
 use burn::tensor::Device;
-use f3g_avatar::model::AvatarNets;
-use f3g_avatar::run::{Run, RunInfo, TrainState};
-use f3g_avatar::setup::Setup;
-use f3g_avatar::trained::TrainedAvatar;
-use f3g_avatar::{ModelConfig, TrainConfig};
+use f3g_avatar::infer::{RUN_FORMAT, Run, RunInfo, TrainState, TrainedAvatar};
+use f3g_avatar::model::{AvatarNets, ModelConfig, Setup};
+use f3g_avatar::train::{TrainConfig, Trainer};
 use f3g_rig::{Rig, RoleMap, Skeleton};
 use f3g_splat::Camera;
 
@@ -47,7 +46,7 @@ fn anonymous_gltf(dir: &Path) -> std::path::PathBuf {
 fn config() -> TrainConfig {
     let mut c = TrainConfig::cpu();
     let m: &mut ModelConfig = &mut c.model;
-    m.template = f3g_avatar::config::TemplateChoice::Body;
+    m.template = f3g_avatar::model::TemplateChoice::Body;
     m.map_resolution = 32;
     m.body_net.input_size = 16;
     m.body_net.output_size = 32;
@@ -145,14 +144,61 @@ fn a_gltf_body_model_through_its_role_map_and_a_run_that_needs_nothing_else() {
     assert!(!glb.exists());
     assert_eq!(render(&moved), before);
 
-    // Without its stored setup, the run would need the body model, and says so.
-    std::fs::remove_file(moved.join(f3g_avatar::setup_file::TABLES)).unwrap();
+    // Without its stored setup, the run would need the body model: it says to retrain.
+    std::fs::remove_file(moved.join("setup.npz")).unwrap();
     let e = TrainedAvatar::load(&moved, &Device::flex())
         .err()
         .unwrap()
         .to_string();
     assert!(
-        e.contains("keeps no setup") && e.contains("--resume"),
+        e.contains(&moved.display().to_string())
+            && e.contains("stored setup")
+            && e.contains("retrain"),
         "{e}"
     );
+}
+
+/// `run.json` of the run in `dir` with its `format` set to `format` (removed for `None`, as
+/// f3g wrote it before runs had a format).
+fn set_format(dir: &Path, format: Option<u64>) {
+    let path = dir.join("run.json");
+    let mut info: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    let fields = info.as_object_mut().unwrap();
+    match format {
+        Some(f) => fields.insert("format".into(), f.into()),
+        None => fields.remove("format"),
+    };
+    std::fs::write(&path, serde_json::to_string(&info).unwrap()).unwrap();
+}
+
+#[test]
+fn a_run_folder_of_another_format_is_refused_naming_it_and_what_to_do() {
+    let runs = tempfile::tempdir().unwrap();
+    let run = runs.path().join("old-run");
+    make_run(&run, "builtin", &config());
+    let written: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(written["format"], RUN_FORMAT);
+    TrainedAvatar::load(&run, &Device::flex()).unwrap();
+
+    let folder = run.display().to_string();
+    for (format, says) in [
+        (None, "retrain"),
+        (Some(0), "retrain"),
+        (Some(RUN_FORMAT + 1), "newer"),
+    ] {
+        set_format(&run, format);
+        let e = TrainedAvatar::load(&run, &Device::flex())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains(&folder) && e.contains(says), "{format:?}: {e}");
+        // Resuming refuses it the same way, before it would look for the capture.
+        let e = Trainer::resume(&run, None, &[Device::flex()])
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains(&folder) && e.contains(says), "{format:?}: {e}");
+    }
 }

@@ -7,9 +7,9 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::{Device, Tensor};
-use f3g_avatar::eval::{EvalOptions, evaluate};
-use f3g_avatar::trained::TrainedAvatar;
-use f3g_avatar::{Outcome, TrainConfig, Trainer};
+use f3g_avatar::infer::TrainedAvatar;
+use f3g_avatar::infer::eval::{EvalOptions, evaluate};
+use f3g_avatar::train::{Outcome, TrainConfig, Trainer};
 use f3g_data::split::SplitKind;
 use f3g_data::synth::{SynthOptions, generate};
 use f3g_nets::LpipsNet;
@@ -56,7 +56,7 @@ fn tiny(steps: [u64; 5]) -> TrainConfig {
     config.discriminator.channel_base = 128;
     config.losses.r1_interval = 2;
     let [pretrain, body, face_pretrain, joint, face_finetune] = steps;
-    config.steps = f3g_avatar::config::Stages {
+    config.steps = f3g_avatar::train::Stages {
         pretrain,
         body,
         face_pretrain,
@@ -641,7 +641,7 @@ fn render_cloud(cloud: &f3g_splat::GaussianCloud, camera: &f3g_splat::Camera) ->
 
 #[test]
 fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
-    use f3g_avatar::export::{ExportOptions, Up, export_cloud};
+    use f3g_avatar::infer::export::{ExportOptions, Up, export_cloud};
     let dir = tempfile::tempdir().unwrap();
     let cap = dir.path().join("cap");
     capture(&cap);
@@ -692,14 +692,14 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
 
 #[test]
 fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks() {
-    use f3g_avatar::avatar_file;
-    use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+    use f3g_avatar::infer::avatar_file;
+    use f3g_avatar::infer::bake::{BakeOptions, BakedAvatar};
     let dir = tempfile::tempdir().unwrap();
     let cap = dir.path().join("cap");
     capture(&cap);
     let run = dir.path().join("run");
     train_to_end(&run, &cap, tiny([10, 10, 2, 6, 2]));
-    let avatar = f3g_avatar::trained::TrainedAvatar::load(&run, &Device::flex()).unwrap();
+    let avatar = f3g_avatar::infer::TrainedAvatar::load(&run, &Device::flex()).unwrap();
     // The run keeps its training poses.
     let poses = avatar.training_poses().unwrap();
     assert_eq!(poses.len(), avatar.info.train_frames.len());

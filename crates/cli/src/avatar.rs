@@ -7,14 +7,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use f3g_avatar::animate::{AnimateOptions, CameraPath};
-use f3g_avatar::eval::EvalOptions;
+use f3g_avatar::infer::animate::{AnimateOptions, CameraPath};
+use f3g_avatar::infer::eval::EvalOptions;
 
 use crate::device::{DeviceArg, DeviceSpec};
-use f3g_avatar::export::{ExportOptions, Up, export_cloud};
-use f3g_avatar::train::AllReduce;
-use f3g_avatar::trained::TrainedAvatar;
-use f3g_avatar::{Outcome, StepReport, TrainConfig, Trainer};
+use f3g_avatar::infer::TrainedAvatar;
+use f3g_avatar::infer::export::{ExportOptions, Up, export_cloud};
+use f3g_avatar::train::{AllReduce, Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
 use f3g_nets::LpipsNet;
 
@@ -207,16 +206,16 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
             }
         );
     }
-    let run_dir = trainer.run.dir.clone();
+    let run_dir = trainer.run_dir().to_path_buf();
     let total = trainer.total_steps();
     println!(
         "training {} ({} body + {} face Gaussians, preset {}) on {} cameras × {} frames; {} of {} steps done",
         run_dir.display(),
-        trainer.setup.body_count(),
-        trainer.setup.face_count(),
-        trainer.config.preset,
-        trainer.split.cameras.len(),
-        trainer.split.frames.len(),
+        trainer.setup().body_count(),
+        trainer.setup().face_count(),
+        trainer.config().preset,
+        trainer.split().cameras.len(),
+        trainer.split().frames.len(),
         trainer.step(),
         total
     );
@@ -279,7 +278,7 @@ pub struct EvalArgs {
     pub scale: Option<f32>,
     /// Side of the head crops, 32–2048, cut from the full-resolution images (default 256,
     /// the paper's face resolution, whatever the training crops were).
-    #[arg(long, default_value_t = f3g_avatar::eval::DEFAULT_FACE_SIZE, value_parser = crate::bounds::size::<32, 2048>)]
+    #[arg(long, default_value_t = f3g_avatar::infer::eval::DEFAULT_FACE_SIZE, value_parser = crate::bounds::size::<32, 2048>)]
     pub face_size: usize,
     /// Side the body's LPIPS square is resized to, 32–2048 (512: the paper's protocol).
     #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<32, 2048>)]
@@ -294,10 +293,10 @@ pub struct EvalArgs {
     pub device: DeviceArg,
 }
 
-pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
+pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::infer::eval::EvalReport> {
     // A baked avatar file, or a run folder.
     let baked = if a.run.extension().is_some_and(|e| e == "glb") {
-        Some(f3g_avatar::avatar_file::read(&a.run)?)
+        Some(f3g_avatar::infer::avatar_file::read(&a.run)?)
     } else {
         None
     };
@@ -316,8 +315,8 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
                 .unwrap_or_else(|| a.run.with_extension("eval").join(a.split.to_string())),
         ),
         None => {
-            let config = f3g_avatar::run::Run::new(&a.run).config()?;
-            let info = f3g_avatar::run::Run::new(&a.run).info()?;
+            let config = f3g_avatar::infer::Run::new(&a.run).config()?;
+            let info = f3g_avatar::infer::Run::new(&a.run).info()?;
             (
                 a.data.clone().unwrap_or(info.data),
                 a.scale.unwrap_or(config.body_scale),
@@ -362,7 +361,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         bar.set_position(i as u64);
     };
     let report = match &baked {
-        Some(b) => f3g_avatar::eval::evaluate_avatar(
+        Some(b) => f3g_avatar::infer::eval::evaluate_avatar(
             b,
             &a.run,
             &data,
@@ -374,7 +373,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
         )?,
         None => {
             let avatar = TrainedAvatar::load(&a.run, &device)?;
-            f3g_avatar::eval::evaluate_avatar(
+            f3g_avatar::infer::eval::evaluate_avatar(
                 &avatar,
                 &a.run,
                 &data,
@@ -389,7 +388,7 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::eval::EvalReport> {
     bar.finish_and_clear();
     print!(
         "{}",
-        f3g_avatar::eval::markdown(&report)
+        f3g_avatar::infer::eval::markdown(&report)
             .lines()
             .take(7)
             .collect::<Vec<_>>()
@@ -445,15 +444,15 @@ pub struct AnimateArgs {
     pub device: DeviceArg,
 }
 
-pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
+pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateReport> {
     // A baked avatar file renders with f3g's renderer; a run with its networks.
-    let avatar: Box<dyn f3g_avatar::eval::EvalAvatar> =
+    let avatar: Box<dyn f3g_avatar::infer::eval::EvalAvatar> =
         if a.run.extension().is_some_and(|e| e == "glb") {
-            Box::new(f3g_avatar::avatar_file::read(&a.run)?)
+            Box::new(f3g_avatar::infer::avatar_file::read(&a.run)?)
         } else {
             Box::new(TrainedAvatar::load(&a.run, &a.device.open()?)?)
         };
-    let motion = f3g_avatar::animate::read_motion(
+    let motion = f3g_avatar::infer::animate::read_motion(
         &a.motion,
         avatar.rig(),
         avatar.subject(),
@@ -494,9 +493,10 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::animate::AnimateReport> {
     let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",
     )?);
-    let report = f3g_avatar::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
-        bar.set_position(i as u64)
-    })?;
+    let report =
+        f3g_avatar::infer::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
+            bar.set_position(i as u64)
+        })?;
     bar.finish_and_clear();
     println!(
         "wrote {} frames ({:.2} s per frame) and {}{}",
@@ -559,7 +559,7 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
     let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let (params, use_pca) = match &a.motion {
         Some(m) => {
-            let motion = f3g_avatar::animate::read_motion(
+            let motion = f3g_avatar::infer::animate::read_motion(
                 m,
                 &avatar.setup.rig,
                 &avatar.setup.template.canonical,
@@ -663,7 +663,7 @@ pub struct ExportAvatarArgs {
 }
 
 pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
-    use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+    use f3g_avatar::infer::bake::{BakeOptions, BakedAvatar};
     let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let poses = avatar.training_poses()?;
     let options = BakeOptions {
@@ -677,7 +677,7 @@ pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
         ..BakeOptions::default()
     };
     let (baked, report) = BakedAvatar::bake(&avatar, &poses, &options)?;
-    let bytes = f3g_avatar::avatar_file::write(&baked, &a.out)?;
+    let bytes = f3g_avatar::infer::avatar_file::write(&baked, &a.out)?;
     println!(
         "wrote {} ({:.1} MB, {} bytes per Gaussian): {} Gaussians, {} correctives explaining {:.1} % \
          of the pose variation ({} poses; weights predicted from {} pose features to {:.1} % RMS), \

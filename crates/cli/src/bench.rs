@@ -65,11 +65,11 @@ pub struct LbsBenchArgs {
 
 /// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms, host),
 /// the per-Gaussian blended transforms with their nearest rotations and quaternions
-/// ([`f3g_avatar::posing::Skinning`], on `--device`, from the uploaded joint transforms) and
-/// [`f3g_avatar::posing::pose_gaussians`] (the tensor LBS of means and rotations), each until the
+/// ([`f3g_avatar::model::posing::Skinning`], on `--device`, from the uploaded joint transforms) and
+/// [`f3g_avatar::model::posing::pose_gaussians`] (the tensor LBS of means and rotations), each until the
 /// device is done.
 pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
-    use f3g_avatar::posing::{Skinning, Taps, affine_tensor, pose_gaussians};
+    use f3g_avatar::model::posing::{Skinning, Taps, affine_tensor, pose_gaussians};
     ensure!(args.repeats > 0, "--repeats must be at least 1");
     f3g_io::memory::ensure_available(
         args.points as u64 * LBS_BYTES_PER_GAUSSIAN,

@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use f3g_avatar::eval::{EvalReport, Scores};
+use f3g_avatar::infer::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
 
 use crate::avatar::{AnimateArgs, ConfigArgs, EvalArgs, TrainArgs, animate, eval, train};
@@ -145,7 +145,7 @@ pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize, device: Devi
         frames: None,
         every,
         scale: None,
-        face_size: f3g_avatar::eval::DEFAULT_FACE_SIZE,
+        face_size: f3g_avatar::infer::eval::DEFAULT_FACE_SIZE,
         lpips_size: 512,
         lpips: None,
         out: None,

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use f3g_avatar::eval::{EvalReport, Scores};
+use f3g_avatar::infer::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
 use serde::Serialize;
 
@@ -172,7 +172,7 @@ struct VariantResult {
 /// (of the body stage when there is no joint stage), so checkpoint and validation pauses do
 /// not count.
 fn ms_per_step(run: &Path) -> Result<f64> {
-    let path = f3g_avatar::run::Run::new(run).log_path();
+    let path = f3g_avatar::infer::Run::new(run).log_path();
     let text =
         std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
     let lines: Vec<(String, f64)> = text
@@ -201,11 +201,11 @@ fn evaluation(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> 
         .join("eval")
         .join(split.to_string())
         .join("metrics.json");
-    let total = f3g_avatar::run::Run::new(run).config()?.steps.total();
+    let total = f3g_avatar::infer::Run::new(run).config()?.steps.total();
     if let Ok(text) = std::fs::read_to_string(&metrics)
         && let Ok(report) = serde_json::from_str::<EvalReport>(&text)
         && report.step == total
-        && report.face_size == f3g_avatar::eval::DEFAULT_FACE_SIZE
+        && report.face_size == f3g_avatar::infer::eval::DEFAULT_FACE_SIZE
     {
         println!("reusing {}", metrics.display());
         return Ok(report);
@@ -359,7 +359,9 @@ mod tests {
     fn every_capacity_variant_changes_the_face_networks() {
         let parameters = |v: Variant| {
             let set: Vec<String> = v.overrides().iter().map(|s| s.to_string()).collect();
-            let config = f3g_avatar::TrainConfig::cpu().with_overrides(&set).unwrap();
+            let config = f3g_avatar::train::TrainConfig::cpu()
+                .with_overrides(&set)
+                .unwrap();
             let net = config.model.face_nets()[0]
                 .init(0, &burn::tensor::Device::flex())
                 .unwrap();

@@ -6,7 +6,7 @@
 //! run's steady state, without JPEG decoding and resampling on the loader's thread);
 //! `--warmup` steps of the chosen stage compile kernels and build the face model, then
 //! `--steps` steps are timed with the device synchronised at every phase boundary
-//! (`f3g_avatar::train::profile`). Nothing of the run is kept. On a GPU it
+//! (`f3g_avatar::train::PhaseTimer`). Nothing of the run is kept. On a GPU it
 //! also counts the distinct kernels the warm-up launched (CubeCL's `LaunchedKernels`): in a
 //! fresh process, what its first steps compile — autotune's candidates included.
 
@@ -15,9 +15,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use f3g_avatar::Trainer;
-use f3g_avatar::train::Stage;
-use f3g_avatar::train::profile::{PHASE_MEANINGS, PHASES, PhaseTimer, PhaseTimes};
+use f3g_avatar::train::{Phase, PhaseTimer, PhaseTimes, Stage, Trainer};
 use f3g_data::synth::{SynthOptions, generate};
 use serde::Serialize;
 
@@ -140,8 +138,8 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         a.warmup,
         Stage::from(a.stage),
         a.device,
-        trainer.setup.body_count(),
-        trainer.setup.face_count()
+        trainer.setup().body_count(),
+        trainer.setup().face_count()
     );
     let stage = Stage::from(a.stage);
     // The timed steps replay the warm-up's samples: every one of their images decoded now,
@@ -175,12 +173,12 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         peak_mib,
         warmup_ms,
         warmup_kernels,
-        body_gaussians: trainer.setup.body_count(),
-        face_gaussians: trainer.setup.face_count(),
+        body_gaussians: trainer.setup().body_count(),
+        face_gaussians: trainer.setup().face_count(),
     };
     println!("{:<14} {:>10}  what", "phase", "ms/step");
-    for ((name, ms), meaning) in result.phases.phases.iter().zip(PHASE_MEANINGS) {
-        println!("{name:<14} {ms:>10.1}  {meaning}");
+    for (phase, ms) in &result.phases.phases {
+        println!("{phase:<14} {ms:>10.1}  {}", phase.meaning());
     }
     let phase_sum: f64 = result.phases.phases.iter().map(|p| p.1).sum();
     println!(
@@ -200,7 +198,7 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         ),
         None => println!("warm-up: {} steps in {:.1} s", a.warmup, warmup_ms / 1e3),
     }
-    debug_assert_eq!(PHASES.len(), result.phases.phases.len());
+    debug_assert_eq!(Phase::ALL.len(), result.phases.phases.len());
     if let Some(path) = &a.json {
         f3g_io::write_atomic(path, serde_json::to_string_pretty(&result)?.as_bytes())?;
     }

@@ -18,7 +18,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use f3g_avatar::bake::{BakeOptions, BakedAvatar};
+use f3g_avatar::infer::bake::{BakeOptions, BakedAvatar};
 use f3g_rig::RigParams;
 use glam::Mat4;
 
@@ -113,17 +113,17 @@ fn avatar_of(
 ) -> Result<(
     BakedAvatar,
     Vec<u8>,
-    Option<f3g_avatar::trained::TrainedAvatar>,
+    Option<f3g_avatar::infer::TrainedAvatar>,
 )> {
     if a.source.is_file() {
         let bytes = std::fs::read(&a.source).with_context(|| a.source.display().to_string())?;
-        let avatar = f3g_avatar::avatar_file::from_bytes(&bytes)
+        let avatar = f3g_avatar::infer::avatar_file::from_bytes(&bytes)
             .map_err(|e| anyhow::anyhow!("{}: {e}", a.source.display()))?;
         return Ok((avatar, bytes, None));
     }
-    let trained = f3g_avatar::trained::TrainedAvatar::load(&a.source, &a.device.open()?)?;
+    let trained = f3g_avatar::infer::TrainedAvatar::load(&a.source, &a.device.open()?)?;
     let cached = a.source.join(format!("avatar-k{}.glb", a.correctives));
-    let checkpoint = f3g_avatar::run::Run::new(&a.source).latest()?;
+    let checkpoint = f3g_avatar::infer::Run::new(&a.source).latest()?;
     let fresh = match (std::fs::metadata(&cached), checkpoint) {
         (Ok(file), Some(c)) => std::fs::metadata(c.join("state.json"))
             .and_then(|s| Ok(file.modified()? >= s.modified()?))
@@ -141,10 +141,10 @@ fn avatar_of(
             ..BakeOptions::default()
         };
         let (baked, _) = BakedAvatar::bake(&trained, &trained.training_poses()?, &options)?;
-        f3g_avatar::avatar_file::write(&baked, &cached)?;
+        f3g_avatar::infer::avatar_file::write(&baked, &cached)?;
     }
     let bytes = std::fs::read(&cached).with_context(|| cached.display().to_string())?;
-    let avatar = f3g_avatar::avatar_file::from_bytes(&bytes)
+    let avatar = f3g_avatar::infer::avatar_file::from_bytes(&bytes)
         .map_err(|e| anyhow::anyhow!("{}: {e}", cached.display()))?;
     Ok((avatar, bytes, Some(trained)))
 }
@@ -182,7 +182,7 @@ fn files(a: &ViewArgs) -> Result<BTreeMap<String, Vec<u8>>> {
     let (avatar, glb, trained) = avatar_of(a)?;
     let mut motions: Vec<(String, Vec<RigParams>)> = Vec::new();
     for path in &a.motion {
-        let motion = f3g_avatar::animate::read_motion(
+        let motion = f3g_avatar::infer::animate::read_motion(
             path,
             &avatar.rig,
             &avatar.canonical,

@@ -11,7 +11,7 @@ use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{losses, ok};
-use f3g_avatar::trained::TrainedAvatar;
+use f3g_avatar::infer::TrainedAvatar;
 
 mod common;
 

@@ -6,10 +6,10 @@
 use burn::module::Module;
 use burn::tensor::Device;
 
+use super::config::TrainConfig;
 use crate::AvatarError;
-use crate::config::TrainConfig;
+use crate::model::Setup;
 use crate::model::{AvatarNets, BodyNets, Constants, FaceBase, body_attributes_host, body_outputs};
-use crate::setup::Setup;
 use f3g_data::Dataset;
 use f3g_data::split::Split;
 

@@ -14,11 +14,11 @@ use burn::module::Module;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use super::profile::{PhaseTimer, mark};
+use super::config::TrainConfig;
+use super::profile::{Phase, PhaseTimer, mark};
 use super::sample::{DeviceSample, DeviceView};
 use crate::AvatarError;
-use crate::config::TrainConfig;
-use crate::inputs::NetInputs;
+use crate::model::NetInputs;
 use crate::model::{Canonical, Constants, nchw, render_posed};
 use f3g_data::imgops::CentredSquare;
 use f3g_nets::discriminator::generator_loss;
@@ -53,7 +53,7 @@ impl Losses<'_> {
         let col = |a: usize, b: usize| raw.clone().slice([0..n, a..b]);
         let offsets = col(0, 3).abs().mean() + col(3, 6).abs().mean();
         let o0 = self.config.model.initial_opacity;
-        let opacity = (sigmoid(col(6, 7) + crate::setup::logit(o0)) - o0)
+        let opacity = (sigmoid(col(6, 7) + crate::model::logit(o0)) - o0)
             .abs()
             .mean();
         let (base, base_quats) = self.constants.initial_body();
@@ -77,7 +77,7 @@ impl Losses<'_> {
         let w = &self.config.losses;
         let view = &sample.body;
         let pred = self.render_view(c, inputs, view, sample.background)?;
-        mark(self.timer, "render")?;
+        mark(self.timer, Phase::Render)?;
         let gt = view.image.clone();
         terms.push(("l1".into(), l1_loss(pred.clone(), gt.clone()) * w.l1));
         if w.lpips > 0.0
@@ -88,7 +88,7 @@ impl Losses<'_> {
             let crop = |t: Tensor<4>| resize(square_crop(t, square, bg), size, size);
             let d = self.lpips.forward(crop(pred), crop(gt))?.mean();
             terms.push(("lpips".into(), d * w.lpips));
-            mark(self.timer, "lpips")?;
+            mark(self.timer, Phase::Lpips)?;
         }
         let mut offset = offset_norm(c.body_offsets.clone());
         if let Some(f) = &c.face_offsets {
@@ -112,7 +112,7 @@ impl Losses<'_> {
         };
         let w = &self.config.losses;
         let pred = self.render_view(c, inputs, view, sample.background)?;
-        mark(self.timer, "render")?;
+        mark(self.timer, Phase::Render)?;
         let gt = view.image.clone();
         terms.push((
             "face_l1".into(),
@@ -121,13 +121,13 @@ impl Losses<'_> {
         if w.face_lpips > 0.0 {
             let d = self.lpips.forward(pred.clone(), gt)?.mean();
             terms.push(("face_lpips".into(), d * w.face_lpips));
-            mark(self.timer, "lpips")?;
+            mark(self.timer, Phase::Lpips)?;
         }
         if let Some(d) = self.disc {
             let frozen = d.clone().no_grad();
             let g = generator_loss(frozen.forward(pred.clone())?);
             terms.push(("adversarial".into(), g * w.adversarial));
-            mark(self.timer, "adversarial")?;
+            mark(self.timer, Phase::Adversarial)?;
         }
         Ok(Some(pred.detach()))
     }

@@ -1,12 +1,18 @@
-//! Region-aware training (paper §3.5, Animatable Gaussians' schedule).
+//! Region-aware training (paper §3.5, Animatable Gaussians' schedule): the training
+//! configuration, the run folder's writing side and the loop. Training may import
+//! `crate::model` and `crate::infer` (the run folder's readers, report images); they never
+//! import it.
 //!
-//! The method, one module each: [`schedule`] (stages and learning rates), [`losses`] (body,
-//! face, adversarial, offset), [`face_model`] (the canonical face model built from the body
-//! branch), [`step`] (one step on one device: gradients, then a separate apply, so that
+//! The method, one module each: `schedule.rs` (stages and learning rates), `losses.rs` (body,
+//! face, adversarial, offset), `face_model.rs` (the canonical face model built from the body
+//! branch), `step.rs` (one step on one device: gradients, then a separate apply, so that
 //! data-parallel replicas can average their gradients between the two). Around them:
-//! `restore.rs` (networks, optimisers and replicas from a checkpoint), `parallel.rs` (one
-//! data-parallel step), `validation.rs` (the validation grids), [`pca`] (the pose PCA's fit).
-//! This module is the loop: it owns the run folder, the loader, the log and checkpoints.
+//! `config/` ([`TrainConfig`]: presets, JSON files, overrides, validation), `run.rs` (the run
+//! folder's config, provenance with its format version, checkpoints, PCA), `restore.rs`
+//! (networks, optimisers and replicas from a checkpoint), `parallel.rs` (one data-parallel
+//! step), `validation.rs` (the validation grids), `pca.rs` (the pose PCA's fit), `profile.rs`
+//! (`f3g bench train`'s phase timer and hooks). This module is the loop: it owns the run
+//! folder, the loader, the log and checkpoints.
 //!
 //! `log.jsonl` is the one file of a run written in place: one JSON line is appended per step
 //! (a kill can leave a partial last line, which readers skip), and a resumed run first
@@ -18,7 +24,7 @@
 //! device), step `s` draws samples `s·R … s·R + R − 1`, one per replica, and applies the mean
 //! of their gradients: one replica is the single-device run.
 //!
-//! Stages (see [`schedule::Stage`]):
+//! Stages (see [`Stage`]):
 //!
 //! 1. **pretrain** — the body network reconstructs the canonical attributes (zero offsets,
 //!    grey colour, opacity 0.1, the initial scales, identity rotations); Adam's state is reset
@@ -32,15 +38,17 @@
 //!    alternately (with lazy R1).
 //! 5. **face_finetune** — the face losses train the face networks only.
 
-pub mod face_model;
-pub mod losses;
+mod config;
+mod face_model;
+mod losses;
 mod parallel;
-pub mod pca;
-pub mod profile;
+mod pca;
+mod profile;
 mod restore;
-pub mod sample;
-pub mod schedule;
-pub mod step;
+mod run;
+mod sample;
+mod schedule;
+mod step;
 mod validation;
 
 use std::io::Write;
@@ -53,20 +61,22 @@ use burn::tensor::Device;
 use serde::Serialize;
 
 use crate::AvatarError;
-use crate::config::TrainConfig;
-use crate::model::{AvatarNets, FaceBase};
-use crate::report;
-use crate::run::{Run, RunInfo, TrainState, load_face_base, read_state};
-use crate::setup::Setup;
+use crate::infer::report;
+use crate::infer::{Run, RunInfo, TrainState, evenly, load_face_base, read_state};
+use crate::model::{AvatarNets, FaceBase, Setup};
 use f3g_data::Dataset;
 use f3g_data::loader::{ImageCache, Loader, LoaderOptions};
 use f3g_data::split::{Protocol, Split, SplitKind, preset};
 use f3g_rig::ModelSpec;
-use profile::PhaseTimer;
 use sample::DeviceSample;
-pub use schedule::{Schedule, Stage};
-pub use step::AllReduce;
 use step::Replica;
+
+pub use config::{LossWeights, Stages, TrainConfig};
+pub use profile::{Phase, PhaseTimer, PhaseTimes};
+pub use run::load_optim;
+use schedule::Schedule;
+pub use schedule::Stage;
+pub use step::AllReduce;
 
 /// What one step did.
 #[derive(Clone, Debug, Serialize)]
@@ -92,7 +102,7 @@ pub enum Outcome {
 }
 
 /// The training split of a capture: the protocol's preset unless lists are given.
-pub fn training_split(
+fn training_split(
     ds: &Dataset,
     cameras: Option<&[usize]>,
     frames: Option<&[usize]>,
@@ -111,12 +121,12 @@ pub fn training_split(
 
 /// A training run in memory.
 pub struct Trainer {
-    pub config: TrainConfig,
-    pub run: Run,
+    config: TrainConfig,
+    run: Run,
     /// Shared with the loader's worker, which poses each sample's frame.
-    pub setup: Arc<Setup>,
-    pub dataset: Arc<Dataset>,
-    pub split: Split,
+    setup: Arc<Setup>,
+    dataset: Arc<Dataset>,
+    split: Split,
     schedule: Schedule,
     /// One per device; the first one's state is what checkpoints, validation and the
     /// accessors show (every replica holds the same weights).
@@ -147,7 +157,7 @@ impl Trainer {
     ) -> Result<Self, AvatarError> {
         config.validate()?;
         let run = Run::new(run_dir);
-        if run.dir.join("config.json").exists() {
+        if run.config_path().exists() {
             return Err(AvatarError::file(
                 run_dir,
                 "already holds a run: resume it with --resume, or choose another --out",
@@ -176,7 +186,7 @@ impl Trainer {
         })?;
         // What inference needs of the body model stays with the run, and so do the training
         // poses (baking samples them; a player can play them).
-        setup.write(&run.dir)?;
+        setup.write(run.dir())?;
         f3g_rig::sequence::write(&run.poses_path(), &setup.rig, &train_params)?;
         let pca_frames: Vec<_> = evenly(&train_params, 300);
         if pca_frames.len() >= 2 {
@@ -226,22 +236,8 @@ impl Trainer {
             cameras: info.train_cameras.clone(),
             frames: info.train_frames.clone(),
         };
-        // The stored setup; a run made before runs kept it gets it now.
-        let setup = if Setup::stored_in(&run.dir) {
-            Setup::read(&run.dir, &config.model)?
-        } else {
-            let setup = Setup::new(&dataset.model, &info.identity, &config.model)?;
-            setup.write(&run.dir)?;
-            setup
-        };
-        if !run.poses_path().exists() {
-            let poses: Vec<_> = split
-                .frames
-                .iter()
-                .map(|&f| dataset.params[f].clone())
-                .collect();
-            f3g_rig::sequence::write(&run.poses_path(), &setup.rig, &poses)?;
-        }
+        // Runs of this format keep their setup; `info` refused any other format.
+        let setup = Setup::read(run.dir(), &config.model)?;
         let checkpoint = run.latest()?;
         let state = match &checkpoint {
             Some(c) => read_state(c)?,
@@ -271,6 +267,26 @@ impl Trainer {
         self.all_reduce = how;
     }
 
+    /// The run's configuration.
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// The run folder.
+    pub fn run_dir(&self) -> &Path {
+        self.run.dir()
+    }
+
+    /// The run's setup (template, maps, Gaussian counts).
+    pub fn setup(&self) -> &Setup {
+        &self.setup
+    }
+
+    /// The training split: cameras and frames.
+    pub fn split(&self) -> &Split {
+        &self.split
+    }
+
     /// The next step to run.
     pub fn step(&self) -> u64 {
         self.state.step
@@ -281,11 +297,6 @@ impl Trainer {
         self.schedule.total()
     }
 
-    /// The stages and learning rates.
-    pub fn schedule(&self) -> &Schedule {
-        &self.schedule
-    }
-
     /// The networks (for tests and evaluation).
     pub fn nets(&self) -> &AvatarNets {
         &self.replicas[0].nets
@@ -294,10 +305,6 @@ impl Trainer {
     /// The networks of every replica (data-parallel tests check they stay equal).
     pub fn replica_nets(&self) -> impl Iterator<Item = &AvatarNets> {
         self.replicas.iter().map(|r| &r.nets)
-    }
-
-    pub fn face_base(&self) -> Option<&FaceBase> {
-        self.face_base.as_ref()
     }
 
     /// The loader options of this run (`replicas · batch` samples per step).
@@ -412,7 +419,7 @@ impl Trainer {
             let done = self.state.step == total;
             if self.state.step.is_multiple_of(self.config.validate_every) || done {
                 self.validate()?;
-                report::loss_curve(&self.run.log_path(), &self.run.dir.join("loss.png"))?;
+                report::loss_curve(&self.run.log_path(), &self.run.dir().join("loss.png"))?;
             }
             let stopping = stop.load(Ordering::Relaxed);
             if self.state.step.is_multiple_of(self.config.checkpoint_every) || done || stopping {
@@ -426,7 +433,7 @@ impl Trainer {
     }
 
     /// Writes a checkpoint of the current state (the first replica's; all are equal).
-    pub fn checkpoint(&mut self) -> Result<PathBuf, AvatarError> {
+    fn checkpoint(&mut self) -> Result<PathBuf, AvatarError> {
         let r = &self.replicas[0];
         let dir = self.run.write_checkpoint(
             &self.state,
@@ -438,60 +445,6 @@ impl Trainer {
         )?;
         self.last_checkpoint = Some(dir.clone());
         Ok(dir)
-    }
-
-    /// Runs `warmup + steps` steps of `stage` (cycling through its steps) and writes nothing:
-    /// `timer` holds the phases of the last `steps` steps afterwards. For `f3g bench train`:
-    /// the trainer is left mid-run and must not be checkpointed or trained further.
-    pub fn bench(
-        &mut self,
-        stage: Stage,
-        warmup: u64,
-        steps: u64,
-        timer: &PhaseTimer,
-    ) -> Result<Vec<StepReport>, AvatarError> {
-        let (first, len) = self.stage_steps(stage)?;
-        let per_step = (self.replicas.len() * self.config.batch) as u64;
-        let mut loader = self.loader(first * per_step)?;
-        let mut reports = Vec::new();
-        for i in 0..warmup + steps {
-            if i == warmup {
-                timer.take(1);
-            }
-            timer.restart()?;
-            let s = first + i % len;
-            let samples = next_samples(&mut loader, per_step)?;
-            timer.mark("data")?;
-            let report = self.run_step(s, &samples, Some(timer))?;
-            if i >= warmup {
-                reports.push(report);
-            }
-        }
-        Ok(reports)
-    }
-
-    /// Decodes the images of the first `steps` steps of `stage` into the loaders' cache, as
-    /// [`Trainer::bench`] will draw them: a run's loader holds every training view once its
-    /// cache is warm, so a bench that times steps without decoding times a run's steady state.
-    pub fn decode_ahead(&mut self, stage: Stage, steps: u64) -> Result<(), AvatarError> {
-        let (first, _) = self.stage_steps(stage)?;
-        let per_step = (self.replicas.len() * self.config.batch) as u64;
-        let mut loader = self.loader(first * per_step)?;
-        next_samples(&mut loader, steps * per_step).map(|_| ())
-    }
-
-    /// The first step of `stage` and how many steps it has.
-    fn stage_steps(&self, stage: Stage) -> Result<(u64, u64), AvatarError> {
-        let in_stage: Vec<u64> = (0..self.total_steps())
-            .filter(|&s| self.schedule.stage(s) == stage)
-            .collect();
-        match in_stage.first() {
-            Some(&first) => Ok((first, in_stage.len() as u64)),
-            None => Err(AvatarError::config(
-                "steps",
-                format!("the configuration has no {stage:?} steps to time"),
-            )),
-        }
     }
 
     /// Keeps only the log lines of steps before the current one (after a resume).
@@ -516,7 +469,7 @@ impl Trainer {
 }
 
 /// The next `count` samples of `loader`.
-fn next_samples(
+pub(super) fn next_samples(
     loader: &mut Loader<Result<DeviceSample, AvatarError>>,
     count: u64,
 ) -> Result<Vec<DeviceSample>, AvatarError> {
@@ -529,12 +482,4 @@ fn first_device(devices: &[Device]) -> Result<Device, AvatarError> {
         .first()
         .cloned()
         .ok_or_else(|| AvatarError::Invalid("training needs at least one device".into()))
-}
-
-/// `n` items spread evenly over `items` (all of them when there are fewer).
-fn evenly<T: Clone>(items: &[T], n: usize) -> Vec<T> {
-    if items.len() <= n {
-        return items.to_vec();
-    }
-    (0..n).map(|i| items[i * items.len() / n].clone()).collect()
 }

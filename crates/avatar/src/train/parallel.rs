@@ -4,7 +4,7 @@
 
 use burn::tensor::{Device, Tensor};
 
-use super::profile::{PhaseTimer, mark};
+use super::profile::{Phase, PhaseTimer, mark};
 use super::sample::DeviceSample;
 use super::schedule::Stage;
 use super::step::{SampleGradients, StepContext, adam, add_values, sum_gradients};
@@ -63,12 +63,12 @@ impl Trainer {
         for ((r, b), f) in self.replicas.iter_mut().zip(body).zip(face) {
             r.apply(stage, lr, b, f);
         }
-        mark(timer, "optimiser")?;
+        mark(timer, Phase::Optimiser)?;
         let total = values.iter().map(|v| v.1).sum();
         if let Some(d_loss) = self.discriminator_step(s, fakes, samples)? {
             values.push(("discriminator".into(), d_loss));
         }
-        mark(timer, "discriminator")?;
+        mark(timer, Phase::Discriminator)?;
         Ok(StepReport {
             step: s,
             stage,

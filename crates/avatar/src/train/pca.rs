@@ -1,12 +1,12 @@
 //! The pose PCA of a run: fitted once, when the run is created, on the networks' posed body
 //! maps of up to 300 training frames; inference projects unseen poses onto it
-//! ([`crate::inputs::PcaTensors`]).
+//! ([`crate::model::PcaTensors`]).
 
 use burn::tensor::Device;
 
 use crate::AvatarError;
-use crate::inputs::GaussianTables;
-use crate::setup::Setup;
+use crate::model::GaussianTables;
+use crate::model::Setup;
 use f3g_template::PosePca;
 
 /// Fits the pose PCA on the networks' posed body maps of `frames` (root-relative, computed on

@@ -1,4 +1,5 @@
-//! Where a training step's time goes (`f3g bench train`).
+//! What `f3g bench train` uses: the phase timer, and the trainer's hooks that run steps of a
+//! stage without writing anything.
 //!
 //! GPU work runs asynchronously, so a phase's time is only meaningful when the device has
 //! finished it: [`PhaseTimer::mark`] waits for the device, then charges the time since the
@@ -6,59 +7,116 @@
 //! synchronisation. The backward pass is one phase: it runs through networks, splatting and
 //! LPIPS together.
 
+use std::fmt;
 use std::sync::Mutex;
 use std::time::Instant;
 
 use burn::tensor::Device;
 use serde::Serialize;
 
+use super::schedule::Stage;
+use super::{StepReport, Trainer, next_samples};
 use crate::AvatarError;
 
-/// The phases of a step, in the order they run.
-pub const PHASES: [&str; 10] = [
-    "data",
-    "inputs",
-    "networks",
-    "render",
-    "lpips",
-    "adversarial",
-    "readback",
-    "backward",
-    "optimiser",
-    "discriminator",
-];
+/// The phases of a step, in the order they run (a phase is a type, so a misspelt one does
+/// not compile).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Phase {
+    Data,
+    Inputs,
+    Networks,
+    Render,
+    Lpips,
+    Adversarial,
+    Readback,
+    Backward,
+    Optimiser,
+    Discriminator,
+}
 
-/// What each phase means, for the bench's legend.
-pub const PHASE_MEANINGS: [&str; 10] = [
-    "waiting for the loader's worker thread (decoding, crops, the frame's joint transforms, upload)",
-    "posed and view maps, skinning and nearest rotations of every Gaussian, on the device",
-    "body and face networks forward, fusion into canonical Gaussians",
-    "LBS and the splatting op forward (its intersection-count readback included)",
-    "LPIPS forward on the body square and the head crop",
-    "the discriminator's forward for the generator loss",
-    "the loss values read back for the log and the non-finite check",
-    "the backward pass through everything",
-    "Adam steps of the body and face networks",
-    "the discriminator's step (forward, R1, backward, Adam)",
-];
+impl Phase {
+    /// Every phase, in the order they run.
+    pub const ALL: [Phase; 10] = [
+        Phase::Data,
+        Phase::Inputs,
+        Phase::Networks,
+        Phase::Render,
+        Phase::Lpips,
+        Phase::Adversarial,
+        Phase::Readback,
+        Phase::Backward,
+        Phase::Optimiser,
+        Phase::Discriminator,
+    ];
+
+    /// The name the bench prints and writes (as serialised).
+    pub fn name(self) -> &'static str {
+        match self {
+            Phase::Data => "data",
+            Phase::Inputs => "inputs",
+            Phase::Networks => "networks",
+            Phase::Render => "render",
+            Phase::Lpips => "lpips",
+            Phase::Adversarial => "adversarial",
+            Phase::Readback => "readback",
+            Phase::Backward => "backward",
+            Phase::Optimiser => "optimiser",
+            Phase::Discriminator => "discriminator",
+        }
+    }
+
+    /// What the phase times, for the bench's legend.
+    pub fn meaning(self) -> &'static str {
+        match self {
+            Phase::Data => {
+                "waiting for the loader's worker thread (decoding, crops, the frame's joint transforms, upload)"
+            }
+            Phase::Inputs => {
+                "posed and view maps, skinning and nearest rotations of every Gaussian, on the device"
+            }
+            Phase::Networks => "body and face networks forward, fusion into canonical Gaussians",
+            Phase::Render => {
+                "LBS and the splatting op forward (its intersection-count readback included)"
+            }
+            Phase::Lpips => "LPIPS forward on the body square and the head crop",
+            Phase::Adversarial => "the discriminator's forward for the generator loss",
+            Phase::Readback => "the loss values read back for the log and the non-finite check",
+            Phase::Backward => "the backward pass through everything",
+            Phase::Optimiser => "Adam steps of the body and face networks",
+            Phase::Discriminator => "the discriminator's step (forward, R1, backward, Adam)",
+        }
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// The phase's name, padded as asked (`{phase:<14}`).
+impl fmt::Display for Phase {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.pad(self.name())
+    }
+}
 
 /// Accumulated seconds per phase, with the device synchronised at every mark.
 pub struct PhaseTimer {
     device: Device,
-    state: Mutex<(Instant, [f64; PHASES.len()])>,
+    state: Mutex<(Instant, [f64; Phase::ALL.len()])>,
 }
 
 /// Milliseconds per phase of one or more steps.
 #[derive(Clone, Debug, Serialize)]
 pub struct PhaseTimes {
-    pub phases: Vec<(String, f64)>,
+    pub phases: Vec<(Phase, f64)>,
 }
 
 impl PhaseTimer {
     pub fn new(device: &Device) -> Self {
         Self {
             device: device.clone(),
-            state: Mutex::new((Instant::now(), [0.0; PHASES.len()])),
+            state: Mutex::new((Instant::now(), [0.0; Phase::ALL.len()])),
         }
     }
 
@@ -69,17 +127,12 @@ impl PhaseTimer {
         Ok(())
     }
 
-    /// Ends `phase` (one of [`PHASES`]): waits for the device, charges the time since the
-    /// previous mark to it.
-    pub fn mark(&self, phase: &str) -> Result<(), AvatarError> {
+    /// Ends `phase`: waits for the device, charges the time since the previous mark to it.
+    pub fn mark(&self, phase: Phase) -> Result<(), AvatarError> {
         self.sync()?;
-        let index = PHASES
-            .iter()
-            .position(|p| *p == phase)
-            .ok_or_else(|| AvatarError::Invalid(format!("unknown phase `{phase}`")))?;
         let mut state = self.lock();
         let now = Instant::now();
-        state.1[index] += (now - state.0).as_secs_f64();
+        state.1[phase.index()] += (now - state.0).as_secs_f64();
         state.0 = now;
         Ok(())
     }
@@ -87,12 +140,12 @@ impl PhaseTimer {
     /// Milliseconds per phase so far, divided by `steps`, and resets the totals.
     pub fn take(&self, steps: u64) -> PhaseTimes {
         let mut state = self.lock();
-        let totals = std::mem::replace(&mut state.1, [0.0; PHASES.len()]);
+        let totals = std::mem::replace(&mut state.1, [0.0; Phase::ALL.len()]);
         PhaseTimes {
-            phases: PHASES
-                .iter()
+            phases: Phase::ALL
+                .into_iter()
                 .zip(totals)
-                .map(|(p, t)| (p.to_string(), t * 1e3 / steps.max(1) as f64))
+                .map(|(p, t)| (p, t * 1e3 / steps.max(1) as f64))
                 .collect(),
         }
     }
@@ -103,15 +156,71 @@ impl PhaseTimer {
             .map_err(|e| AvatarError::Invalid(format!("the device failed: {e:?}")))
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, (Instant, [f64; PHASES.len()])> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, (Instant, [f64; Phase::ALL.len()])> {
         // A panic while holding the lock leaves plain numbers: still usable.
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
 /// Marks `phase` on `timer` when there is one.
-pub fn mark(timer: Option<&PhaseTimer>, phase: &str) -> Result<(), AvatarError> {
+pub(super) fn mark(timer: Option<&PhaseTimer>, phase: Phase) -> Result<(), AvatarError> {
     timer.map_or(Ok(()), |t| t.mark(phase))
+}
+
+impl Trainer {
+    /// Runs `warmup + steps` steps of `stage` (cycling through its steps) and writes nothing:
+    /// `timer` holds the phases of the last `steps` steps afterwards. For `f3g bench train`:
+    /// the trainer is left mid-run and must not be checkpointed or trained further.
+    pub fn bench(
+        &mut self,
+        stage: Stage,
+        warmup: u64,
+        steps: u64,
+        timer: &PhaseTimer,
+    ) -> Result<Vec<StepReport>, AvatarError> {
+        let (first, len) = self.stage_steps(stage)?;
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
+        let mut loader = self.loader(first * per_step)?;
+        let mut reports = Vec::new();
+        for i in 0..warmup + steps {
+            if i == warmup {
+                timer.take(1);
+            }
+            timer.restart()?;
+            let s = first + i % len;
+            let samples = next_samples(&mut loader, per_step)?;
+            timer.mark(Phase::Data)?;
+            let report = self.run_step(s, &samples, Some(timer))?;
+            if i >= warmup {
+                reports.push(report);
+            }
+        }
+        Ok(reports)
+    }
+
+    /// Decodes the images of the first `steps` steps of `stage` into the loaders' cache, as
+    /// [`Trainer::bench`] will draw them: a run's loader holds every training view once its
+    /// cache is warm, so a bench that times steps without decoding times a run's steady state.
+    pub fn decode_ahead(&mut self, stage: Stage, steps: u64) -> Result<(), AvatarError> {
+        let (first, _) = self.stage_steps(stage)?;
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
+        let mut loader = self.loader(first * per_step)?;
+        next_samples(&mut loader, steps * per_step).map(|_| ())
+    }
+
+    /// The first step of `stage` and how many steps it has.
+    fn stage_steps(&self, stage: Stage) -> Result<(u64, u64), AvatarError> {
+        let in_stage: Vec<u64> = (0..self.total_steps())
+            .filter(|&s| self.schedule.stage(s) == stage)
+            .collect();
+        match in_stage.first() {
+            Some(&first) => Ok((first, in_stage.len() as u64)),
+            None => Err(AvatarError::config(
+                "steps",
+                format!("the configuration has no {stage:?} steps to time"),
+            )),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -123,14 +232,13 @@ mod tests {
         let timer = PhaseTimer::new(&Device::flex());
         timer.restart().unwrap();
         std::thread::sleep(std::time::Duration::from_millis(20));
-        timer.mark("render").unwrap();
-        timer.mark("backward").unwrap();
+        timer.mark(Phase::Render).unwrap();
+        timer.mark(Phase::Backward).unwrap();
         let times = timer.take(2);
-        let get = |p: &str| times.phases.iter().find(|x| x.0 == p).unwrap().1;
-        assert!(get("render") >= 10.0, "{times:?}");
-        assert!(get("backward") < get("render"));
-        assert_eq!(get("data"), 0.0);
-        assert!(timer.mark("nonsense").is_err());
+        let get = |p: Phase| times.phases.iter().find(|x| x.0 == p).unwrap().1;
+        assert!(get(Phase::Render) >= 10.0, "{times:?}");
+        assert!(get(Phase::Backward) < get(Phase::Render));
+        assert_eq!(get(Phase::Data), 0.0);
         assert!(timer.take(1).phases.iter().all(|p| p.1 < 10.0));
     }
 }

@@ -8,14 +8,15 @@ use std::sync::{Arc, Mutex};
 use burn::module::Module;
 use burn::tensor::Device;
 
+use super::config::TrainConfig;
+use super::run::load_optim;
 use super::schedule::Schedule;
 use super::step::{AllReduce, Optimisers, Replica, adam, adam_disc};
 use super::{Trainer, first_device};
 use crate::AvatarError;
-use crate::config::TrainConfig;
+use crate::infer::{Run, TrainState};
+use crate::model::Setup;
 use crate::model::{AvatarNets, Constants, FaceBase};
-use crate::run::{Run, TrainState, load_optim};
-use crate::setup::Setup;
 use f3g_data::Dataset;
 use f3g_data::loader::ImageCache;
 use f3g_data::split::{Protocol, Split, SplitKind, preset};

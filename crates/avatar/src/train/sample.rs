@@ -4,10 +4,10 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
+use super::config::TrainConfig;
 use crate::AvatarError;
-use crate::config::TrainConfig;
-use crate::inputs::PoseTensors;
-use crate::setup::Setup;
+use crate::model::PoseTensors;
+use crate::model::Setup;
 use f3g_data::imgops::CentredSquare;
 use f3g_data::loader::{Sample, View};
 use f3g_nets::metrics::image_tensor;

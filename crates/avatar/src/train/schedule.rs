@@ -7,7 +7,7 @@
 
 use serde::Serialize;
 
-use crate::config::{Stages, TrainConfig};
+use super::config::{Stages, TrainConfig};
 
 /// A training stage.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]

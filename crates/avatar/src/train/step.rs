@@ -17,12 +17,12 @@ use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::distributed::{ReduceOperation, all_reduce};
 use burn::tensor::{Device, Tensor};
 
+use super::config::TrainConfig;
 use super::losses::{Losses, Terms};
-use super::profile::{PhaseTimer, mark};
+use super::profile::{Phase, PhaseTimer, mark};
 use super::sample::DeviceSample;
 use super::schedule::Stage;
 use crate::AvatarError;
-use crate::config::TrainConfig;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
 use f3g_nets::adam::FusedAdam;
 use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
@@ -122,7 +122,7 @@ impl Replica {
             fakes.push(fake);
         }
         let values = read_values(step, &terms)?;
-        mark(timer, "readback")?;
+        mark(timer, Phase::Readback)?;
         let (mut body, mut face) = (None, None);
         if let Some(total) = terms.into_iter().map(|t| t.1).reduce(|a, b| a + b) {
             let mut grads = total.backward();
@@ -133,7 +133,7 @@ impl Replica {
                 .as_ref()
                 .map(|f| GradientsParams::from_module(&mut grads, f));
         }
-        mark(timer, "backward")?;
+        mark(timer, Phase::Backward)?;
         Ok(SampleGradients {
             values,
             body,
@@ -156,14 +156,14 @@ impl Replica {
             sample.noise.as_ref(),
             None,
         )?;
-        mark(losses.timer, "inputs")?;
+        mark(losses.timer, Phase::Inputs)?;
         let mut terms = Terms::new();
         let mut fake = None;
         match stage {
             Stage::Pretrain => {
                 let raw = body_outputs(&self.nets, &self.constants, &inputs)?;
                 terms.push(("pretrain".into(), losses.pretrain(&raw)));
-                mark(losses.timer, "networks")?;
+                mark(losses.timer, Phase::Networks)?;
             }
             Stage::FacePretrain => {
                 let c = canonical(&self.face_only_nets(), &self.constants, &inputs)?;
@@ -171,11 +171,11 @@ impl Replica {
                     AvatarError::Invalid("face pretraining without face networks".into())
                 })?;
                 terms.push(("face_pretrain".into(), r.abs().mean()));
-                mark(losses.timer, "networks")?;
+                mark(losses.timer, Phase::Networks)?;
             }
             Stage::Body | Stage::Joint => {
                 let c = canonical(&self.nets, &self.constants, &inputs)?;
-                mark(losses.timer, "networks")?;
+                mark(losses.timer, Phase::Networks)?;
                 losses.body(&c, &inputs, sample, &mut terms)?;
                 if stage == Stage::Joint && config.face_losses {
                     fake = losses.face(&c, &inputs, sample, &mut terms)?;
@@ -183,7 +183,7 @@ impl Replica {
             }
             Stage::FaceFinetune => {
                 let c = canonical(&self.face_only_nets(), &self.constants, &inputs)?;
-                mark(losses.timer, "networks")?;
+                mark(losses.timer, Phase::Networks)?;
                 fake = losses.face(&c, &inputs, sample, &mut terms)?;
             }
         }

@@ -6,8 +6,8 @@ use burn::module::Module;
 
 use super::Trainer;
 use crate::AvatarError;
+use crate::infer::report;
 use crate::model::{AvatarNets, Constants, canonical, render_posed};
-use crate::report;
 use f3g_data::loader::LoaderOptions;
 
 impl Trainer {
@@ -50,11 +50,11 @@ impl Trainer {
             let render = report::tensor_to_image(out.color);
             rows.push(report::comparison_row(&view.image, &render));
         }
-        let dir = self.run.dir.join("validation");
+        let dir = self.run.dir().join("validation");
         std::fs::create_dir_all(&dir).map_err(|e| AvatarError::file(&dir, e))?;
         let grid = report::stack_rows(&rows);
         f3g_io::write_png(&dir.join(format!("step-{:09}.png", self.state.step)), &grid)?;
-        f3g_io::write_png(&self.run.dir.join("validation.png"), &grid)?;
+        f3g_io::write_png(&self.run.dir().join("validation.png"), &grid)?;
         Ok(())
     }
 }

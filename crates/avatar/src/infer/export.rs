@@ -20,9 +20,9 @@ use faer::Mat;
 use faer::prelude::SolveLstsq;
 use glam::{DQuat, DVec3};
 
+use super::TrainedAvatar;
 use crate::AvatarError;
 use crate::model::pose;
-use crate::trained::TrainedAvatar;
 use f3g_rig::RigParams;
 use f3g_splat::sh::{basis, num_coeffs};
 use f3g_splat::{Camera, GaussianCloud};

@@ -5,14 +5,15 @@ use std::path::Path;
 
 use burn::tensor::Device;
 
+use super::report::tensor_to_image;
+use super::run::{Run, RunInfo, load_face_base, read_state};
 use crate::AvatarError;
-use crate::config::ModelConfig;
-use crate::inputs::PcaTensors;
-use crate::model::{AvatarNets, Constants, FaceBase, canonical, pose, render_posed};
-use crate::posing::Skinning;
-use crate::report::tensor_to_image;
-use crate::run::{Run, RunInfo, load_face_base};
-use crate::setup::Setup;
+use crate::model::ModelConfig;
+use crate::model::posing::Skinning;
+use crate::model::{
+    AvatarNets, Canonical, Constants, FaceBase, STORED_SETUP, Setup, canonical, pose, render_posed,
+};
+use crate::model::{NetInputs, PcaTensors};
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
@@ -21,12 +22,13 @@ use f3g_splat::{Camera, GaussianCloud};
 /// (without autodiff).
 pub struct TrainedAvatar {
     /// The run folder it was loaded from.
-    pub dir: std::path::PathBuf,
+    dir: std::path::PathBuf,
     /// The model's configuration (the run's training settings are not needed).
-    pub model: ModelConfig,
+    pub(crate) model: ModelConfig,
     pub info: RunInfo,
     pub setup: Setup,
     pub nets: AvatarNets,
+    /// The canonical face model of the checkpoint (once training built it).
     pub face_base: Option<FaceBase>,
     /// The training poses' PCA, for unseen poses.
     pca: Option<PcaTensors>,
@@ -40,39 +42,31 @@ impl TrainedAvatar {
     /// Loads the newest checkpoint of `run_dir` onto `device` (any device: a checkpoint does
     /// not remember where it was trained). Everything comes from the run folder — the model
     /// configuration, the stored setup (body model, template, tables), the pose PCA, the
-    /// networks — so a run copied to a machine without the body model's files works. A run
-    /// made before f3g stored its setup is rebuilt from the body model's files instead.
+    /// networks — so a run copied to a machine without the body model's files or the capture
+    /// works. A run folder of another format ([`super::RUN_FORMAT`]) is an error naming it.
     pub fn load(run_dir: &Path, device: &Device) -> Result<Self, AvatarError> {
         let run = Run::new(run_dir);
-        let config_path = run.dir.join("config.json");
+        let config_path = run.config_path();
         if !config_path.exists() {
-            return Err(AvatarError::file(
-                run_dir,
-                "not a training run (no config.json): train one with `f3g train`",
-            ));
+            return Err(run.not_a_run());
         }
         let model = ModelConfig::from_file(&config_path)?;
         let info = run.info()?;
         let checkpoint = run
             .latest()?
             .ok_or_else(|| AvatarError::file(run_dir, "has no checkpoint yet: train it first"))?;
-        let step = crate::run::read_state(&checkpoint)?.step;
-        let setup = if Setup::stored_in(&run.dir) {
-            Setup::read(&run.dir, &model)?
-        } else {
-            Setup::new(&info.model, &info.identity, &model).map_err(|e| {
-                AvatarError::file(
-                    run_dir,
-                    format!(
-                        "keeps no setup (it was trained before f3g stored one in the run), and \
-                         rebuilding it from the body model `{}` failed: {e}. Where the body \
-                         model's files are, `f3g train --resume {}` stores the setup in the run.",
-                        info.model,
-                        run_dir.display()
-                    ),
-                )
-            })?
-        };
+        let step = read_state(&checkpoint)?.step;
+        if !Setup::stored_in(run.dir()) {
+            return Err(AvatarError::file(
+                run_dir,
+                format!(
+                    "lacks its stored setup ({}), which inference reads instead of the body \
+                     model's files: retrain with this version of f3g (`f3g train`)",
+                    STORED_SETUP.join(", ")
+                ),
+            ));
+        }
+        let setup = Setup::read(run.dir(), &model)?;
         let device = device.clone().without_autodiff();
         let nets = f3g_nets::checkpoint::load(
             AvatarNets::new(&model, 0, &setup, &device)?,
@@ -84,11 +78,11 @@ impl TrainedAvatar {
         } else {
             None
         };
-        let pca = if run.dir.join("pca.npz").exists() {
+        let pca = if run.pca_path().exists() {
             let p = run.pca()?;
             if p.mean.len() != 3 * setup.body_count() {
                 return Err(AvatarError::file(
-                    &run.dir.join("pca.npz"),
+                    &run.pca_path(),
                     format!(
                         "has {} values per map, the avatar {} Gaussians",
                         p.mean.len(),
@@ -102,7 +96,7 @@ impl TrainedAvatar {
         };
         let constants = Constants::new(&setup, &model, face_base.as_ref(), &device);
         Ok(Self {
-            dir: run.dir.clone(),
+            dir: run.dir().to_path_buf(),
             model,
             info,
             setup,
@@ -115,27 +109,10 @@ impl TrainedAvatar {
         })
     }
 
-    /// The training frames' body parameters: the run's `poses.npz`, or (for runs made before
-    /// runs kept them) the training frames of its capture.
+    /// The training frames' body parameters (the run's `poses.npz`).
     pub fn training_poses(&self) -> Result<Vec<RigParams>, AvatarError> {
         let path = Run::new(&self.dir).poses_path();
-        if path.exists() {
-            return Ok(f3g_rig::sequence::read(&path, &self.setup.rig)?);
-        }
-        let ds = f3g_data::Dataset::open(&self.info.data, None).map_err(|e| {
-            AvatarError::file(
-                &path,
-                format!(
-                    "is missing and the run's capture cannot be read for its training poses ({e}); `f3g train --resume` on the run stores them"
-                ),
-            )
-        })?;
-        Ok(self
-            .info
-            .train_frames
-            .iter()
-            .filter_map(|&f| ds.params.get(f).cloned())
-            .collect())
+        Ok(f3g_rig::sequence::read(&path, &self.setup.rig)?)
     }
 
     /// The device the avatar computes on.
@@ -158,7 +135,7 @@ impl TrainedAvatar {
         params: &RigParams,
         camera: &Camera,
         use_pca: bool,
-    ) -> Result<(crate::model::Canonical, Skinning), AvatarError> {
+    ) -> Result<(Canonical, Skinning), AvatarError> {
         let (c, inputs) = self.canonical_with_inputs(params, camera, use_pca)?;
         Ok((c, inputs.skinning))
     }
@@ -170,7 +147,7 @@ impl TrainedAvatar {
         params: &RigParams,
         camera: &Camera,
         use_pca: bool,
-    ) -> Result<(crate::model::Canonical, crate::inputs::NetInputs), AvatarError> {
+    ) -> Result<(Canonical, NetInputs), AvatarError> {
         self.setup.check_params(params, "pose")?;
         let pca = if use_pca { self.pca.as_ref() } else { None };
         let pose = self.setup.pose(params)?.upload(&self.device);
@@ -207,7 +184,7 @@ impl TrainedAvatar {
 
     /// The posed Gaussians of a frame with their colour as seen from `camera` (SH degree 0,
     /// zero-padded to the degree-3 layout that every 3DGS tool reads), for the per-frame `.ply`
-    /// files of an animation; [`crate::export::export_cloud`] keeps the view dependence.
+    /// files of an animation; [`super::export::export_cloud`] keeps the view dependence.
     pub fn posed_cloud(
         &self,
         params: &RigParams,

@@ -1,6 +1,6 @@
 //! The networks' inputs for one frame seen from one camera — posed position maps, view maps,
 //! the template displacement and the skinning of every Gaussian — computed on the device from
-//! what the host prepares per frame ([`crate::setup::FramePose`]: joint transforms and the
+//! what the host prepares per frame ([`crate::model::FramePose`]: joint transforms and the
 //! template's vertex displacements). Training, evaluation and animation all build them here.
 //!
 //! Per frame the host uploads `2·J` joint transforms and `V` vertex displacements; everything
@@ -12,11 +12,12 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use glam::Vec3;
 
-use crate::AvatarError;
-use crate::posing::{
+use super::nets::Constants;
+use super::posing::{
     Skinning, Taps, affine_tensor, blend, columns, normalize, split_affine, transform_points,
 };
-use crate::setup::{FramePose, Setup};
+use super::setup::{FramePose, Setup};
+use crate::AvatarError;
 use f3g_template::PosePca;
 
 /// A frame's pose on the device.
@@ -297,21 +298,21 @@ pub struct NetInputs {
     pub skinning: Skinning,
 }
 
-impl GaussianTables {
-    /// The network inputs for a frame's `pose` seen from `camera`, on the tables' device, for
-    /// the body Gaussians and, `with_face`, the face Gaussians. `noise` (`[N, 3]` for every
-    /// Gaussian with skin, already scaled; training only) jitters the view directions. With
-    /// `pca`, the body's posed map is first projected onto the training poses' principal
-    /// components (the head maps are used as they are).
+impl Constants {
+    /// The network inputs for a frame's `pose` seen from `camera`, on the constants' device,
+    /// for the body Gaussians and, once the canonical face model exists
+    /// ([`Constants::has_face`]), the face Gaussians. `noise` (`[N, 3]` for every Gaussian with
+    /// skin, already scaled; training only) jitters the view directions. With `pca`, the body's
+    /// posed map is first projected onto the training poses' principal components (the head
+    /// maps are used as they are).
     pub fn inputs(
         &self,
         pose: &PoseTensors,
         camera: &f3g_splat::Camera,
         noise: Option<&Tensor<2>>,
         pca: Option<&PcaTensors>,
-        with_face: bool,
     ) -> Result<NetInputs, AvatarError> {
-        let tables = self;
+        let tables = &self.tables;
         let nb = tables.body.skin.rows();
         if let Some(noise) = noise
             && noise.dims() != [tables.count(), 3]
@@ -345,7 +346,7 @@ impl GaussianTables {
             displacement: body_displacement.clone(),
             skinning: body_skinning,
         };
-        if let (Some((from_body, face)), true) = (&tables.face, with_face) {
+        if let (Some((from_body, face)), true) = (&tables.face, self.has_face()) {
             let displacement = from_body.apply(body_displacement);
             let canonical = face.positions.clone() + displacement.clone();
             let posed = face.input_pose(canonical.clone(), pose);

@@ -18,19 +18,21 @@ use std::path::Path;
 
 use glam::{Vec2, Vec3};
 
+use super::config::ModelConfig;
+use super::setup::Setup;
 use crate::AvatarError;
-use crate::config::ModelConfig;
-use crate::setup::Setup;
 use f3g_io::NpyValues::{F32, I64};
 use f3g_rig::{MAX_INFLUENCES, SkinWeights};
 use f3g_template::{HeadMaps, PositionMaps, Template};
 
 /// The body model of a run.
-pub const BODY_MODEL: &str = "body_model.npz";
+const BODY_MODEL: &str = "body_model.npz";
 /// The canonical template of a run.
-pub const TEMPLATE: &str = "template.npz";
+const TEMPLATE: &str = "template.npz";
 /// The Gaussians' tables of a run.
-pub const TABLES: &str = "setup.npz";
+const TABLES: &str = "setup.npz";
+/// The files of a run's stored setup.
+pub const STORED_SETUP: [&str; 3] = [BODY_MODEL, TEMPLATE, TABLES];
 
 fn flat(points: &[Vec3]) -> Vec<f32> {
     points.iter().flat_map(|p| p.to_array()).collect()
@@ -142,11 +144,9 @@ impl Setup {
         Ok(f3g_io::write_npz(&dir.join(TABLES), &arrays)?)
     }
 
-    /// Whether the run folder `dir` holds a stored setup (runs made before it did not).
+    /// Whether the run folder `dir` holds a stored setup ([`STORED_SETUP`]).
     pub fn stored_in(dir: &Path) -> bool {
-        [BODY_MODEL, TEMPLATE, TABLES]
-            .iter()
-            .all(|f| dir.join(f).exists())
+        STORED_SETUP.iter().all(|f| dir.join(f).exists())
     }
 
     /// Reads the setup stored in the run folder `dir` for a model of `config`.

@@ -20,9 +20,9 @@ use std::path::{Path, PathBuf};
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
+use super::TrainedAvatar;
+use super::report::{comparison_row, stack_rows};
 use crate::AvatarError;
-use crate::report::{comparison_row, stack_rows};
-use crate::trained::TrainedAvatar;
 use f3g_data::Dataset;
 use f3g_data::crop::{crop_view, head_box};
 use f3g_data::imgops::{
@@ -197,7 +197,7 @@ fn ensure_memory(
 }
 
 /// What evaluation needs of an avatar: the trained networks ([`TrainedAvatar`]) or a baked
-/// avatar file ([`crate::bake::BakedAvatar`]).
+/// avatar file ([`super::bake::BakedAvatar`]).
 pub trait EvalAvatar {
     /// Renders body parameters; `unseen` says the pose is not a training pose (the networks
     /// then project it onto the training poses' PCA).
@@ -272,7 +272,7 @@ impl EvalAvatar for TrainedAvatar {
     }
 }
 
-impl EvalAvatar for crate::bake::BakedAvatar {
+impl EvalAvatar for super::bake::BakedAvatar {
     fn render(
         &self,
         params: &RigParams,
@@ -280,7 +280,7 @@ impl EvalAvatar for crate::bake::BakedAvatar {
         background: [f32; 3],
         _unseen: bool,
     ) -> Result<Image, AvatarError> {
-        crate::bake::BakedAvatar::render(self, params, camera, background)
+        super::bake::BakedAvatar::render(self, params, camera, background)
     }
     fn gaussian_count(&self) -> usize {
         self.len()

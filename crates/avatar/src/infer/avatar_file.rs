@@ -31,8 +31,9 @@ use std::path::Path;
 use glam::Mat4;
 use serde_json::{Value, json};
 
+use super::bake::{BakedAvatar, CORRECTIVE_VALUES};
 use crate::AvatarError;
-use crate::bake::{BakedAvatar, CORRECTIVE_VALUES};
+use crate::model::logit;
 use f3g_rig::glb::{GlbBuffer, GlbFile};
 use f3g_rig::{RigParams, Similarity};
 
@@ -46,11 +47,9 @@ fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
 }
 
-/// `ln(p / (1 − p))`, clamped away from the ends so a stored 0 or 1 stays finite.
-fn logit(p: f32) -> f32 {
-    let p = p.clamp(1e-7, 1.0 - 1e-7);
-    (p / (1.0 - p)).ln()
-}
+/// How far a stored opacity is kept from 0 and 1 before its logit: a file may hold exactly 0
+/// or 1 (a sigmoid rounds to them in f32), whose logits would be infinite.
+const OPACITY_MARGIN: f32 = 1e-7;
 
 /// Column `c` of a `[rows, width]` array as `[rows, 3]` (the `c`-th VEC3 of each row).
 fn vec3_column(values: &[f32], width: usize, c: usize) -> Vec<f32> {
@@ -335,7 +334,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     let opacity = format!("{SPLATS}:OPACITY");
     let opacity_logits: Vec<f32> = sized(floats(&attributes[&opacity], 1, &opacity)?, 1, &opacity)?
         .iter()
-        .map(|&o| logit(o))
+        .map(|&o| logit(o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN)))
         .collect();
     let mut degree = 0;
     while degree < 3

@@ -1,7 +1,7 @@
 //! The avatar model: the body StyleUNets, the three face StyleUNets, the canonical face model,
 //! fusion, linear blend skinning of the Gaussians and rendering.
 //!
-//! Body branch ([`BodyNets`], laid out by [`crate::config::BodyLayout`]): posed front/back maps
+//! Body branch ([`BodyNets`], laid out by [`super::BodyLayout`]): posed front/back maps
 //! `[1, 6, R/2, R/2]` → 14 channels per side, resampled to `R` and read at the body Gaussians'
 //! texels: offset `0.05 · o[0..3]` on the canonical position, colour `0.5 + o[3..6]`, opacity
 //! logit `logit(initial_opacity) + o[6]`, log-scale `ln s₀ + o[7..10]`, rotation `q₀ + o[10..14]`
@@ -33,11 +33,11 @@ use burn::module::{Module, Param};
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
+use super::config::{ColourActivation, ModelConfig};
+use super::inputs::{GaussianTables, NetInputs};
+use super::posing::{Skinning, pose_gaussians};
+use super::setup::Setup;
 use crate::AvatarError;
-use crate::config::{ColourActivation, ModelConfig};
-use crate::inputs::{GaussianTables, NetInputs, PcaTensors, PoseTensors};
-use crate::posing::{Skinning, pose_gaussians};
-use crate::setup::{Setup, logit};
 use f3g_nets::DualStyleUNet;
 use f3g_nets::layers::resize;
 use f3g_splat::{Camera, Gaussians, RenderOptions, Rendered, render};
@@ -47,6 +47,12 @@ pub const OFFSET_SCALE: f32 = 0.05;
 /// Largest face Gaussian scale (metres).
 pub const FACE_MAX_SCALE: f32 = 0.15;
 const SH_C0: f32 = f3g_splat::sh::SH_C0 as f32;
+
+/// `ln(p / (1 − p))`, unclamped: the model's opacities (`initial_opacity`) are checked to lie
+/// in (0, 1). Readers of stored opacities, which may be exactly 0 or 1, clamp them first.
+pub(crate) fn logit(p: f32) -> f32 {
+    (p / (1.0 - p)).ln()
+}
 
 /// The three face networks.
 #[derive(Module, Debug)]
@@ -65,7 +71,7 @@ pub struct AvatarNets {
     pub face: Option<FaceNets>,
 }
 
-/// The body branch: one to three StyleUNets (see [`crate::config::BodyLayout`]) and the
+/// The body branch: one to three StyleUNets (see [`super::BodyLayout`]) and the
 /// optional learnable canonical attributes.
 #[derive(Module, Debug)]
 pub struct BodyNets {
@@ -209,11 +215,10 @@ pub struct Constants {
     body_log_scales: Tensor<2>,
     body_quats: Tensor<2>,
     face: Option<FaceConstants>,
-    pub net_input_size: usize,
-    pub face_input_size: usize,
     map_resolution: usize,
-    /// What turns a frame's pose into the networks' inputs and the Gaussians' skinning.
-    pub tables: GaussianTables,
+    /// What turns a frame's pose into the networks' inputs and the Gaussians' skinning
+    /// ([`Constants::inputs`]).
+    pub(super) tables: GaussianTables,
     initial_opacity_logit: f32,
     sigmoid_colours: bool,
     canonical_scale: f32,
@@ -247,7 +252,7 @@ fn index(values: &[usize], device: &Device) -> Tensor<1, Int> {
 
 impl Constants {
     /// Initial log-scales and rotations of the body Gaussians (`[N, 3]`, `[N, 4]`).
-    pub fn initial_body(&self) -> (Tensor<2>, Tensor<2>) {
+    pub(crate) fn initial_body(&self) -> (Tensor<2>, Tensor<2>) {
         (self.body_log_scales.clone(), self.body_quats.clone())
     }
 
@@ -280,8 +285,6 @@ impl Constants {
             ),
             body_quats: t2(setup.initial_quats(config.initial_thickness), 4, device),
             face,
-            net_input_size: config.body_net.input_size,
-            face_input_size: config.face_net.input_size,
             map_resolution: config.map_resolution,
             tables: GaussianTables::new(
                 setup,
@@ -298,20 +301,6 @@ impl Constants {
     /// Whether the face Gaussians are part of the model.
     pub fn has_face(&self) -> bool {
         self.face.is_some()
-    }
-
-    /// The networks' inputs for a frame's `pose` seen from `camera`
-    /// ([`GaussianTables::inputs`]), with the face Gaussians once the canonical face model
-    /// exists.
-    pub fn inputs(
-        &self,
-        pose: &PoseTensors,
-        camera: &Camera,
-        noise: Option<&Tensor<2>>,
-        pca: Option<&PcaTensors>,
-    ) -> Result<NetInputs, AvatarError> {
-        self.tables
-            .inputs(pose, camera, noise, pca, self.has_face())
     }
 }
 

@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use glam::Vec3;
 use serde::Serialize;
 
+use super::eval::EvalAvatar;
 use crate::AvatarError;
-use crate::eval::EvalAvatar;
 use f3g_io::Image;
 use f3g_rig::{Rig, RigParams};
 use f3g_splat::Camera;

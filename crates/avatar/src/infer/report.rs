@@ -25,7 +25,7 @@ pub fn tensor_to_image(t: Tensor<3>) -> Image {
 }
 
 /// Per-pixel error `|a − b|` (mean over channels, ×4) as a black → red → yellow heat map.
-pub fn error_map(a: &Image, b: &Image) -> Image {
+fn error_map(a: &Image, b: &Image) -> Image {
     let mut out = Image::filled(a.width, a.height, 3, 0.0);
     for (p, px) in out.data.chunks_exact_mut(3).enumerate() {
         let e: f32 = (0..3)
@@ -39,7 +39,7 @@ pub fn error_map(a: &Image, b: &Image) -> Image {
 }
 
 /// Images side by side on a dark background.
-pub fn hstack(images: &[&Image]) -> Image {
+fn hstack(images: &[&Image]) -> Image {
     let h = images.iter().map(|i| i.height).max().unwrap_or(1);
     let w = images.iter().map(|i| i.width).sum::<usize>() + GAP * images.len().saturating_sub(1);
     let mut out = Image::filled(w.max(1), h, 3, PAPER);
@@ -129,7 +129,7 @@ fn glyph(ch: char) -> [u8; 7] {
 }
 
 /// Draws `text` (lower case, digits, `.-_:`) at `(x, y)` with 2× pixels.
-pub fn draw_text(img: &mut Image, text: &str, x: usize, y: usize, colour: [f32; 3]) {
+fn draw_text(img: &mut Image, text: &str, x: usize, y: usize, colour: [f32; 3]) {
     for (k, ch) in text.to_lowercase().chars().enumerate() {
         let rows = glyph(ch);
         for (j, row) in rows.iter().enumerate() {

@@ -2,7 +2,7 @@
 //! template, its position maps (one body Gaussian per covered texel), the densified head maps
 //! (one face Gaussian per kept texel), the initial Gaussian attributes, and the host's share of
 //! each frame: the joint transforms and the template's vertex displacements ([`FramePose`];
-//! [`crate::inputs`] turns them into the networks' inputs on the device).
+//! [`super::inputs`] turns them into the networks' inputs on the device).
 //!
 //! Conventions: positions in metres, +Y up, the body facing +Z. Maps are `[R, 2R]` front | back
 //! (see `f3g_template::posmap`). The template follows each frame's blend shapes (expressions)
@@ -16,15 +16,15 @@ use glam::{Affine3A, Quat, Vec3};
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
+use super::config::{ModelConfig, TemplateChoice};
 use crate::AvatarError;
-use crate::config::{ModelConfig, TemplateChoice};
 use f3g_rig::{ModelSpec, Rig, RigParams};
 use f3g_template::canonical::CanonicalPose;
 use f3g_template::template::builtin_skirt;
 use f3g_template::{HeadMaps, Poser, PositionMaps, Template, TransferOptions};
 
 /// What the host computes of a frame's body parameters; everything per Gaussian follows on the
-/// device ([`crate::inputs`]).
+/// device ([`super::inputs`]).
 #[derive(Clone, Debug)]
 pub struct FramePose {
     /// Canonical-to-posed transform of every joint, with the global root motion (posing the
@@ -51,11 +51,6 @@ pub struct Setup {
     pub head_vertices: Vec<usize>,
     /// Pose parameters of the fingers, left out of the networks' inputs.
     finger_params: Vec<usize>,
-}
-
-/// `ln(p / (1 − p))`.
-pub fn logit(p: f32) -> f32 {
-    (p / (1.0 - p)).ln()
 }
 
 impl Setup {
@@ -120,7 +115,7 @@ impl Setup {
         ))
     }
 
-    /// A setup of parts already made (read from a run folder, [`crate::setup_file`]).
+    /// A setup of parts already made (read from a run folder, [`super::setup_file`]).
     pub(crate) fn from_parts(
         rig: Rig,
         template: Template,
@@ -259,7 +254,7 @@ fn knn_log_scales(points: &[Vec3]) -> Result<Vec<f32>, AvatarError> {
 }
 
 /// Rotation of a quaternion as `[w, x, y, z]`.
-pub fn quat_wxyz(q: Quat) -> [f32; 4] {
+fn quat_wxyz(q: Quat) -> [f32; 4] {
     [q.w, q.x, q.y, q.z]
 }
 

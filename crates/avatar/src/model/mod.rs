@@ -1,0 +1,36 @@
+//! The avatar model: what inference and training share. Nothing here imports `crate::infer`
+//! or `crate::train`.
+//!
+//! - `config/`: [`ModelConfig`] (template, maps, networks, layout, face branch and crops, pose
+//!   PCA) and its validation.
+//! - `setup.rs`: [`Setup`], what a run derives from its body model — template, position and
+//!   head maps, initial attributes — and a frame's host share ([`FramePose`]); `setup_file.rs`:
+//!   the setup stored in the run folder, so inference needs no body-model files.
+//! - `inputs.rs`: the networks' inputs for a frame's pose and a camera, on the device
+//!   ([`NetInputs`]), and the pose PCA on the device ([`PcaTensors`]).
+//! - [`posing`]: linear blend skinning as tensor operations.
+//! - `nets.rs`: the body and face networks ([`AvatarNets`]), the canonical face model
+//!   ([`FaceBase`]), the setup's tensors ([`Constants`]), fusion into canonical Gaussians
+//!   ([`canonical`]), posing and rendering them ([`render_posed`]).
+//!
+//! Conventions: metres, +Y up, the body facing +Z; Gaussian order body then face.
+
+mod config;
+mod inputs;
+mod nets;
+pub mod posing;
+mod setup;
+mod setup_file;
+
+pub(crate) use config::MAX_CROP;
+pub use config::{BodyLayout, ColourActivation, ModelConfig, TemplateChoice};
+pub(crate) use inputs::GaussianTables;
+pub use inputs::{NetInputs, PcaTensors, PoseTensors};
+pub use nets::{
+    AvatarNets, BodyNets, Canonical, Constants, FaceBase, FaceNets, canonical, render_posed,
+};
+pub(crate) use nets::{
+    DISCRIMINATOR_PARAM_IDS, body_attributes_host, body_outputs, logit, nchw, pose,
+};
+pub use setup::{FramePose, Setup};
+pub use setup_file::STORED_SETUP;

@@ -1,0 +1,183 @@
+//! The presets: `cpu` (what `f3g demo` trains), `cpu-long` (`f3g demo --quality`) and `paper`.
+
+use super::{LossWeights, Stages, TrainConfig};
+use crate::AvatarError;
+use crate::model::{BodyLayout, ColourActivation, ModelConfig, TemplateChoice};
+use f3g_nets::{DiscriminatorConfig, LpipsNet, StyleUNetConfig};
+
+impl TrainConfig {
+    /// Small enough to train on two CPU cores in minutes (what `f3g demo` uses).
+    pub fn cpu() -> Self {
+        let mut body = StyleUNetConfig::cpu_body(14, true);
+        body.in_channels = 6;
+        let mut face = StyleUNetConfig::cpu_face(3, false);
+        face.in_channels = 6;
+        Self {
+            preset: "cpu".into(),
+            seed: 0,
+            model: ModelConfig {
+                template: TemplateChoice::Clothed,
+                garment: None,
+                map_resolution: 256,
+                body_net: body,
+                body_layout: BodyLayout::Split,
+                face_branch: true,
+                face_net: face,
+                // 256², the evaluation's size: on the demo's 1536 × 2048 capture this beats
+                // 128² by +0.9 dB and −0.032 head LPIPS (two seeds) for +9 % step time.
+                face_crop_size: 256,
+                face_padding: 1.3,
+                face_density: f3g_template::head::DENSIFY,
+                initial_thickness: 0.3,
+                initial_opacity: 0.5,
+                colour_activation: ColourActivation::Linear,
+                learn_canonical: true,
+                canonical_lr_scale: 8.0,
+                pca_components: 20,
+                pca_sigma: 2.0,
+            },
+            face_losses: true,
+            body_scale: 1.0,
+            lpips_net: LpipsNet::Alex,
+            lpips_size: 128,
+            losses: LossWeights {
+                l1: 1.0,
+                lpips: 0.1,
+                offset: 5e-3,
+                face_l1: 1.0,
+                face_lpips: 0.1,
+                adversarial: 5e-3,
+                r1_gamma: 1.0,
+                r1_interval: 16,
+            },
+            adversarial: true,
+            discriminator: DiscriminatorConfig::cpu(256),
+            discriminator_weights: None,
+            // 730 steps: about 8.5 minutes on 2 cores, so that `f3g demo` stays within 10.
+            steps: Stages {
+                pretrain: 100,
+                body: 250,
+                face_pretrain: 30,
+                joint: 250,
+                face_finetune: 100,
+            },
+            face_init_frames: 8,
+            lr: 1e-3,
+            adam_epsilon: 1e-8,
+            batch: 1,
+            band_radius: None,
+            lr_discriminator: 2e-3,
+            view_noise: 0.1,
+            checkpoint_every: 100,
+            validate_every: 100,
+            cache_bytes: 1 << 30,
+        }
+    }
+
+    /// The `cpu` preset trained longer, for `f3g demo --quality` (about 40 minutes of training
+    /// on two CPU cores at the measured 0.5 s per body step and 1.1 s per joint step): 3.5× the
+    /// rendering steps, most of them in the body and joint stages, whose losses are still
+    /// falling when the demo stops.
+    pub fn cpu_long() -> Self {
+        Self {
+            preset: "cpu-long".into(),
+            steps: Stages {
+                pretrain: 100,
+                body: 1100,
+                face_pretrain: 50,
+                joint: 1400,
+                face_finetune: 300,
+            },
+            checkpoint_every: 250,
+            validate_every: 250,
+            ..Self::cpu()
+        }
+    }
+
+    /// AvatarReX scale as the paper trains it: 1024² maps, 512 → 1024 body network, 256² face
+    /// networks, 512² face crops, VGG LPIPS on 512² crops, 5k pretraining, 400k rendering
+    /// iterations (split into a body-only and a joint half, so the canonical face model is
+    /// averaged from a trained body branch) and a 5k face-only fine-tune.
+    pub fn paper() -> Self {
+        let mut body = StyleUNetConfig::paper_body(14, true);
+        body.in_channels = 6;
+        let mut face = StyleUNetConfig::paper_face(3, false);
+        face.in_channels = 6;
+        let cpu = Self::cpu();
+        Self {
+            preset: "paper".into(),
+            model: ModelConfig {
+                map_resolution: 1024,
+                body_net: body,
+                face_net: face,
+                body_layout: BodyLayout::Three,
+                face_crop_size: 512,
+                initial_opacity: 0.1,
+                initial_thickness: 1.0,
+                learn_canonical: false,
+                ..cpu.model.clone()
+            },
+            body_scale: 1.0,
+            lpips_net: LpipsNet::Vgg,
+            lpips_size: 512,
+            losses: LossWeights {
+                r1_gamma: 10.0,
+                ..cpu.losses.clone()
+            },
+            discriminator: DiscriminatorConfig::paper(512),
+            steps: Stages {
+                pretrain: 5000,
+                body: 200_000,
+                face_pretrain: 1000,
+                joint: 200_000,
+                face_finetune: 5000,
+            },
+            face_init_frames: 200,
+            lr: 5e-4,
+            checkpoint_every: 5000,
+            validate_every: 5000,
+            cache_bytes: 8 << 30,
+            ..cpu
+        }
+    }
+
+    /// A preset by name.
+    pub fn preset(name: &str) -> Result<Self, AvatarError> {
+        match name {
+            "cpu" => Ok(Self::cpu()),
+            "cpu-long" => Ok(Self::cpu_long()),
+            "paper" => Ok(Self::paper()),
+            _ => Err(AvatarError::config(
+                "preset",
+                format!("unknown preset `{name}`: expected cpu, cpu-long or paper"),
+            )),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_are_valid() {
+        for name in ["cpu", "cpu-long", "paper"] {
+            let c = TrainConfig::preset(name).unwrap();
+            c.validate().unwrap();
+            assert_eq!(c.preset, name);
+        }
+        // `cpu-long` is `cpu` trained longer: only the step counts (and the cadence of
+        // checkpoints and validation) differ.
+        let rendering = |c: &TrainConfig| c.steps.body + c.steps.joint + c.steps.face_finetune;
+        let (long, cpu) = (TrainConfig::cpu_long(), TrainConfig::cpu());
+        assert!(rendering(&long) >= 3 * rendering(&cpu));
+        let same = TrainConfig {
+            preset: cpu.preset.clone(),
+            steps: cpu.steps.clone(),
+            checkpoint_every: cpu.checkpoint_every,
+            validate_every: cpu.validate_every,
+            ..long
+        };
+        assert_eq!(same, cpu);
+    }
+}
