@@ -159,28 +159,25 @@ impl Camera {
     /// Checks everything projection relies on; the error names the offending field.
     pub fn validate(&self) -> Result<(), CameraError> {
         let bad = |m: String| Err(CameraError(m));
-        let all_k = self.k.iter().flatten();
-        let all_r = self.r.iter().flatten();
-        if let Some(v) = all_k
-            .chain(all_r)
-            .chain(self.t.iter())
-            .find(|v| !v.is_finite())
-        {
-            return bad(format!("K, R and t must be finite, found {v}"));
+        // Every number with the field it belongs to.
+        let values = self
+            .k
+            .iter()
+            .flatten()
+            .map(|&v| ("K", v))
+            .chain(self.r.iter().flatten().map(|&v| ("R", v)))
+            .chain(self.t.iter().map(|&v| ("t", v)))
+            .chain([("near", self.near), ("far", self.far)]);
+        if let Some((field, v)) = values.clone().find(|(_, v)| !v.is_finite()) {
+            return bad(format!("{field} must be finite, found {v}"));
         }
         // The renderers compute in f32: a value beyond its range would become infinite there
         // and render nothing without an error.
         let limit = f64::from(f32::MAX);
-        let all_k = self.k.iter().flatten();
-        let all_r = self.r.iter().flatten();
-        if let Some(v) = all_k
-            .chain(all_r)
-            .chain(self.t.iter())
-            .chain([&self.near, &self.far])
-            .find(|v| v.abs() > limit)
-        {
+        if let Some((field, v)) = values.clone().find(|(_, v)| v.abs() > limit) {
             return bad(format!(
-                "{v:e} is beyond the single-precision range (±{limit:e}) the renderers compute in"
+                "{field} = {v:e} is beyond the single-precision range (±{limit:e}) the renderers \
+                 compute in"
             ));
         }
         if self.width == 0 || self.height == 0 {
@@ -221,7 +218,7 @@ impl Camera {
         if dot(cross(self.r[0], self.r[1]), self.r[2]) < 0.0 {
             return bad("R is a reflection (det R = -1), expected a rotation".into());
         }
-        if !(self.near > 0.0 && self.far > self.near && self.near.is_finite()) {
+        if !(self.near > 0.0 && self.far > self.near) {
             return bad(format!(
                 "need 0 < near < far, got near={} far={}",
                 self.near, self.far
@@ -334,10 +331,21 @@ mod tests {
         let mut cam = front_camera();
         cam.k[0][0] = 1e300;
         let e = cam.validate().unwrap_err().to_string();
-        assert!(e.contains("1e300") && e.contains("single-precision"), "{e}");
+        assert!(
+            e.contains("K = 1e300") && e.contains("single-precision"),
+            "{e}"
+        );
         let mut cam = front_camera();
         cam.far = 1e39;
-        assert!(cam.validate().is_err());
+        let e = cam.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("far = 1e39") && e.contains("single-precision"),
+            "{e}"
+        );
+        let mut cam = front_camera();
+        cam.t[2] = f64::NAN;
+        let e = cam.validate().unwrap_err().to_string();
+        assert!(e.contains("t must be finite, found NaN"), "{e}");
     }
 
     #[test]
@@ -350,6 +358,7 @@ mod tests {
         let back: Camera = serde_json::from_str(&serde_json::to_string(&cam).unwrap()).unwrap();
         assert_eq!(back, cam);
         let unknown = json.replace("\"width\"", "\"widht\"");
-        assert!(serde_json::from_str::<Camera>(&unknown).is_err());
+        let e = serde_json::from_str::<Camera>(&unknown).unwrap_err();
+        assert!(e.to_string().contains("unknown field `widht`"), "{e}");
     }
 }

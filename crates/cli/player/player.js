@@ -6,13 +6,12 @@
 // little-endian float32 array of `frames × (16·J + E)`: each joint's world matrix (column
 // major) in the frame's pose, then the E expression weights in the file's order.
 //
-// Skinning: Spark's SplatSkinning (dual quaternions, four bones per splat) is given each
-// joint's skinning transform S_j = W_j · rest_j⁻¹ as a rotation and a translation; its own
-// rest pose stays the identity (it would apply rest⁻¹ about the origin, not the joint). Dual
-// quaternions blend like f3g's linear blend for joints that turn little relative to each
-// other and keep volume where they turn more (f3g's linear blend needs Spark's extended
-// splats with covariances, which failed here: "Generator must be provided"). The correctives
-// and expressions change the canonical splats before skinning, on the CPU.
+// Skinning: Spark's SplatSkinning in its linear-blend mode (four bones per splat, on the GPU),
+// as f3g skins, is given each joint's skinning matrix S_j = W_j · rest_j⁻¹; its own rest pose
+// stays the identity (Spark would compose rest⁻¹ · S, not S · rest⁻¹). Linear blending
+// transforms each splat's covariance, so the splats are Spark's extended splats with
+// covariances (`extSplats`, `covSplats`). The correctives and expressions change the canonical
+// splats before skinning, on the CPU.
 //
 // The page sets `window.f3g = {ready, error, frame, setFrame(i), setView(...), fps}` so that
 // tests and scripts can wait for it and drive it; errors are shown on the page, not only

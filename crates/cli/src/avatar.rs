@@ -5,15 +5,17 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use clap::Args;
 use f3g_avatar::infer::animate::{AnimateOptions, CameraPath};
+use f3g_avatar::model::config::TemplateChoice;
 use f3g_avatar::infer::eval::EvalOptions;
 
 use crate::device::{DeviceArg, DeviceSpec};
-use f3g_avatar::infer::TrainedAvatar;
 use f3g_avatar::infer::export::{ExportOptions, Up, export_cloud};
-use f3g_avatar::train::{AllReduce, Outcome, StepReport, TrainConfig, Trainer};
+use f3g_avatar::train::AllReduce;
+use f3g_avatar::infer::TrainedAvatar;
+use f3g_avatar::train::{Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
 use f3g_nets::LpipsNet;
 
@@ -29,8 +31,9 @@ pub struct TrainArgs {
     /// Run folder to create.
     #[arg(long, required_unless_present = "resume")]
     pub out: Option<PathBuf>,
-    /// Resume the run in this folder from its newest checkpoint.
-    #[arg(long, conflicts_with_all = ["data", "out", "config", "preset", "set"])]
+    /// Resume the run in this folder from its newest checkpoint (its configuration is the
+    /// run's: no flag that changes it).
+    #[arg(long, conflicts_with_all = ["data", "out", "config", "preset", "set", "AblationArgs", "seed"])]
     pub resume: Option<PathBuf>,
     #[command(flatten)]
     pub config: ConfigArgs,
@@ -42,29 +45,8 @@ pub struct TrainArgs {
     /// Training frames (`A..B` or a list), instead of the capture's preset.
     #[arg(long)]
     pub frames: Option<String>,
-    /// Ablation: no face branch — no face networks and no face-crop losses (body Gaussians
-    /// and body losses only; same number of steps).
-    #[arg(long)]
-    pub no_face_branch: bool,
-    /// Ablation: no face networks, but the face-crop losses (L1, LPIPS, adversarial) train the
-    /// body Gaussians.
-    #[arg(long, conflicts_with = "no_face_branch")]
-    pub no_face_networks: bool,
-    /// Ablation: no adversarial face loss.
-    #[arg(long)]
-    pub no_adversarial: bool,
-    /// Ablation: canonical template (body or clothed).
-    #[arg(long)]
-    pub template: Option<String>,
-    /// Ablation: input (= output) resolution of the face networks.
-    #[arg(long)]
-    pub face_input: Option<usize>,
-    /// Ablation: channel multiplier of the face networks.
-    #[arg(long)]
-    pub face_cm: Option<usize>,
-    /// Ablation: depth of the face networks' mapping network.
-    #[arg(long)]
-    pub face_n_mlp: Option<usize>,
+    #[command(flatten)]
+    pub ablation: AblationArgs,
     /// Seed of the weights, the samples and every random choice.
     #[arg(long)]
     pub seed: Option<u64>,
@@ -81,6 +63,66 @@ pub struct TrainArgs {
     pub devices: Vec<DeviceSpec>,
 }
 
+/// The ablation flags of `f3g train`, each setting fields of the configuration.
+#[derive(Args, Debug, Clone, Default)]
+pub struct AblationArgs {
+    /// Ablation: no face branch — no face networks and no face-crop losses (body Gaussians
+    /// and body losses only; same number of steps).
+    #[arg(long)]
+    pub no_face_branch: bool,
+    /// Ablation: no face networks, but the face-crop losses (L1, LPIPS, adversarial) train the
+    /// body Gaussians.
+    #[arg(long, conflicts_with = "no_face_branch")]
+    pub no_face_networks: bool,
+    /// Ablation: no adversarial face loss.
+    #[arg(long)]
+    pub no_adversarial: bool,
+    /// Ablation: canonical template, `body` (the body model's surface) or `clothed` (with
+    /// the capture's garment).
+    #[arg(long)]
+    pub template: Option<TemplateChoice>,
+    /// Ablation: input (= output) resolution of the face networks.
+    #[arg(long)]
+    pub face_input: Option<usize>,
+    /// Ablation: channel multiplier of the face networks.
+    #[arg(long)]
+    pub face_cm: Option<usize>,
+    /// Ablation: depth of the face networks' mapping network.
+    #[arg(long)]
+    pub face_n_mlp: Option<usize>,
+}
+
+impl AblationArgs {
+    /// Sets the configuration's fields the flags name (checked with the rest of the
+    /// configuration by [`ConfigArgs::load`]).
+    pub fn apply(&self, config: &mut TrainConfig) {
+        if self.no_face_branch {
+            config.model.face_branch = false;
+            config.face_losses = false;
+        }
+        if self.no_face_networks {
+            config.model.face_branch = false;
+        }
+        if self.no_adversarial {
+            config.adversarial = false;
+        }
+        if let Some(template) = &self.template {
+            config.model.template = template.clone();
+        }
+        let face_net = &mut config.model.face_net;
+        if let Some(side) = self.face_input {
+            face_net.input_size = side;
+            face_net.output_size = side;
+        }
+        if let Some(multiplier) = self.face_cm {
+            face_net.channel_multiplier = multiplier;
+        }
+        if let Some(depth) = self.face_n_mlp {
+            face_net.n_mlp = depth;
+        }
+    }
+}
+
 /// `--config`, `--preset` and `--set`: a training configuration from the command line
 /// (flattened into `train` and `bench train`).
 #[derive(Args, Debug, Clone, Default)]
@@ -92,20 +134,22 @@ pub struct ConfigArgs {
     /// or paper (AvatarReX scale).
     #[arg(long, default_value = "cpu")]
     pub preset: String,
-    /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable).
+    /// Override a configuration key, e.g. `--set steps.joint=500` (repeatable; over the
+    /// preset, the file and the other flags).
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
 }
 
 impl ConfigArgs {
-    /// The file's or the preset's configuration with `--set` and then `extra` overrides.
-    pub fn load(&self, extra: &[String]) -> Result<TrainConfig> {
-        let c = match &self.config {
+    /// The file's or the preset's configuration, changed by `flags` (the command's own flags)
+    /// and then by `--set`, checked.
+    pub fn load(&self, flags: impl FnOnce(&mut TrainConfig)) -> Result<TrainConfig> {
+        let mut config = match &self.config {
             Some(path) => TrainConfig::from_file(path)?,
             None => TrainConfig::preset(&self.preset)?,
         };
-        let set: Vec<String> = self.set.iter().chain(extra).cloned().collect();
-        Ok(c.with_overrides(&set)?)
+        flags(&mut config);
+        Ok(config.with_overrides(&self.set)?)
     }
 }
 
@@ -117,39 +161,16 @@ fn training_devices(a: &TrainArgs) -> Result<Vec<burn::tensor::Device>> {
     a.devices.iter().map(|d| d.open()).collect()
 }
 
-/// The configuration of a new run from the command line.
-pub fn config_of(a: &TrainArgs) -> Result<TrainConfig> {
-    let mut set = Vec::new();
-    if a.no_face_branch {
-        set.push("face_branch=false".into());
-        set.push("face_losses=false".into());
-    }
-    if a.no_face_networks {
-        set.push("face_branch=false".into());
-    }
-    if a.no_adversarial {
-        set.push("adversarial=false".into());
-    }
-    if let Some(t) = &a.template {
-        match t.as_str() {
-            "body" | "clothed" => set.push(format!("template={t}")),
-            other => bail!("--template `{other}`: expected body or clothed"),
+/// The configuration of a new run: the flags of `a`, then `adjust` (a caller's own settings),
+/// then `--set`.
+fn config_of(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Result<TrainConfig> {
+    a.config.load(|config| {
+        a.ablation.apply(config);
+        if let Some(seed) = a.seed {
+            config.seed = seed;
         }
-    }
-    if let Some(s) = a.face_input {
-        set.push(format!("face_net.input_size={s}"));
-        set.push(format!("face_net.output_size={s}"));
-    }
-    if let Some(cm) = a.face_cm {
-        set.push(format!("face_net.channel_multiplier={cm}"));
-    }
-    if let Some(n) = a.face_n_mlp {
-        set.push(format!("face_net.n_mlp={n}"));
-    }
-    if let Some(seed) = a.seed {
-        set.push(format!("seed={seed}"));
-    }
-    a.config.load(&set)
+        adjust(config);
+    })
 }
 
 /// Raised by Ctrl-C: the trainer writes a checkpoint and returns.
@@ -163,6 +184,12 @@ fn stop_flag() -> Arc<AtomicBool> {
 }
 
 pub fn train(a: &TrainArgs) -> Result<PathBuf> {
+    train_with(a, |_| {})
+}
+
+/// `f3g train` with `adjust` changing a new run's configuration after the flags (what
+/// `f3g demo` and `f3g bench quality` set); returns the run folder.
+pub fn train_with(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Result<PathBuf> {
     let devices = training_devices(a)?;
     let mut trainer = match &a.resume {
         Some(dir) => Trainer::resume(dir, a.model.spec.as_ref(), &devices)
@@ -170,7 +197,7 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
         None => {
             let data = a.data.as_ref().context("--data is required")?;
             let out = a.out.as_ref().context("--out is required")?;
-            let config = config_of(a)?;
+            let config = config_of(a, adjust)?;
             let ds_probe = f3g_data::Dataset::open(data, a.model.spec.as_ref())?;
             let cameras = a
                 .cameras
@@ -206,16 +233,16 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
             }
         );
     }
-    let run_dir = trainer.run_dir().to_path_buf();
+    let run_dir = trainer.run.dir.clone();
     let total = trainer.total_steps();
     println!(
         "training {} ({} body + {} face Gaussians, preset {}) on {} cameras × {} frames; {} of {} steps done",
         run_dir.display(),
-        trainer.setup().body_count(),
-        trainer.setup().face_count(),
-        trainer.config().preset,
-        trainer.split().cameras.len(),
-        trainer.split().frames.len(),
+        trainer.setup.body_count(),
+        trainer.setup.face_count(),
+        trainer.config.preset,
+        trainer.split.cameras.len(),
+        trainer.split.frames.len(),
         trainer.step(),
         total
     );
@@ -253,12 +280,14 @@ pub fn train(a: &TrainArgs) -> Result<PathBuf> {
 /// Options of `f3g eval`.
 #[derive(Args, Debug, Clone)]
 pub struct EvalArgs {
-    /// Run folder.
+    /// The avatar: a run folder, or a baked avatar file (a path ending in `.glb`, from
+    /// `f3g export-avatar`; it does not name its capture, so give --data).
+    #[arg(value_name = "RUN|AVATAR.glb")]
     pub run: PathBuf,
     /// Split: novel-view, novel-pose or train.
     #[arg(long, default_value = "novel-view")]
     pub split: SplitKind,
-    /// Capture folder (default: the run's).
+    /// Capture folder (default: the run's; required for an avatar file).
     #[arg(long)]
     pub data: Option<PathBuf>,
     #[command(flatten)]
@@ -283,10 +312,10 @@ pub struct EvalArgs {
     /// Side the body's LPIPS square is resized to, 32–2048 (512: the paper's protocol).
     #[arg(long, default_value_t = 512, value_parser = crate::bounds::size::<32, 2048>)]
     pub lpips_size: usize,
-    /// LPIPS backbone (default: the training one).
+    /// LPIPS backbone (default: the run's training one; alex for an avatar file).
     #[arg(long)]
     pub lpips: Option<LpipsNet>,
-    /// Output folder (default RUN/eval/<split>).
+    /// Output folder (default RUN/eval/<split>, or AVATAR.eval/<split> beside an avatar file).
     #[arg(long)]
     pub out: Option<PathBuf>,
     #[command(flatten)]
@@ -394,21 +423,16 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::infer::eval::EvalReport> {
             .collect::<Vec<_>>()
             .join("\n")
     );
-    println!(
-        "\n\nwrote {}",
-        a.out
-            .clone()
-            .unwrap_or_else(|| a.run.join("eval").join(a.split.to_string()))
-            .join("metrics.json")
-            .display()
-    );
+    println!("\n\nwrote {}", out.join("metrics.json").display());
     Ok(report)
 }
 
 /// Options of `f3g animate`.
 #[derive(Args, Debug, Clone)]
 pub struct AnimateArgs {
-    /// Run folder.
+    /// The avatar: a run folder (rendered with its networks), or a baked avatar file (a path
+    /// ending in `.glb`, from `f3g export-avatar`: its Gaussians, skin and correctives).
+    #[arg(value_name = "RUN|AVATAR.glb")]
     pub run: PathBuf,
     /// Motion: an f3g sequence (e.g. a capture's body_params.npz), or AMASS .npz, .smpl,
     /// smpl_params.npz, BVH, glTF or FBX, retargeted onto the avatar and resampled to --fps.
@@ -493,10 +517,9 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
     let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",
     )?);
-    let report =
-        f3g_avatar::infer::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
-            bar.set_position(i as u64)
-        })?;
+    let report = f3g_avatar::infer::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
+        bar.set_position(i as u64)
+    })?;
     bar.finish_and_clear();
     println!(
         "wrote {} frames ({:.2} s per frame) and {}{}",
@@ -526,7 +549,7 @@ pub enum UpArg {
 /// Options of `f3g export-ply`.
 #[derive(Args, Debug, Clone)]
 pub struct ExportPlyArgs {
-    /// Run folder.
+    /// Run folder (`f3g train --out`; the networks colour the file, so not a baked avatar).
     pub run: PathBuf,
     /// Output .ply (standard 3DGS layout, always with the degree-3 SH properties).
     #[arg(long)]
@@ -628,7 +651,7 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
 /// Options of `f3g export-avatar`.
 #[derive(Args, Debug, Clone)]
 pub struct ExportAvatarArgs {
-    /// Run folder.
+    /// Run folder (`f3g train --out`).
     pub run: PathBuf,
     /// Output `.glb`: the baked avatar (KHR_gaussian_splatting Gaussians, a glTF skin, pose
     /// correctives and expressions as morph targets, the body model).
@@ -709,4 +732,75 @@ pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
         f3g_io::write_atomic(path, serde_json::to_string_pretty(&value)?.as_bytes())?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Parser)]
+    struct Cli {
+        #[command(flatten)]
+        train: TrainArgs,
+    }
+
+    fn parse(flags: &str) -> Result<TrainArgs, clap::Error> {
+        let line = format!("f3g --data d --out o {flags}");
+        Cli::try_parse_from(line.split_whitespace()).map(|cli| cli.train)
+    }
+
+    /// Each ablation flag sets the configuration keys `--set` would, and `--set` has the
+    /// last word.
+    #[test]
+    fn the_ablation_flags_set_their_configuration_keys() {
+        let cases: [(&str, &[&str]); 10] = [
+            ("", &[]),
+            (
+                "--no-face-branch",
+                &["face_branch=false", "face_losses=false"],
+            ),
+            ("--no-face-networks", &["face_branch=false"]),
+            ("--no-adversarial", &["adversarial=false"]),
+            ("--template body", &["template=body"]),
+            (
+                "--face-input 64",
+                &["face_net.input_size=64", "face_net.output_size=64"],
+            ),
+            ("--face-cm 2", &["face_net.channel_multiplier=2"]),
+            ("--face-n-mlp 2", &["face_net.n_mlp=2"]),
+            ("--seed 7", &["seed=7"]),
+            ("--no-adversarial --set adversarial=true", &[]),
+        ];
+        for (flags, keys) in cases {
+            let config = config_of(&parse(flags).unwrap(), |_| {}).unwrap();
+            let keys: Vec<String> = keys.iter().map(|k| k.to_string()).collect();
+            let expected = TrainConfig::cpu().with_overrides(&keys).unwrap();
+            assert_eq!(config, expected, "{flags}");
+        }
+    }
+
+    #[test]
+    fn a_bad_ablation_flag_is_an_error_naming_it() {
+        let e = parse("--template skirt").unwrap_err().to_string();
+        assert!(
+            e.contains("--template") && e.contains("expected body or clothed"),
+            "{e}"
+        );
+        // A resumed run keeps its configuration: flags that would change it are refused.
+        for flags in ["--no-adversarial", "--template body", "--seed 3"] {
+            let line = format!("f3g --resume r {flags}");
+            let e = Cli::try_parse_from(line.split_whitespace())
+                .err()
+                .unwrap_or_else(|| panic!("--resume with {flags} was accepted"));
+            assert!(
+                e.to_string().contains("cannot be used with"),
+                "{flags}: {e}"
+            );
+        }
+        let config = config_of(&parse("--face-input 48").unwrap(), |_| {});
+        let e = config.unwrap_err().to_string();
+        assert!(e.contains("face_net"), "{e}");
+    }
 }

@@ -4,10 +4,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use f3g_avatar::train::TrainConfig;
 use f3g_avatar::infer::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
 
-use crate::avatar::{AnimateArgs, ConfigArgs, EvalArgs, TrainArgs, animate, eval, train};
+use crate::avatar::{AnimateArgs, ConfigArgs, EvalArgs, TrainArgs, animate, eval, train_with};
 use crate::data::{SynthArgs, synth};
 use crate::device::DeviceArg;
 
@@ -38,16 +39,9 @@ pub struct CaptureAndTraining {
 const BODY_HEIGHT: usize = 512;
 
 impl CaptureAndTraining {
-    /// The training overrides: a `body_scale` that shows the body at [`BODY_HEIGHT`] pixels
-    /// (unless `--set` gives one), then the `--set`s.
-    pub fn overrides(&self) -> Vec<String> {
-        let scale = (BODY_HEIGHT as f32 / self.resolution as f32).min(1.0);
-        let given = self.set.iter().any(|s| s.starts_with("body_scale="));
-        (!given)
-            .then(|| format!("body_scale={scale}"))
-            .into_iter()
-            .chain(self.set.iter().cloned())
-            .collect()
+    /// Shows the body at [`BODY_HEIGHT`] pixels (`--set body_scale=…` has the last word).
+    pub fn apply(&self, config: &mut TrainConfig) {
+        config.body_scale = (BODY_HEIGHT as f32 / self.resolution as f32).min(1.0);
     }
 }
 
@@ -87,7 +81,8 @@ pub(crate) fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
     })
 }
 
-/// Trains a run, or resumes it when the folder holds an unfinished one.
+/// Trains a run, or resumes it when the folder holds an unfinished one; a new run's
+/// configuration is the preset's with `seed`, then `adjust`, then the `--set`s in `set`.
 pub(crate) fn train_or_resume(
     run: &Path,
     data: &Path,
@@ -95,6 +90,7 @@ pub(crate) fn train_or_resume(
     seed: u64,
     set: &[String],
     device: DeviceArg,
+    adjust: impl FnOnce(&mut TrainConfig),
 ) -> Result<()> {
     let mut args = TrainArgs {
         data: Some(data.to_path_buf()),
@@ -108,13 +104,7 @@ pub(crate) fn train_or_resume(
         model: Default::default(),
         cameras: None,
         frames: None,
-        no_face_branch: false,
-        no_face_networks: false,
-        no_adversarial: false,
-        template: None,
-        face_input: None,
-        face_cm: None,
-        face_n_mlp: None,
+        ablation: Default::default(),
         seed: Some(seed),
         max_steps: None,
         device,
@@ -131,7 +121,7 @@ pub(crate) fn train_or_resume(
             ..args
         };
     }
-    train(&args)?;
+    train_with(&args, adjust)?;
     Ok(())
 }
 
@@ -173,8 +163,9 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         &capture,
         preset,
         a.capture.seed,
-        &a.capture.overrides(),
+        &a.capture.set,
         device,
+        |config| a.capture.apply(config),
     )?;
     println!("3/5 evaluation");
     let novel_view = eval(&eval_args(&run, SplitKind::NovelView, 4, device))?;
@@ -358,20 +349,25 @@ mod tests {
         capture: CaptureAndTraining,
     }
 
-    fn overrides(args: &[&str]) -> Vec<String> {
-        Cli::parse_from(std::iter::once("f3g").chain(args.iter().copied()))
-            .capture
-            .overrides()
+    /// The `body_scale` of the demo's configuration for these flags.
+    fn body_scale(args: &[&str]) -> f32 {
+        let capture = Cli::parse_from(std::iter::once("f3g").chain(args.iter().copied())).capture;
+        let config = ConfigArgs {
+            config: None,
+            preset: "cpu".into(),
+            set: capture.set.clone(),
+        };
+        config.load(|c| capture.apply(c)).unwrap().body_scale
     }
 
     #[test]
     fn the_body_is_seen_at_the_body_height_unless_set() {
-        assert_eq!(overrides(&[]), ["body_scale=0.25"]);
+        assert_eq!(body_scale(&[]), 0.25);
         assert_eq!(
-            overrides(&["--resolution", "1024", "--set", "steps.joint=5"]),
-            ["body_scale=0.5", "steps.joint=5"]
+            body_scale(&["--resolution", "1024", "--set", "steps.joint=5"]),
+            0.5
         );
-        assert_eq!(overrides(&["--resolution", "300"]), ["body_scale=1"]);
-        assert_eq!(overrides(&["--set", "body_scale=0.5"]), ["body_scale=0.5"]);
+        assert_eq!(body_scale(&["--resolution", "300"]), 1.0);
+        assert_eq!(body_scale(&["--set", "body_scale=0.5"]), 0.5);
     }
 }

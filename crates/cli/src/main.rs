@@ -7,26 +7,23 @@ mod cuda_probe;
 mod data;
 mod demo;
 mod device;
-mod kernel_count;
-mod memory;
+mod metrics;
 mod motion;
-mod nets;
-mod quality;
 mod render_ply;
 mod rig;
 mod template;
-mod train_bench;
 mod view;
+mod weights;
 
 use anyhow::{Context, Result};
 use clap::{Parser, Subcommand};
 
 #[global_allocator]
-static ALLOCATOR: memory::TrackingAllocator = memory::TrackingAllocator;
+static ALLOCATOR: bench::memory::TrackingAllocator = bench::memory::TrackingAllocator;
 
 /// F3G-Avatar: face-focused full-body Gaussian avatars from multi-view video.
 #[derive(Parser, Debug)]
-#[command(name = "f3g", version, about, long_about = None)]
+#[command(name = "f3g", version, long_about = None)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -41,7 +38,7 @@ enum Command {
     Train(avatar::TrainArgs),
     /// Evaluate a trained avatar on held-out views or poses (body and head metrics).
     Eval(avatar::EvalArgs),
-    /// Animate a trained avatar with a pose sequence (PNG frames, GIF, optional .ply).
+    /// Animate a trained avatar with a motion (PNG frames, GIF, optional .ply).
     Animate(avatar::AnimateArgs),
     /// Write a trained avatar's posed Gaussians as a standard 3DGS .ply.
     ExportPly(avatar::ExportPlyArgs),
@@ -54,7 +51,8 @@ enum Command {
     /// Body models: pose and inspect them, convert parameters between them.
     #[command(subcommand)]
     Rig(rig::RigCommand),
-    /// Motions: retarget AMASS, .smpl and BVH motions onto a body model; export f3g's.
+    /// Motions: retarget other tools' motions (AMASS, .smpl, BVH, glTF, FBX) onto a body
+    /// model, write f3g's motions for them, draw a motion's contact sheet.
     #[command(subcommand)]
     Motion(motion::MotionCommand),
     /// Render a synthetic multi-view capture of the built-in human.
@@ -68,10 +66,10 @@ enum Command {
     Posmaps(template::PosmapsArgs),
     /// PSNR, SSIM and LPIPS of two images, as JSON: `ssim` as scikit-image computes it (7×7
     /// uniform window: the paper's protocol), `ssim_3dgs` with the 3DGS Gaussian window.
-    Metrics(nets::MetricsArgs),
+    Metrics(metrics::MetricsArgs),
     /// Fetch and convert third-party weights (LPIPS VGG).
     #[command(subcommand)]
-    Weights(nets::WeightsCommand),
+    Weights(weights::WeightsCommand),
     /// Performance benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -124,13 +122,9 @@ fn run(cli: Cli) -> Result<()> {
         Command::Data(cmd) => data::run(&cmd),
         Command::Template(args) => template::run(&args),
         Command::Posmaps(args) => template::posmaps(&args),
-        Command::Bench(bench::BenchCommand::Splat(args)) => bench::run_splat(&args),
-        Command::Bench(bench::BenchCommand::Lbs(args)) => bench::run_lbs(&args),
-        Command::Bench(bench::BenchCommand::Nets(args)) => nets::bench(&args),
-        Command::Bench(bench::BenchCommand::Train(args)) => train_bench::run(&args),
-        Command::Bench(bench::BenchCommand::Quality(args)) => quality::quality(&args),
-        Command::Metrics(args) => nets::metrics(&args),
-        Command::Weights(cmd) => nets::weights(&cmd),
+        Command::Bench(cmd) => bench::run(&cmd),
+        Command::Metrics(args) => metrics::run(&args),
+        Command::Weights(cmd) => weights::run(&cmd),
         Command::Devices(args) => device::devices(&args),
     }
 }
@@ -156,6 +150,7 @@ mod tests {
             "eval r --model builtin --device cpu",
             "bench train --device cpu --preset cpu --set batch=2",
             "demo --device cpu --set steps.joint=1",
+            "train --data d --out o --template body --no-face-networks --face-cm 2 --seed 1",
         ] {
             let args = std::iter::once("f3g").chain(line.split(' '));
             super::Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{line}: {e}"));

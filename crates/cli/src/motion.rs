@@ -172,6 +172,7 @@ pub enum ExportFormat {
 pub struct ExportArgs {
     /// A run folder (its training poses) or an f3g sequence (.npz, naming its body model).
     pub input: PathBuf,
+    /// File format.
     #[arg(long, value_enum, default_value = "bvh")]
     pub format: ExportFormat,
     /// Output file.

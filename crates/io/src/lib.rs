@@ -624,7 +624,10 @@ mod tests {
         let data: Vec<f32> = (0..24).map(|i| i as f32 * 0.5).collect();
         write_npy_f32(&path, &[2, 3, 4], &data).unwrap();
         assert_eq!(read_npy_f32(&path).unwrap(), (vec![2, 3, 4], data));
-        assert!(encode_npy_f32(&[2, 2], &[1.0]).is_err());
+        assert_eq!(
+            encode_npy_f32(&[2, 2], &[1.0]).unwrap_err(),
+            "1 values for shape [2, 2]"
+        );
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! returns a cloud or an error: no panic, and no single allocation above 256 MiB however large
 //! a count the file claims.
 
-use f3g_splat::{Camera, GaussianCloud, ply};
+use f3g_splat::{Camera, GaussianCloud, SplatError, ply};
 use f3g_testkit::{AllocationGuard, config, mutated, mutated_text};
 use proptest::prelude::*;
 
@@ -86,11 +86,30 @@ proptest! {
     #[test]
     fn mutated_ply_parses_or_errors(bytes in mutated(valid_ply())) {
         if let Ok(cloud) = ply::parse_ply(&bytes) {
-            // Whatever it accepts is a consistent cloud.
-            prop_assert!(cloud.validate().is_ok() || cloud.means.iter().any(|v| !v.is_finite())
-                || cloud.sh.iter().any(|v| !v.is_finite())
-                || cloud.log_scales.iter().chain(&cloud.quats).chain(&cloud.opacity_logits)
-                    .any(|v| !v.is_finite()));
+            // Whatever it accepts is a consistent cloud: it validates, or (a mutated float) the
+            // check names the first field with a NaN or infinity and its index.
+            let fields = [
+                ("means", &cloud.means),
+                ("log_scales", &cloud.log_scales),
+                ("quats", &cloud.quats),
+                ("opacity_logits", &cloud.opacity_logits),
+                ("sh", &cloud.sh),
+            ];
+            let first_non_finite = fields.into_iter().find_map(|(name, values)| {
+                values.iter().position(|v| !v.is_finite()).map(|index| (name, index))
+            });
+            match (cloud.validate(), first_non_finite) {
+                (Ok(()), None) => {}
+                (Err(SplatError::NonFinite { name, index, .. }), Some(expected)) => {
+                    prop_assert_eq!((name, index), expected)
+                }
+                (result, expected) => prop_assert!(
+                    false,
+                    "validate: {:?}; first non-finite value: {:?}",
+                    result,
+                    expected
+                ),
+            }
         }
         prop_assert!(GUARD.largest() <= 256 << 20);
     }

@@ -158,6 +158,11 @@ mod tests {
         let outlier: Vec<f32> = (0..50).map(|i| 1.0 + 50.0 * basis[0][i]).collect();
         let coeff = clamped.coefficients(&clamped.project(&outlier).unwrap())[0];
         assert!((coeff.abs() - 2.0 * clamped.stddev[0]).abs() < 1e-3 * clamped.stddev[0].max(1.0));
-        assert!(PosePca::fit(&samples[..1], 2, 2.0).is_err());
+        match PosePca::fit(&samples[..1], 2, 2.0) {
+            Err(TemplateError::Invalid(e)) => {
+                assert_eq!(e, "pose PCA needs at least 2 training maps, got 1")
+            }
+            other => panic!("one sample gave {other:?}"),
+        }
     }
 }

@@ -358,6 +358,8 @@ unsafe impl GlobalAlloc for AllocationGuard {
         if !self.admit(layout.size()) {
             return std::ptr::null_mut();
         }
+        // SAFETY: `layout` has a non-zero size (the caller's contract for `alloc`), all
+        // `System` needs.
         unsafe { System.alloc(layout) }
     }
 
@@ -365,10 +367,14 @@ unsafe impl GlobalAlloc for AllocationGuard {
         if !self.admit(layout.size()) {
             return std::ptr::null_mut();
         }
+        // SAFETY: `layout` has a non-zero size (the caller's contract for `alloc_zeroed`), all
+        // `System` needs.
         unsafe { System.alloc_zeroed(layout) }
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: the caller's `ptr` was allocated with `layout` by this allocator, that is by
+        // `System`, which allocates every block here.
         unsafe { System.dealloc(ptr, layout) }
     }
 
@@ -376,6 +382,9 @@ unsafe impl GlobalAlloc for AllocationGuard {
         if !self.admit(new_size) {
             return std::ptr::null_mut();
         }
+        // SAFETY: the caller's `ptr` is a block of `System`'s allocated with `layout`, and
+        // `new_size` is non-zero and fits `isize` when rounded to the alignment (`realloc`'s
+        // contract).
         unsafe { System.realloc(ptr, layout, new_size) }
     }
 }

@@ -333,6 +333,7 @@ struct SharedOutput(*mut f32);
 
 // SAFETY: the tasks that share it write disjoint elements (see `forward`).
 unsafe impl Send for SharedOutput {}
+// SAFETY: shared, it is only copied; the writes through it are to disjoint elements, as above.
 unsafe impl Sync for SharedOutput {}
 
 impl SharedOutput {

@@ -36,6 +36,18 @@ pub enum TemplateChoice {
     Clothed,
 }
 
+/// The names of the configuration file (`body`, `clothed`), for `f3g train --template`.
+impl std::str::FromStr for TemplateChoice {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "body" => Ok(Self::Body),
+            "clothed" => Ok(Self::Clothed),
+            _ => Err(format!("unknown template `{s}`: expected body or clothed")),
+        }
+    }
+}
+
 /// How the body branch's outputs are split between networks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
@@ -141,5 +153,24 @@ impl ModelConfig {
             ..self.face_net.clone()
         };
         [with(3, false), with(3, true), with(8, false)]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--template` takes the names the configuration file uses.
+    #[test]
+    fn template_names_are_the_config_files() {
+        for template in [TemplateChoice::Body, TemplateChoice::Clothed] {
+            let name = serde_json::to_value(&template).unwrap();
+            let name = name.as_str().unwrap();
+            assert_eq!(name.parse::<TemplateChoice>(), Ok(template));
+        }
+        assert_eq!(
+            "skirt".parse::<TemplateChoice>().unwrap_err(),
+            "unknown template `skirt`: expected body or clothed"
+        );
     }
 }

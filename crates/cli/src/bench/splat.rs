@@ -1,6 +1,6 @@
-//! `f3g bench`: measured performance, written as a table and JSON.
+//! `f3g bench splat`: the Gaussian rasteriser timed, written as a table and JSON.
 //!
-//! `bench splat` renders a fixed, seeded scene: N Gaussians on a 1 m sphere shell seen from 3 m,
+//! It renders a fixed, seeded scene: N Gaussians on a 1 m sphere shell seen from 3 m,
 //! scales 1–2 cm, opacities 0.3–0.9, SH degree 0, the sphere filling ~85 % of the image width.
 
 use std::path::PathBuf;
@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use anyhow::{Result, ensure};
 use burn::tensor::{Device, Tensor, TensorData};
-use clap::{Args, Subcommand};
+use clap::Args;
 use f3g_splat::cpu::{self, PixelGrads};
 use f3g_splat::{Camera, GaussianCloud, RenderOptions, render};
 use indicatif::{ProgressBar, ProgressStyle};
@@ -16,133 +16,14 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use super::{median, memory, millis};
 use crate::device::{DeviceArg, DeviceSpec};
-use crate::memory;
-
-/// Benchmarks.
-#[derive(Subcommand, Debug)]
-pub enum BenchCommand {
-    /// Forward and forward+backward time of the Gaussian rasteriser.
-    Splat(SplatBenchArgs),
-    /// Posing the built-in human and skinning many Gaussians (the per-step LBS cost).
-    Lbs(LbsBenchArgs),
-    /// Forward and forward+backward time of the StyleUNets, LPIPS and the discriminator.
-    Nets(crate::nets::NetsBenchArgs),
-    /// Milliseconds per training step of a preset on a device, phase by phase (data, inputs,
-    /// networks, render, LPIPS, adversarial, readback, backward, optimiser, discriminator),
-    /// and peak memory.
-    Train(crate::train_bench::TrainBenchArgs),
-    /// Ablations of the face branch (full, face-crop losses only, no face branch, no
-    /// adversarial loss), each with several seeds, on the synthetic capture: mean ± std of body
-    /// and head metrics on novel views and novel poses.
-    Quality(crate::quality::QualityArgs),
-}
-
-/// Bytes `bench lbs` holds per Gaussian, an upper estimate: the skin lists and taps (~250 B),
-/// the gathered joint transforms of 8 influences (384 B), the blend and the polar iteration's
-/// temporaries (~300 B), the quaternion candidates (~100 B), inputs and posed outputs (56 B),
-/// slack.
-const LBS_BYTES_PER_GAUSSIAN: u64 = 1500;
 
 /// Bytes a CPU render holds per pixel (forward state, the backward's gradients and state) and
 /// per Gaussian with its intersections: upper estimates, above the peaks `bench splat`
 /// measured (40 MiB at 100k / 512², 235 MiB at 100k / 2048×1500).
 const SPLAT_BYTES_PER_PIXEL: u64 = 96;
 const SPLAT_BYTES_PER_GAUSSIAN: u64 = 400;
-
-/// Options of `f3g bench lbs`.
-#[derive(Args, Debug)]
-pub struct LbsBenchArgs {
-    /// Number of Gaussians to skin (at most 100 million).
-    #[arg(long, default_value_t = 400_000, value_parser = crate::bounds::size::<1, 100_000_000>)]
-    pub points: usize,
-    /// Timed repetitions (the median is reported).
-    #[arg(long, default_value_t = 7)]
-    pub repeats: usize,
-    #[command(flatten)]
-    pub device: DeviceArg,
-}
-
-/// Times the LBS of a training step on the built-in human: `rig.pose` (joint transforms, host),
-/// the per-Gaussian blended transforms with their nearest rotations and quaternions
-/// ([`f3g_avatar::model::posing::Skinning`], on `--device`, from the uploaded joint transforms) and
-/// [`f3g_avatar::model::posing::pose_gaussians`] (the tensor LBS of means and rotations), each until the
-/// device is done.
-pub fn run_lbs(args: &LbsBenchArgs) -> Result<()> {
-    use f3g_avatar::model::posing::{Skinning, Taps, affine_tensor, pose_gaussians};
-    ensure!(args.repeats > 0, "--repeats must be at least 1");
-    f3g_io::memory::ensure_available(
-        args.points as u64 * LBS_BYTES_PER_GAUSSIAN,
-        &format!("--points {}", args.points),
-    )?;
-    let device = args.device.open()?;
-    let sync = |what: &str| {
-        device
-            .sync()
-            .map_err(|e| anyhow::anyhow!("{what} on {}: {e:?}", args.device))
-    };
-    let human = f3g_rig::builtin::load()?;
-    let rig = &human.rig;
-    let mut params = rig.zero_params();
-    for (i, p) in params.pose.iter_mut().enumerate() {
-        *p = 0.2 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
-    }
-    // Gaussians: copies of the mesh vertices with their skin weights.
-    let n = rig.mesh.vertices.len();
-    let index: Vec<usize> = (0..args.points).map(|i| i % n).collect();
-    let skin = Taps::skin(&rig.skin.select(&index), &device);
-    let means: Vec<f32> = index
-        .iter()
-        .flat_map(|&i| rig.mesh.vertices[i].to_array())
-        .collect();
-    let means = Tensor::<2>::from_data(TensorData::new(means, [args.points, 3]), &device);
-    let quats = Tensor::<2>::from_data(
-        TensorData::new(
-            [1.0f32, 0.0, 0.0, 0.0].repeat(args.points),
-            [args.points, 4],
-        ),
-        &device,
-    );
-    let (mut pose_ms, mut skin_ms, mut lbs_ms) = (Vec::new(), Vec::new(), Vec::new());
-    for rep in 0..=args.repeats {
-        let start = Instant::now();
-        let posed = rig.pose(&params)?;
-        let t_pose = millis(start);
-        let start = Instant::now();
-        let skinning = Skinning::new(&affine_tensor(&posed.skinning, &device), &skin);
-        sync("skinning")?;
-        let t_skin = millis(start);
-        let start = Instant::now();
-        let (m, q) = pose_gaussians(means.clone(), quats.clone(), &skinning);
-        std::hint::black_box((m, q));
-        sync("posing")?;
-        let t_lbs = millis(start);
-        if rep > 0 {
-            pose_ms.push(t_pose);
-            skin_ms.push(t_skin);
-            lbs_ms.push(t_lbs);
-        }
-    }
-    let per = |ms: f64| ms * 1e6 / args.points as f64;
-    let (skinning, lbs) = (median(skin_ms), median(lbs_ms));
-    println!(
-        "built-in human ({} vertices, {} joints), {} Gaussians, {} host threads, on {}:\n  \
-         pose (joint transforms, host) {:.2} ms\n  \
-         upload of the joint transforms + blended transforms + nearest rotations {:.1} ms ({:.0} ns per Gaussian)\n  \
-         tensor LBS of means and rotations {:.1} ms ({:.0} ns per Gaussian)",
-        n,
-        rig.skeleton.len(),
-        args.points,
-        rayon::current_num_threads(),
-        args.device,
-        median(pose_ms),
-        skinning,
-        per(skinning),
-        lbs,
-        per(lbs),
-    );
-    Ok(())
-}
 
 /// Options of `f3g bench splat`.
 #[derive(Args, Debug)]
@@ -256,15 +137,6 @@ pub fn bench_camera(width: u32, height: u32) -> Camera {
     )
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.partial_cmp(b).expect("timings are finite"));
-    v[v.len() / 2]
-}
-
-fn millis(start: Instant) -> f64 {
-    start.elapsed().as_secs_f64() * 1e3
-}
-
 /// Independent fused multiply-adds: 128 lanes (8 AVX-512 registers), enough to hide the FMA
 /// latency. Compiled for the same instruction sets as the rasteriser's kernels.
 #[multiversion::multiversion(targets(
@@ -333,7 +205,7 @@ fn burn_op_fwd_bwd(
     Ok(elapsed)
 }
 
-pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
+pub fn run(args: &SplatBenchArgs) -> Result<()> {
     ensure!(args.repeats > 0, "--repeats must be at least 1");
     let largest_n = args.gaussians.iter().copied().max().unwrap_or(0) as u64;
     let largest_image = args
@@ -349,9 +221,9 @@ pub fn run_splat(args: &SplatBenchArgs) -> Result<()> {
         &format!("--gaussians {largest_n} with an image of {largest_image} pixels (--resolutions)"),
     )?;
     if args.device.spec == DeviceSpec::Cpu {
-        run_splat_cpu(args)
+        run_on_cpu(args)
     } else {
-        run_splat_device(args)
+        run_on_device(args)
     }
 }
 
@@ -381,7 +253,7 @@ pub struct DeviceSplatCase {
 
 /// `bench splat --device wgpu|cuda`: the Burn op (forward, and forward + backward on the
 /// autodiff device) on the GPU; each timing ends when the device has finished.
-fn run_splat_device(args: &SplatBenchArgs) -> Result<()> {
+fn run_on_device(args: &SplatBenchArgs) -> Result<()> {
     let plain = args.device.open()?;
     let train = plain.clone().autodiff();
     eprintln!(
@@ -486,7 +358,7 @@ fn run_splat_device(args: &SplatBenchArgs) -> Result<()> {
 }
 
 /// `bench splat --device cpu`: the CPU path stage by stage, and the Burn op on Flex.
-fn run_splat_cpu(args: &SplatBenchArgs) -> Result<()> {
+fn run_on_cpu(args: &SplatBenchArgs) -> Result<()> {
     let flop_rate = measure_flop_rate();
     println!(
         "machine: {} threads; measured peak f32 FMA throughput {:.1} GFLOP/s",

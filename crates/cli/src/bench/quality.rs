@@ -15,11 +15,13 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
+use f3g_avatar::train::TrainConfig;
 use f3g_avatar::infer::eval::{EvalReport, Scores};
 use f3g_data::split::SplitKind;
 use serde::Serialize;
 
-use crate::avatar::eval;
+use super::median;
+use crate::avatar::{AblationArgs, eval};
 use crate::demo::{CaptureAndTraining, ensure_capture, eval_args, train_or_resume};
 use crate::device::DeviceArg;
 
@@ -61,16 +63,40 @@ impl Variant {
         }
     }
 
-    fn overrides(self) -> &'static [&'static str] {
-        match self {
-            Self::Full => &[],
-            Self::FaceLossesOnly => &["face_branch=false"],
-            Self::NoFaceBranch => &["face_branch=false", "face_losses=false"],
-            Self::NoAdversarial => &["adversarial=false"],
-            Self::Crop128 => &["face_crop_size=128", "discriminator.resolution=128"],
-            Self::FaceMlp2 => &["face_net.n_mlp=2"],
-            Self::FaceCm2 => &["face_net.channel_multiplier=2", "face_net.max_channels=128"],
-        }
+    /// Changes the full method's configuration into this variant's: the face-branch
+    /// ablations as `f3g train`'s flags set them.
+    fn apply(self, config: &mut TrainConfig) {
+        let none = AblationArgs::default();
+        let flags = match self {
+            Self::Full => none,
+            Self::FaceLossesOnly => AblationArgs {
+                no_face_networks: true,
+                ..none
+            },
+            Self::NoFaceBranch => AblationArgs {
+                no_face_branch: true,
+                ..none
+            },
+            Self::NoAdversarial => AblationArgs {
+                no_adversarial: true,
+                ..none
+            },
+            Self::FaceMlp2 => AblationArgs {
+                face_n_mlp: Some(2),
+                ..none
+            },
+            Self::Crop128 => {
+                config.model.face_crop_size = 128;
+                config.discriminator.resolution = 128;
+                none
+            }
+            Self::FaceCm2 => {
+                config.model.face_net.channel_multiplier = 2;
+                config.model.face_net.max_channels = 128;
+                none
+            }
+        };
+        flags.apply(config);
     }
 }
 
@@ -181,14 +207,13 @@ fn ms_per_step(run: &Path) -> Result<f64> {
         .filter_map(|v| Some((v["stage"].as_str()?.to_string(), v["seconds"].as_f64()?)))
         .collect();
     for stage in ["joint", "body"] {
-        let mut steps: Vec<f64> = lines
+        let steps: Vec<f64> = lines
             .windows(2)
             .filter(|w| w[0].0 == stage && w[1].0 == stage)
             .map(|w| 1e3 * (w[1].1 - w[0].1))
             .collect();
         if !steps.is_empty() {
-            steps.sort_by(f64::total_cmp);
-            return Ok(steps[steps.len() / 2]);
+            return Ok(median(steps));
         }
     }
     anyhow::bail!("{}: no joint or body steps logged", path.display())
@@ -213,7 +238,7 @@ fn evaluation(run: &Path, split: SplitKind, every: usize, device: DeviceArg) -> 
     eval(&eval_args(run, split, every, device))
 }
 
-pub fn quality(a: &QualityArgs) -> Result<()> {
+pub fn run(a: &QualityArgs) -> Result<()> {
     anyhow::ensure!(!a.seeds.is_empty(), "--seeds: give at least one seed");
     let capture = a.out.join("capture");
     ensure_capture(&capture, &a.capture)?;
@@ -222,11 +247,20 @@ pub fn quality(a: &QualityArgs) -> Result<()> {
         let (mut runs, mut ms) = (Vec::new(), Vec::new());
         for &seed in &a.seeds {
             let run = a.out.join(variant.name()).join(format!("seed-{seed}"));
-            let mut set = a.capture.overrides();
-            set.extend(variant.overrides().iter().map(|s| s.to_string()));
             println!("training `{}` with seed {seed}", variant.name());
             let device = a.capture.device;
-            train_or_resume(&run, &capture, "cpu", seed, &set, device)?;
+            train_or_resume(
+                &run,
+                &capture,
+                "cpu",
+                seed,
+                &a.capture.set,
+                device,
+                |config| {
+                    a.capture.apply(config);
+                    variant.apply(config);
+                },
+            )?;
             ms.push(ms_per_step(&run)?);
             runs.push((
                 evaluation(&run, SplitKind::NovelView, a.every, device)?,
@@ -358,10 +392,9 @@ mod tests {
     #[test]
     fn every_capacity_variant_changes_the_face_networks() {
         let parameters = |v: Variant| {
-            let set: Vec<String> = v.overrides().iter().map(|s| s.to_string()).collect();
-            let config = f3g_avatar::train::TrainConfig::cpu()
-                .with_overrides(&set)
-                .unwrap();
+            let mut config = TrainConfig::cpu();
+            v.apply(&mut config);
+            config.validate().unwrap();
             let net = config.model.face_nets()[0]
                 .init(0, &burn::tensor::Device::flex())
                 .unwrap();
@@ -370,6 +403,22 @@ mod tests {
         let full = parameters(Variant::Full);
         for v in [Variant::FaceMlp2, Variant::FaceCm2] {
             assert_ne!(parameters(v), full, "{}", v.name());
+        }
+    }
+
+    /// Each variant is one valid change of the full method's configuration.
+    #[test]
+    fn every_variant_is_a_valid_change_of_the_full_method() {
+        for v in Variant::value_variants() {
+            let mut config = TrainConfig::cpu();
+            v.apply(&mut config);
+            config.validate().unwrap();
+            assert_eq!(
+                *v == Variant::Full,
+                config == TrainConfig::cpu(),
+                "{}",
+                v.name()
+            );
         }
     }
 

@@ -19,6 +19,8 @@ fn grow(bytes: usize) {
 // are bookkeeping only.
 unsafe impl GlobalAlloc for TrackingAllocator {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        // SAFETY: `layout` has a non-zero size (the caller's contract for `alloc`), all
+        // `System` needs.
         let p = unsafe { System.alloc(layout) };
         if !p.is_null() {
             grow(layout.size());
@@ -27,6 +29,8 @@ unsafe impl GlobalAlloc for TrackingAllocator {
     }
 
     unsafe fn alloc_zeroed(&self, layout: Layout) -> *mut u8 {
+        // SAFETY: `layout` has a non-zero size (the caller's contract for `alloc_zeroed`), all
+        // `System` needs.
         let p = unsafe { System.alloc_zeroed(layout) };
         if !p.is_null() {
             grow(layout.size());
@@ -35,11 +39,16 @@ unsafe impl GlobalAlloc for TrackingAllocator {
     }
 
     unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        // SAFETY: the caller's `ptr` was allocated with `layout` by this allocator, that is by
+        // `System`, which allocates every block here.
         unsafe { System.dealloc(ptr, layout) };
         LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
     }
 
     unsafe fn realloc(&self, ptr: *mut u8, layout: Layout, new_size: usize) -> *mut u8 {
+        // SAFETY: the caller's `ptr` is a block of `System`'s allocated with `layout`, and
+        // `new_size` is non-zero and fits `isize` when rounded to the alignment (`realloc`'s
+        // contract).
         let p = unsafe { System.realloc(ptr, layout, new_size) };
         if !p.is_null() {
             LIVE.fetch_sub(layout.size(), Ordering::Relaxed);
