@@ -6,8 +6,10 @@
 //! channels of other joints are read and ignored (the skeleton's offsets are kept). BVH rest
 //! frames are world-aligned. The up axis is the one (Y or Z) along which the rest skeleton is
 //! longest; the unit is metres for a skeleton under 10 units tall, millimetres above 300,
-//! centimetres between. Sizes are bounded before allocating: frames by [`crate::MAX_FRAMES`]
-//! and by the values the file holds, joints by [`crate::MAX_JOINTS`].
+//! centimetres between; a skeleton of zero length is refused. Sizes are bounded before
+//! allocating: frames by [`crate::MAX_FRAMES`] and by the values the file holds, joints by
+//! [`crate::MAX_JOINTS`]; rotations by [`crate::MAX_ANGLE_DEGREES`]. A UTF-8 byte-order mark
+//! is skipped.
 //!
 //! Writing: `Xposition Yposition Zposition` on the root, `Zrotation Yrotation Xrotation` on
 //! every joint (so `R = Rz · Ry · Rx`, f3g's own Euler order), degrees to 6 decimals.
@@ -19,7 +21,7 @@ use glam::{EulerRot, Quat, Vec3};
 
 use f3g_rig::{Joint, Skeleton};
 
-use crate::{MAX_FRAMES, MAX_JOINTS, Motion, MotionError, Up};
+use crate::{MAX_ANGLE_DEGREES, MAX_FRAMES, MAX_JOINTS, Motion, MotionError, Up};
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Channel {
@@ -75,6 +77,8 @@ impl<'a> Tokens<'a> {
 pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
     let text = std::str::from_utf8(bytes)
         .map_err(|e| MotionError::file(path, format!("not a text file (BVH is text): {e}")))?;
+    // Windows editors start UTF-8 text with a byte-order mark.
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
     let words: Box<dyn Iterator<Item = (usize, &str)> + '_> = Box::new(
         text.lines()
             .enumerate()
@@ -198,6 +202,12 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
                 match *c {
                     Channel::Position(axis) => position[axis] = values[k],
                     Channel::Rotation(axis) => {
+                        if values[k].abs() > MAX_ANGLE_DEGREES {
+                            return Err(t.error(format!(
+                                "frame {f}, channel {k} (joint `{}`): rotation {}° is beyond ±{MAX_ANGLE_DEGREES}°",
+                                skeleton.joints()[j].name, values[k]
+                            )));
+                        }
                         let angle = values[k].to_radians();
                         rotation *= match axis {
                             0 => Quat::from_rotation_x(angle),
@@ -241,7 +251,7 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
         up,
         smpl: None,
     };
-    crate::check_finite(&motion, path)?;
+    crate::check_values(&motion, path)?;
     Ok(motion)
 }
 

@@ -6,7 +6,8 @@
 //! root's including its non-bone ancestors' (an `Armature` node). The first animation stack
 //! drives it, evaluated at the file's frame rate (`frames_per_second`, 30 when unset) from the
 //! stack's start to its end. Units and up axis are the file's (`UnitScaleFactor`, `UpAxis`);
-//! only uniform scales are read.
+//! only uniform scales are read. Every key of a bone's rotation and translation curves must be
+//! finite and plausible ([`crate::MAX_ANGLE_DEGREES`], [`crate::MAX_TRANSLATION_METRES`]).
 //!
 //! Writing: an ASCII FBX 7.4 file, Y up, the motion's unit: a bone per joint (`Model` with a
 //! `LimbNode` attribute, its rest transform as `Lcl Translation`/`Lcl Rotation`) and one
@@ -19,7 +20,9 @@ use glam::{Affine3A, Mat3, Quat, Vec3};
 
 use f3g_rig::{Joint, Skeleton};
 
-use crate::{MAX_FRAMES, MAX_JOINTS, Motion, MotionError, Up};
+use crate::{
+    MAX_ANGLE_DEGREES, MAX_FRAMES, MAX_JOINTS, MAX_TRANSLATION_METRES, Motion, MotionError, Up,
+};
 
 fn vec3(v: ufbx::Vec3) -> Vec3 {
     Vec3::new(v.x as f32, v.y as f32, v.z as f32)
@@ -118,6 +121,13 @@ pub fn parse_fbx(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
         .iter()
         .next()
         .ok_or_else(|| MotionError::file(path, "holds no animation stack"))?;
+    let unit = scene.settings.unit_meters as f32;
+    let metres_per_unit = if unit.is_finite() && unit > 0.0 {
+        unit
+    } else {
+        0.01
+    };
+    check_keys(stack, &bones, metres_per_unit, path)?;
     let fps = match scene.settings.frames_per_second {
         f if f.is_finite() && f > 0.0 && f <= 10_000.0 => f,
         _ => 30.0,
@@ -154,22 +164,65 @@ pub fn parse_fbx(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
         ufbx::CoordinateAxis::PositiveZ => Up::Z,
         _ => Up::Y,
     };
-    let unit = scene.settings.unit_meters as f32;
     let motion = Motion {
         skeleton,
         rotations,
         root_translation,
         fps: fps as f32,
-        metres_per_unit: if unit.is_finite() && unit > 0.0 {
-            unit
-        } else {
-            0.01
-        },
+        metres_per_unit,
         up,
         smpl: None,
     };
-    crate::check_finite(&motion, path)?;
+    crate::check_values(&motion, path)?;
     Ok(motion)
+}
+
+/// Refuses a bone's rotation key (degrees) beyond [`MAX_ANGLE_DEGREES`] or translation key
+/// beyond [`MAX_TRANSLATION_METRES`], or one that is not finite, before any is evaluated: ufbx
+/// turns any finite angle into a rotation, and keys between or outside the frames are never
+/// sampled.
+fn check_keys(
+    stack: &ufbx::AnimStack,
+    bones: &[&ufbx::Node],
+    metres_per_unit: f32,
+    path: &Path,
+) -> Result<(), MotionError> {
+    for layer in stack.layers.iter() {
+        for prop in layer.anim_props.iter() {
+            let Some(bone) = bones
+                .iter()
+                .find(|b| b.element.element_id == prop.element.element_id)
+            else {
+                continue;
+            };
+            let (limit, unit) = match prop.prop_name.as_ref() {
+                "Lcl Rotation" => (f64::from(MAX_ANGLE_DEGREES), "°"),
+                "Lcl Translation" => (
+                    f64::from(MAX_TRANSLATION_METRES / metres_per_unit),
+                    " file units (1 km)",
+                ),
+                _ => continue,
+            };
+            for (axis, curve) in ["X", "Y", "Z"].iter().zip(&prop.anim_value.curves) {
+                let Some(curve) = curve else { continue };
+                if let Some((k, key)) = curve
+                    .keyframes
+                    .iter()
+                    .enumerate()
+                    .find(|(_, key)| !key.value.is_finite() || key.value.abs() > limit)
+                {
+                    return Err(MotionError::file(
+                        path,
+                        format!(
+                            "bone `{}`: `{}` {axis} key {k} is {}: expected a finite value within ±{limit}{unit}",
+                            bone.element.name, prop.prop_name, key.value
+                        ),
+                    ));
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// FBX's time unit: ticks per second.

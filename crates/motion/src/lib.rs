@@ -17,6 +17,10 @@
 //! - FBX animation stacks (`.fbx`): the bone nodes driven by the first stack, the file's units
 //!   and up axis.
 //!
+//! Every reader refuses, naming the file and what is wrong, a value that is not finite or not
+//! plausible — an angle beyond [`MAX_ANGLE_DEGREES`], a translation or rest offset beyond
+//! [`MAX_TRANSLATION_METRES`] — and a rest skeleton of zero length.
+//!
 //! Conventions: a joint's local transform is `T(offset + t) · R_rest · R` as in
 //! [`f3g_rig::skeleton`]; only the root has a translation `t`. Rotations are unit quaternions.
 
@@ -47,6 +51,19 @@ pub use smpl::{SmplFamily, SmplMotion};
 pub const MAX_FRAMES: usize = 10_368_000;
 /// Joint counts above this are refused.
 pub const MAX_JOINTS: usize = 4096;
+/// The largest rotation angle f3g reads (BVH and FBX Euler keys; AMASS and `.smpl`
+/// axis-angles the same in radians): about 2 800 turns, far past any unwrapped capture, and
+/// where an f32 angle still resolves a tenth of a degree — a larger key is damage, whose
+/// sine and cosine are noise.
+pub const MAX_ANGLE_DEGREES: f32 = 1e6;
+/// The farthest from the origin a root translation or a rest offset may be, in metres: 1 km
+/// holds any capture volume or recorded walk, and an f32 position there still resolves
+/// 0.1 mm.
+pub const MAX_TRANSLATION_METRES: f32 = 1000.0;
+/// The shortest rest skeleton read (all bone lengths together, in metres): below it, no
+/// units or scale can be inferred from it (a BVH's units come from its height, a retarget's
+/// scale from its legs).
+const MIN_SKELETON_METRES: f32 = 1e-3;
 
 /// The world axis that points up in a file.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -243,9 +260,12 @@ pub(crate) fn ensure_memory(frames: usize, joints: usize, path: &Path) -> Result
         .map_err(|e| MotionError::file(path, e))
 }
 
-/// Checks that every value of a motion is finite, naming the frame and joint that is not.
-pub(crate) fn check_finite(motion: &Motion, path: &Path) -> Result<(), MotionError> {
+/// Checks that every value of a motion is finite and plausible — translations and rest
+/// offsets within [`MAX_TRANSLATION_METRES`], a rest skeleton of some length, a frame rate
+/// up to 10 000 fps — naming the frame and joint that is not.
+pub(crate) fn check_values(motion: &Motion, path: &Path) -> Result<(), MotionError> {
     let j = motion.skeleton.len();
+    let metres = motion.metres_per_unit;
     if let Some(i) = motion.rotations.iter().position(|q| !q.is_finite()) {
         return Err(MotionError::file(
             path,
@@ -256,10 +276,47 @@ pub(crate) fn check_finite(motion: &Motion, path: &Path) -> Result<(), MotionErr
             ),
         ));
     }
-    if let Some(f) = motion.root_translation.iter().position(|t| !t.is_finite()) {
+    let too_far = |v: Vec3| !v.is_finite() || v.length() * metres > MAX_TRANSLATION_METRES;
+    if let Some(f) = motion.root_translation.iter().position(|&t| too_far(t)) {
         return Err(MotionError::file(
             path,
-            format!("frame {f}: the root translation is not finite"),
+            format!(
+                "frame {f}: the root translation {} m is not within {} km of the origin",
+                motion.root_translation[f] * metres,
+                MAX_TRANSLATION_METRES / 1000.0
+            ),
+        ));
+    }
+    if let Some(joint) = motion.skeleton.joints().iter().find(|j| too_far(j.offset)) {
+        return Err(MotionError::file(
+            path,
+            format!(
+                "the rest offset of joint `{}`, {} m, is not within {} km",
+                joint.name,
+                joint.offset * metres,
+                MAX_TRANSLATION_METRES / 1000.0
+            ),
+        ));
+    }
+    let length: f32 = motion
+        .skeleton
+        .joints()
+        .iter()
+        .filter(|j| j.parent.is_some())
+        .map(|j| j.offset.length() * metres)
+        .sum();
+    if length == 0.0 {
+        return Err(MotionError::file(
+            path,
+            "the rest skeleton has zero length: no units or scale can be inferred",
+        ));
+    }
+    if length < MIN_SKELETON_METRES {
+        return Err(MotionError::file(
+            path,
+            format!(
+                "the rest skeleton's bones measure {length} m in all, under 1 mm: no units or scale can be inferred"
+            ),
         ));
     }
     if !(motion.fps.is_finite() && motion.fps > 0.0 && motion.fps <= 10_000.0) {

@@ -6,6 +6,9 @@
 //! which their body model regresses from the shape; a body model of another family is driven
 //! through [`schematic_rest`], SMPL-X's T-pose rest skeleton as typed-in proportions (enough
 //! for the rotations' retargeting, which needs bone directions and the leg length).
+//!
+//! Every value must be finite; axis-angles within [`crate::MAX_ANGLE_DEGREES`] (in radians),
+//! translations within [`crate::MAX_TRANSLATION_METRES`] of the origin.
 
 use std::path::Path;
 
@@ -13,7 +16,7 @@ use glam::{Quat, Vec3};
 
 use f3g_rig::smplx::{JOINT_NAMES, SmplParams, schematic_rest};
 
-use crate::{MAX_FRAMES, Motion, MotionError, Up};
+use crate::{MAX_ANGLE_DEGREES, MAX_FRAMES, MAX_TRANSLATION_METRES, Motion, MotionError, Up};
 
 /// Which body model a file's parameters were made for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -134,18 +137,84 @@ fn motion_of(
             expression: params.expression.clone(),
         }),
     };
-    crate::check_finite(&motion, path)?;
+    crate::check_values(&motion, path)?;
     Ok(motion)
 }
 
 type NpzFile = f3g_io::Npz<std::io::BufReader<std::fs::File>>;
 
-/// A `[frames, width]` array (or `[frames, joints, 3]` flattened) of finite values.
+/// What an array's values are, for the plausible range each must be in.
+#[derive(Clone, Copy)]
+enum Values {
+    /// Axis-angle rotations, radians: within [`MAX_ANGLE_DEGREES`].
+    Angles,
+    /// Root translations, metres: within [`MAX_TRANSLATION_METRES`] (of the origin, per row).
+    Metres,
+    /// Expression coefficients: finite (their range is the body model's).
+    Coefficients,
+}
+
+/// Refuses a value of the `[frames, width]` array `name` that is not finite or, for
+/// rotations and translations, not within their bound — naming the frame and value.
+fn check_values(
+    path: &Path,
+    name: &str,
+    values: &[f32],
+    width: usize,
+    kind: Values,
+) -> Result<(), MotionError> {
+    let width = width.max(1);
+    let at = |i: usize| format!("frame {}, value {}", i / width, i % width);
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(MotionError::field(
+            path,
+            name,
+            format!("{} is not finite", at(i)),
+        ));
+    }
+    match kind {
+        Values::Angles => {
+            let limit = MAX_ANGLE_DEGREES.to_radians();
+            if let Some(i) = values.iter().position(|v| v.abs() > limit) {
+                return Err(MotionError::field(
+                    path,
+                    name,
+                    format!(
+                        "{} is {} radians, beyond the ±{limit} (±{MAX_ANGLE_DEGREES}°) f3g reads",
+                        at(i),
+                        values[i]
+                    ),
+                ));
+            }
+        }
+        Values::Metres => {
+            let far = values.chunks(width).position(|row| {
+                row.iter().map(|v| v * v).sum::<f32>().sqrt() > MAX_TRANSLATION_METRES
+            });
+            if let Some(f) = far {
+                return Err(MotionError::field(
+                    path,
+                    name,
+                    format!(
+                        "frame {f}: {:?} m is not within {} km of the origin",
+                        &values[f * width..(f + 1) * width],
+                        MAX_TRANSLATION_METRES / 1000.0
+                    ),
+                ));
+            }
+        }
+        Values::Coefficients => {}
+    }
+    Ok(())
+}
+
+/// A `[frames, width]` array (or `[frames, joints, 3]` flattened) of plausible `kind`s.
 fn rows(
     npz: &mut NpzFile,
     name: &str,
     frames: Option<usize>,
     widths: &[usize],
+    kind: Values,
 ) -> Result<(usize, usize, Vec<f32>), MotionError> {
     let path = npz.path().to_path_buf();
     let shape = npz.shape(name)?;
@@ -184,17 +253,7 @@ fn rows(
         ));
     }
     let (_, values) = npz.f32(name)?;
-    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-        return Err(MotionError::field(
-            &path,
-            name,
-            format!(
-                "frame {}, value {} is not finite",
-                i / width.max(1),
-                i % width.max(1)
-            ),
-        ));
-    }
+    check_values(&path, name, &values, width, kind)?;
     Ok((n, width, values))
 }
 
@@ -283,8 +342,8 @@ fn layout(
 /// `betas`, `mocap_framerate` or `mocap_frame_rate`. Z up.
 pub(crate) fn read_amass(path: &Path) -> Result<Motion, MotionError> {
     let mut npz = f3g_io::Npz::open(path)?;
-    let (frames, width, poses) = rows(&mut npz, "poses", None, &[72, 156, 165])?;
-    let (_, _, transl) = rows(&mut npz, "trans", Some(frames), &[3])?;
+    let (frames, width, poses) = rows(&mut npz, "poses", None, &[72, 156, 165], Values::Angles)?;
+    let (_, _, transl) = rows(&mut npz, "trans", Some(frames), &[3], Values::Metres)?;
     let fps = match ["mocap_framerate", "mocap_frame_rate"]
         .into_iter()
         .find(|k| npz.contains(k))
@@ -313,9 +372,16 @@ pub(crate) fn read_amass(path: &Path) -> Result<Motion, MotionError> {
 /// `expressionParameters`. Y up. A file without `frameCount` is one still body.
 pub(crate) fn read_smpl_codec(path: &Path) -> Result<Motion, MotionError> {
     let mut npz = f3g_io::Npz::open(path)?;
-    let (frames, _, body) = rows(&mut npz, "bodyPose", None, &[66])?;
+    let (frames, _, body) = rows(&mut npz, "bodyPose", None, &[66], Values::Angles)?;
     let transl = if npz.contains("bodyTranslation") {
-        rows(&mut npz, "bodyTranslation", Some(frames), &[3])?.2
+        rows(
+            &mut npz,
+            "bodyTranslation",
+            Some(frames),
+            &[3],
+            Values::Metres,
+        )?
+        .2
     } else {
         vec![0.0; 3 * frames]
     };
@@ -326,7 +392,9 @@ pub(crate) fn read_smpl_codec(path: &Path) -> Result<Motion, MotionError> {
     };
     let mut optional = |name: &str, width: usize| -> Result<Option<Vec<f32>>, MotionError> {
         if npz.contains(name) {
-            Ok(Some(rows(&mut npz, name, Some(frames), &[width])?.2))
+            Ok(Some(
+                rows(&mut npz, name, Some(frames), &[width], Values::Angles)?.2,
+            ))
         } else {
             Ok(None)
         }
@@ -360,7 +428,14 @@ pub(crate) fn read_smpl_codec(path: &Path) -> Result<Motion, MotionError> {
     if npz.contains("expressionParameters") {
         let shape = npz.shape("expressionParameters")?;
         let width = shape.get(1).copied().unwrap_or(0);
-        params.expression = rows(&mut npz, "expressionParameters", Some(frames), &[width])?.2;
+        params.expression = rows(
+            &mut npz,
+            "expressionParameters",
+            Some(frames),
+            &[width],
+            Values::Coefficients,
+        )?
+        .2;
     }
     motion_of(&params, family, fps, Up::Y, path)
 }
@@ -371,5 +446,17 @@ pub(crate) fn read_smpl_params(path: &Path) -> Result<Motion, MotionError> {
     if params.frames > MAX_FRAMES {
         return Err(MotionError::file(path, "more frames than f3g reads"));
     }
+    for (name, values, width) in [
+        ("global_orient", &params.global_orient, 3),
+        ("body_pose", &params.body_pose, 63),
+        ("jaw_pose", &params.jaw_pose, 3),
+        ("leye_pose", &params.leye_pose, 3),
+        ("reye_pose", &params.reye_pose, 3),
+        ("left_hand_pose", &params.left_hand_pose, 45),
+        ("right_hand_pose", &params.right_hand_pose, 45),
+    ] {
+        check_values(path, name, values, width, Values::Angles)?;
+    }
+    check_values(path, "transl", &params.transl, 3, Values::Metres)?;
     motion_of(&params, SmplFamily::SmplX, 30.0, Up::Y, path)
 }

@@ -11,6 +11,9 @@
 //! caller; the `FB_momentum` extension that Momentum writes into glTF files; otherwise `rx, ry,
 //! rz` for every joint plus `tx, ty, tz` for the root. Momentum works in centimetres, so the
 //! translation rows of a Momentum transform are scaled by 0.01 to stay in metres.
+//!
+//! Buffers come from the GLB's binary chunk, `data:` URIs, or regular files beside the `.gltf`
+//! named by relative URIs (no absolute path, no `..`), each read up to its `byteLength`.
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -42,10 +45,126 @@ fn parse(bytes: &[u8], path: &Path) -> Result<gltf::Gltf, RigError> {
         .map_err(|e| RigError::file(path, format!("not a valid glTF file: {e}")))
 }
 
+/// The largest buffer f3g reads (2 GiB): far above any body model or motion (a 10-minute,
+/// 120 fps capture of 100 joints is 0.1 GiB of rotations), far below what a lying
+/// `byteLength` can ask for.
+pub const MAX_BUFFER_BYTES: u64 = 1 << 31;
+
+/// The file's buffers: the GLB's binary chunk, `data:` URIs, and files beside the `.gltf`
+/// ([`external`]) — each at least its `byteLength` (at most [`MAX_BUFFER_BYTES`]), so that
+/// accessor reads stay inside it. Not `gltf::import_buffers`: it reads any path a URI names
+/// (absolute, `..`, a FIFO, a device) to its end, and panics on a percent escape that decodes
+/// to invalid UTF-8.
 fn buffers(gltf: &gltf::Gltf, path: &Path) -> Result<Vec<gltf::buffer::Data>, RigError> {
     let base = path.parent().unwrap_or(Path::new("."));
-    gltf::import_buffers(&gltf.document, Some(base), gltf.blob.clone())
-        .map_err(|e| RigError::file(path, format!("cannot load buffers: {e}")))
+    let mut blob = gltf.blob.clone();
+    let mut out = Vec::new();
+    for buffer in gltf.document.buffers() {
+        let (index, length) = (buffer.index(), buffer.length() as u64);
+        let error = |reason: String| RigError::file(path, format!("buffer {index}: {reason}"));
+        if length > MAX_BUFFER_BYTES {
+            return Err(error(format!(
+                "byteLength {length} is more than the {MAX_BUFFER_BYTES} bytes f3g reads"
+            )));
+        }
+        f3g_io::memory::ensure_available(length, &format!("buffer {index} (byteLength {length})"))
+            .map_err(|e| error(e.to_string()))?;
+        let data = match buffer.source() {
+            gltf::buffer::Source::Bin => blob.take().ok_or_else(|| {
+                error("refers to a GLB binary chunk that the file does not have".into())
+            })?,
+            gltf::buffer::Source::Uri(uri) if uri.starts_with("data:") => {
+                gltf::buffer::Data::from_source(buffer.source(), None)
+                    .map_err(|e| error(format!("cannot decode its data: URI: {e}")))?
+                    .0
+            }
+            gltf::buffer::Source::Uri(uri) => external(base, uri, length).map_err(error)?,
+        };
+        if (data.len() as u64) < length {
+            return Err(error(format!(
+                "holds {} bytes, fewer than its byteLength {length}",
+                data.len()
+            )));
+        }
+        out.push(gltf::buffer::Data(data));
+    }
+    Ok(out)
+}
+
+/// At most ~200 characters of `text`, for quoting a file's value in an error.
+fn quoted(text: &str) -> String {
+    match text.char_indices().nth(200) {
+        Some((end, _)) => format!("{}…", &text[..end]),
+        None => text.to_string(),
+    }
+}
+
+/// The first `length` bytes of the file a buffer's `uri` names: a relative path
+/// (percent-decoded) inside `base`, the `.gltf`'s folder — no scheme, no absolute path, no
+/// `..` — and a regular file, checked before opening so that a FIFO or a device is never
+/// opened. (A symbolic link placed in the folder is followed: the user put it there, the file
+/// did not.)
+fn external(base: &Path, uri: &str, length: u64) -> Result<Vec<u8>, String> {
+    use std::io::Read;
+    use std::path::Component;
+    let shown = quoted(uri);
+    let relative = percent_decoded(uri)
+        .ok_or_else(|| format!("URI `{shown}` is not a valid percent-encoded UTF-8 path"))?;
+    let inside = !uri.contains(':')
+        && !relative.is_empty()
+        && Path::new(&relative)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_) | Component::CurDir));
+    if !inside {
+        return Err(format!(
+            "URI `{shown}` is not a relative path inside the .gltf's folder: f3g reads buffers \
+             from data: URIs and from files beside the .gltf (no scheme, no absolute path, no `..`)"
+        ));
+    }
+    let file = base.join(&relative);
+    let metadata = std::fs::metadata(&file).map_err(|e| format!("`{shown}`: {e}"))?;
+    if !metadata.is_file() {
+        let kind = if metadata.is_dir() {
+            "a directory"
+        } else {
+            "a FIFO, socket or device"
+        };
+        return Err(format!(
+            "`{shown}` is not a regular file ({kind}); f3g reads buffers from regular files only"
+        ));
+    }
+    if metadata.len() < length {
+        return Err(format!(
+            "`{shown}` holds {} bytes, fewer than the buffer's byteLength {length}",
+            metadata.len()
+        ));
+    }
+    let mut data = Vec::with_capacity(length as usize);
+    std::fs::File::open(&file)
+        .and_then(|f| f.take(length).read_to_end(&mut data))
+        .map_err(|e| format!("`{shown}`: {e}"))?;
+    Ok(data)
+}
+
+/// `uri` with its `%XX` escapes decoded, if they are well formed and the result is UTF-8.
+fn percent_decoded(uri: &str) -> Option<String> {
+    let bytes = uri.as_bytes();
+    let mut out = Vec::with_capacity(bytes.len());
+    let mut i = 0;
+    while i < bytes.len() {
+        if bytes[i] == b'%' {
+            let hex = bytes.get(i + 1..i + 3)?;
+            if !hex.iter().all(u8::is_ascii_hexdigit) {
+                return None;
+            }
+            out.push(u8::from_str_radix(std::str::from_utf8(hex).ok()?, 16).ok()?);
+            i += 3;
+        } else {
+            out.push(bytes[i]);
+            i += 1;
+        }
+    }
+    String::from_utf8(out).ok()
 }
 
 /// The most elements f3g reads from one accessor: far above any body mesh (MHR's has 18 439
@@ -97,6 +216,34 @@ pub struct SkinJoints {
     pub world: Vec<Mat4>,
 }
 
+/// A node on a cycle of `parent_of` links among `count` nodes, if there is one; each node is
+/// walked once.
+fn cycle(parent_of: &HashMap<usize, usize>, count: usize) -> Option<usize> {
+    // 0: not seen, 1: on the current walk, 2: known to reach a root.
+    let mut state = vec![0u8; count];
+    for start in 0..count {
+        let mut walk = Vec::new();
+        let mut i = start;
+        loop {
+            match state[i] {
+                1 => return Some(i),
+                2 => break,
+                _ => {}
+            }
+            state[i] = 1;
+            walk.push(i);
+            match parent_of.get(&i) {
+                Some(&p) => i = p,
+                None => break,
+            }
+        }
+        for w in walk {
+            state[w] = 2;
+        }
+    }
+    None
+}
+
 /// The skeleton of `skin` (unit scales only: an error names a scaled joint).
 pub fn skin_joints(
     doc: &gltf::Document,
@@ -109,6 +256,13 @@ pub fn skin_joints(
         for c in n.children() {
             parent_of.insert(c.index(), n.index());
         }
+    }
+    // The walks up the hierarchy below would never end on a cycle (gltf does not check).
+    if let Some(n) = cycle(&parent_of, doc.nodes().len()) {
+        return Err(RigError::file(
+            path,
+            format!("node {n} is its own ancestor: glTF's nodes must form trees"),
+        ));
     }
     let local = |i: usize| {
         Mat4::from_cols_array_2d(&doc.nodes().nth(i).expect("node index").transform().matrix())
