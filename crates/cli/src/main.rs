@@ -14,6 +14,7 @@ mod nets;
 mod quality;
 mod render_ply;
 mod rig;
+mod server;
 mod template;
 mod train_bench;
 mod view;
