@@ -93,21 +93,29 @@ pub fn serve(listener: TcpListener, site: Site) -> std::io::Result<()> {
             std::thread::sleep(Duration::from_millis(5));
         }
         active.fetch_add(1, Ordering::AcqRel);
-        let (site, active) = (site.clone(), active.clone());
-        let spawned = std::thread::Builder::new()
+        let slot = Slot(active.clone());
+        let site = site.clone();
+        // Where no thread can be made (the system's limit), the closure is dropped with its
+        // connection and its slot.
+        let _ = std::thread::Builder::new()
             .name("f3g-view-connection".into())
             .stack_size(256 * 1024)
             .spawn(move || {
+                let _slot = slot;
                 // A client that went away or stalled is not the server's problem.
                 let _ = connection(stream, &site);
-                active.fetch_sub(1, Ordering::AcqRel);
             });
-        if spawned.is_err() {
-            // No thread for it (the system's limit): the connection is dropped, the slot freed.
-            active.fetch_sub(1, Ordering::AcqRel);
-        }
     }
     Ok(())
+}
+
+/// A connection's place in the count of those served at once, given back when it ends.
+struct Slot(Arc<AtomicUsize>);
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 /// One connection: read the head within its deadline, answer, close.
@@ -133,7 +141,7 @@ fn read_head(stream: &mut TcpStream) -> Result<Vec<u8>, u16> {
         if left.is_zero() {
             return Err(408);
         }
-        stream.set_read_timeout(Some(left)).map_err(|_| 400)?;
+        stream.set_read_timeout(Some(left)).map_err(|_| 400u16)?;
         let n = match stream.read(&mut chunk) {
             Ok(0) => return Err(400),
             Ok(n) => n,
