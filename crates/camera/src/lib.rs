@@ -25,6 +25,9 @@ pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// Largest image a camera may ask for, in pixels (64 Mpx: the image, alpha, depth and the
 /// rasteriser's per-pixel state then stay within a few GiB).
 pub const MAX_IMAGE_PIXELS: u64 = 1 << 26;
+/// How far the principal point may lie from the image's centre, in image sizes (the larger
+/// side): generous for crops of a larger image, which move it outside the crop.
+pub const PRINCIPAL_POINT_REACH: f64 = 100.0;
 
 /// A calibrated pinhole camera. This is also the `cam.json` format:
 /// `{"K": [[..],[..],[..]], "R": [[..],[..],[..]], "t": [..], "width": W, "height": H}`
@@ -193,6 +196,17 @@ impl Camera {
                  pixels per side and {MAX_IMAGE_PIXELS} pixels in all"
             ));
         }
+        // A principal point farther than this from the image puts the whole image that many
+        // image sizes off the optical axis: no lens or crop does that, and the renderers would
+        // draw an empty image without an error.
+        let reach = PRINCIPAL_POINT_REACH * w.max(h) as f64;
+        let (cx, cy) = (self.cx(), self.cy());
+        if (cx - w as f64 / 2.0).abs() > reach || (cy - h as f64 / 2.0).abs() > reach {
+            return bad(format!(
+                "principal point (cx {cx}, cy {cy}) is more than {PRINCIPAL_POINT_REACH} image \
+                 sizes ({reach} pixels) from the centre of the {w}x{h} image"
+            ));
+        }
         if !(self.fx() > 0.0 && self.fy() > 0.0) {
             return bad(format!(
                 "focal lengths must be positive, got fx={} fy={}",
@@ -346,6 +360,17 @@ mod tests {
         cam.t[2] = f64::NAN;
         let e = cam.validate().unwrap_err().to_string();
         assert!(e.contains("t must be finite, found NaN"), "{e}");
+        // A principal point far off the image (1e30 in a calibration) is refused, not rendered
+        // as a blank image; one outside the image, as a crop gives, is fine.
+        for (i, v) in [(0, 1e30), (1, -1e30), (0, 1e6)] {
+            let mut cam = front_camera();
+            cam.k[i][2] = v;
+            let e = cam.validate().unwrap_err().to_string();
+            assert!(e.contains("principal point"), "{e}");
+        }
+        let mut cam = front_camera();
+        cam.k[0][2] = -3.0 * cam.width as f64;
+        cam.validate().unwrap();
     }
 
     #[test]

@@ -11,6 +11,7 @@ mod metrics;
 mod motion;
 mod render_ply;
 mod rig;
+mod server;
 mod template;
 mod view;
 mod weights;

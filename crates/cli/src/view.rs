@@ -5,8 +5,8 @@
 //! vendored libraries (compiled into the binary), `avatar.glb`, `motions.json` and one
 //! `motions/N.bin` per motion — looked up by exact path. Nothing is read from the disk while
 //! serving, so no request (`..`, absolute or percent-encoded paths, links) can reach another
-//! file: anything not in the table is a 404. The server listens on the loopback address unless
-//! `--host` says otherwise.
+//! file: anything not in the table is a 404. The server (`crate::server`: its rules) listens on
+//! the loopback address unless `--host` says otherwise, with a warning then.
 //!
 //! A motion file is `frames × (16·J + E)` little-endian floats: each joint's world matrix in
 //! the frame's pose (column major, the avatar's shape), then its `E` expression weights in the
@@ -94,18 +94,6 @@ const PLAYER: [(&str, &[u8]); 10] = [
         include_bytes!("../player/vendor/spark/LICENSE"),
     ),
 ];
-
-/// The content type of a served path.
-fn content_type(path: &str) -> &'static str {
-    match path.rsplit('.').next() {
-        Some("html") => "text/html; charset=utf-8",
-        Some("js") => "text/javascript; charset=utf-8",
-        Some("json") => "application/json",
-        Some("glb") => "model/gltf-binary",
-        Some("md") | Some("txt") => "text/plain; charset=utf-8",
-        _ => "application/octet-stream",
-    }
-}
 
 /// The baked avatar of `source`: read from a `.glb`, or baked from a run (kept beside it).
 fn avatar_of(
@@ -220,15 +208,6 @@ fn files(a: &ViewArgs) -> Result<BTreeMap<String, Vec<u8>>> {
     Ok(files)
 }
 
-/// The path a request names, as a key of the table (`/` is the page); queries are ignored.
-fn table_key(url: &str) -> String {
-    let path = url.split(['?', '#']).next().unwrap_or("");
-    match path.strip_prefix('/') {
-        Some("") | None => "index.html".into(),
-        Some(rest) => rest.to_string(),
-    }
-}
-
 pub fn view(a: &ViewArgs) -> Result<()> {
     if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
         bail!("--fps {}: expected a rate in (0, 1000]", a.fps);
@@ -253,50 +232,18 @@ pub fn view(a: &ViewArgs) -> Result<()> {
 }
 
 fn serve(files: BTreeMap<String, Vec<u8>>, host: IpAddr, port: u16) -> Result<()> {
-    let server = tiny_http::Server::http((host, port))
-        .map_err(|e| anyhow::anyhow!("cannot listen on {host}:{port}: {e}"))?;
-    let address = server
-        .server_addr()
-        .to_ip()
-        .context("the server has no IP address")?;
+    let listener = std::net::TcpListener::bind((host, port))
+        .with_context(|| format!("cannot listen on {host}:{port}"))?;
+    let address = listener.local_addr()?;
+    if !host.is_loopback() {
+        eprintln!(
+            "warning: --host {host} serves the avatar, its motions and the player to every \
+             machine that can reach {address}, not only this one"
+        );
+    }
     println!("serving the player at http://{address}/ (Ctrl-C to stop)");
     use std::io::Write;
     std::io::stdout().flush()?;
-    for request in server.incoming_requests() {
-        let key = table_key(request.url());
-        let response = match files.get(&key) {
-            Some(bytes) => tiny_http::Response::from_data(bytes.clone()).with_header(
-                tiny_http::Header::from_bytes("Content-Type", content_type(&key))
-                    .expect("valid header"),
-            ),
-            None => tiny_http::Response::from_data(b"not found".to_vec()).with_status_code(404),
-        };
-        // A client that went away is not the server's problem.
-        let _ = request.respond(response);
-    }
-    Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn requests_map_to_table_keys_only() {
-        assert_eq!(table_key("/"), "index.html");
-        assert_eq!(table_key("/player.js?v=1"), "player.js");
-        assert_eq!(table_key("/../Cargo.toml"), "../Cargo.toml");
-        assert_eq!(table_key("/%2e%2e/x"), "%2e%2e/x");
-        // None of those is in a table built from the player and generated names.
-        let keys: Vec<&str> = PLAYER.iter().map(|(p, _)| *p).collect();
-        for k in [
-            "../Cargo.toml",
-            "%2e%2e/x",
-            "/etc/passwd",
-            "vendor/../player.js",
-        ] {
-            assert!(!keys.contains(&k));
-        }
-        assert_eq!(content_type("player.js"), "text/javascript; charset=utf-8");
-    }
+    crate::server::serve(listener, crate::server::Site::new(files, address))
+        .with_context(|| format!("serving on {address}"))
 }
