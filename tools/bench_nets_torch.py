@@ -6,7 +6,8 @@ What it is for
 `f3g bench nets --device cuda --paper` (crates/cli/src/nets.rs, `bench`) times the forward and
 the forward+backward of f3g's networks with Burn. This script builds the SAME-SHAPED networks in
 PyTorch -- the DualStyleUNet presets of crates/nets/src/styleunet.rs with the StyleGAN2 layers
-of crates/nets/src/layers.rs, the LPIPS backbones of crates/nets/src/lpips.rs and the residual
+of crates/nets/src/layers.rs (their element-wise chains: fused/portable.rs), the LPIPS backbones
+of crates/nets/src/lpips.rs and the residual
 discriminator of crates/nets/src/discriminator.rs -- and times them on the same GPU with the
 same inputs, losses and protocol, so that the ratio Burn / PyTorch per row tells whether Burn's
 convolutions (or its element-wise kernels) are the bottleneck. Weight values are random (they do
@@ -206,7 +207,7 @@ _TAPS = (1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0)
 
 
 def blur(x: torch.Tensor, before: int, after: int) -> torch.Tensor:
-    """The separable [1, 3, 3, 1] / 8 blur as layers.rs builds it: pad, four slices per axis."""
+    """The separable [1, 3, 3, 1] / 8 blur as fused/portable.rs builds it: pad, four slices per axis."""
     x = F.pad(x, (before, after, before, after))
     h, w = x.shape[2], x.shape[3]
     oh, ow = h - 3, w - 3
