@@ -25,8 +25,8 @@ forward under `torch.no_grad()` up to the scalar loss read back with `.item()` (
 after each timing. The inputs (the `ramp` tensor, value i -> ((i * 7919) % 97) / 97) are made on
 the host and copied to the device inside the timed region, as the Rust closures do. Repetition 0
 (warm-up, cuDNN autotuning: `cudnn.benchmark = True`) is discarded, and the median of the
-`--repeats` others is reported (the upper median `v[len / 2]`, as bench/mod.rs `median`). Losses: StyleUNet
-`front.mean() + back.mean()`, LPIPS `d(x, 0.5 * ramp).sum()` with x requiring grad (weights
+`--repeats` others is reported (the upper median `v[len / 2]`, as bench/mod.rs `median`).
+Losses: StyleUNet `front.mean() + back.mean()`, LPIPS `d(x, 0.5 * ramp).sum()` with x requiring grad (weights
 frozen), discriminator `D(ramp).mean()`. Batch 1 everywhere.
 
 How to run it on the GPU machine (needs only PyTorch; no torchvision, no numpy):
