@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """gsplat's twin of `f3g bench splat --device cuda`: the same kind of scene, timed the same way.
 
-`f3g bench splat` (crates/cli/src/bench.rs) renders N Gaussians on a 1 m sphere shell seen from
+`f3g bench splat` (crates/cli/src/bench/splat.rs) renders N Gaussians on a 1 m sphere shell seen from
 3 m (eye (0, 0.3, 3) looking at the origin, +Y up, focal length 1.2 x the image width, principal
 point at the centre), scales 1-2 cm, quaternions uniform in [-1, 1]^4 (normalised), opacities
 0.3-0.9, SH degree 0 with DC coefficients in [-1.5, 1.5], a white background, and times the

@@ -3,7 +3,7 @@
 
 What it is for
 --------------
-`f3g bench nets --device cuda --paper` (crates/cli/src/nets.rs, `bench`) times the forward and
+`f3g bench nets --device cuda --paper` (crates/cli/src/bench/nets.rs, `run`) times the forward and
 the forward+backward of f3g's networks with Burn. This script builds the SAME-SHAPED networks in
 PyTorch -- the DualStyleUNet presets of crates/nets/src/styleunet.rs with the StyleGAN2 layers
 of crates/nets/src/layers.rs (their element-wise chains: fused/portable.rs), the LPIPS backbones
@@ -20,14 +20,14 @@ the counts against the ones derived by hand from the Rust code, on the `meta` de
 timing anything). LPIPS prints 0 parameters as the Rust table does (its weights are frozen
 constants there); the JSON also has the backbone's real count.
 
-Protocol (as `time_loss` in nets.rs): the network is built once; each repetition times (1) the
+Protocol (as `time_loss` in bench/nets.rs): the network is built once; each repetition times (1) the
 forward under `torch.no_grad()` up to the scalar loss read back with `.item()` (Burn's
 `into_scalar`), then (2) forward + `backward()`; `torch.cuda.synchronize()` is called before and
 after each timing. The inputs (the `ramp` tensor, value i -> ((i * 7919) % 97) / 97) are made on
 the host and copied to the device inside the timed region, as the Rust closures do. Repetition 0
 (warm-up, cuDNN autotuning: `cudnn.benchmark = True`) is discarded, and the median of the
-`--repeats` others is reported (the upper median `v[len / 2]`, as nets.rs). Losses: StyleUNet
-`front.mean() + back.mean()`, LPIPS `d(x, 0.5 * ramp).sum()` with x requiring grad (weights
+`--repeats` others is reported (the upper median `v[len / 2]`, as bench/mod.rs `median`).
+Losses: StyleUNet `front.mean() + back.mean()`, LPIPS `d(x, 0.5 * ramp).sum()` with x requiring grad (weights
 frozen), discriminator `D(ramp).mean()`. Batch 1 everywhere.
 
 How to run it on the GPU machine (needs only PyTorch; no torchvision, no numpy):
@@ -612,11 +612,11 @@ class Lpips(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------
-# The bench (nets.rs `bench` and `time_loss`)
+# The bench (bench/nets.rs `run` and `time_loss`)
 
 
 def ramp(shape, device):
-    """Value i -> ((i * 7919) % 97) / 97, made on the host and copied (as nets.rs `ramp`)."""
+    """Value i -> ((i * 7919) % 97) / 97, made on the host and copied (as bench/nets.rs `ramp`)."""
     n = math.prod(shape)
     i = torch.arange(n, dtype=torch.int64)
     v = ((i * 7919) % 97).to(torch.float32) / 97.0
