@@ -8,13 +8,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use anyhow::{Context, Result};
 use clap::Args;
 use f3g_avatar::infer::animate::{AnimateOptions, CameraPath};
-use f3g_avatar::model::config::TemplateChoice;
 use f3g_avatar::infer::eval::EvalOptions;
+use f3g_avatar::model::TemplateChoice;
 
 use crate::device::{DeviceArg, DeviceSpec};
+use f3g_avatar::infer::TrainedAvatar;
 use f3g_avatar::infer::export::{ExportOptions, Up, export_cloud};
 use f3g_avatar::train::AllReduce;
-use f3g_avatar::infer::TrainedAvatar;
 use f3g_avatar::train::{Outcome, StepReport, TrainConfig, Trainer};
 use f3g_data::split::{SplitKind, parse_indices};
 use f3g_nets::LpipsNet;
@@ -233,16 +233,16 @@ pub fn train_with(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Resul
             }
         );
     }
-    let run_dir = trainer.run.dir.clone();
+    let run_dir = trainer.run_dir().to_path_buf();
     let total = trainer.total_steps();
     println!(
         "training {} ({} body + {} face Gaussians, preset {}) on {} cameras × {} frames; {} of {} steps done",
         run_dir.display(),
-        trainer.setup.body_count(),
-        trainer.setup.face_count(),
-        trainer.config.preset,
-        trainer.split.cameras.len(),
-        trainer.split.frames.len(),
+        trainer.setup().body_count(),
+        trainer.setup().face_count(),
+        trainer.config().preset,
+        trainer.split().cameras.len(),
+        trainer.split().frames.len(),
         trainer.step(),
         total
     );
@@ -517,9 +517,10 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
     let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",
     )?);
-    let report = f3g_avatar::infer::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
-        bar.set_position(i as u64)
-    })?;
+    let report =
+        f3g_avatar::infer::animate::animate(avatar.as_ref(), &motion, &options, &mut |i, _| {
+            bar.set_position(i as u64)
+        })?;
     bar.finish_and_clear();
     println!(
         "wrote {} frames ({:.2} s per frame) and {}{}",

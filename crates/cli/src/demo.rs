@@ -4,8 +4,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::Args;
-use f3g_avatar::train::TrainConfig;
 use f3g_avatar::infer::eval::{EvalReport, Scores};
+use f3g_avatar::train::TrainConfig;
 use f3g_data::split::SplitKind;
 
 use crate::avatar::{AnimateArgs, ConfigArgs, EvalArgs, TrainArgs, animate, eval, train_with};

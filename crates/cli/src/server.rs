@@ -376,8 +376,7 @@ mod tests {
         assert!(body.is_empty());
         assert_eq!(header(&headers, "Content-Length").as_deref(), Some("100"));
         for method in ["POST", "DELETE", "TRACE", "CONNECT", "OPTIONS", "PUT"] {
-            let (status, headers, _) =
-                get(&s, &format!("{method} / HTTP/1.1\r\nHost: localhost"));
+            let (status, headers, _) = get(&s, &format!("{method} / HTTP/1.1\r\nHost: localhost"));
             assert_eq!(status, 405, "{method}");
             assert_eq!(header(&headers, "Allow").as_deref(), Some("GET, HEAD"));
         }
@@ -387,7 +386,12 @@ mod tests {
             let (status, _, _) = get(&s, &format!("GET {target} HTTP/1.1\r\nHost: localhost"));
             assert_eq!(status, 400, "{target}");
         }
-        for target in ["/../Cargo.toml", "/%2e%2e/x", "/etc/passwd", "/vendor/../index.html"] {
+        for target in [
+            "/../Cargo.toml",
+            "/%2e%2e/x",
+            "/etc/passwd",
+            "/vendor/../index.html",
+        ] {
             let (status, _, _) = get(&s, &format!("GET {target} HTTP/1.1\r\nHost: localhost"));
             assert_eq!(status, 404, "{target}");
         }
@@ -399,7 +403,13 @@ mod tests {
     #[test]
     fn the_host_header_must_name_this_server() {
         let s = site("127.0.0.1:8080");
-        for host in ["127.0.0.1", "127.0.0.1:8080", "localhost", "LOCALHOST:8080", "[::1]:8080"] {
+        for host in [
+            "127.0.0.1",
+            "127.0.0.1:8080",
+            "localhost",
+            "LOCALHOST:8080",
+            "[::1]:8080",
+        ] {
             let (status, _, _) = get(&s, &format!("GET / HTTP/1.1\r\nHost: {host}"));
             assert_eq!(status, 200, "{host}");
         }
@@ -418,11 +428,17 @@ mod tests {
         }
         // Listening on a LAN address or on all of them: clients name it by its IP address.
         let lan = site("192.168.1.20:8080");
-        assert_eq!(get(&lan, "GET / HTTP/1.1\r\nHost: 192.168.1.20:8080").0, 200);
+        assert_eq!(
+            get(&lan, "GET / HTTP/1.1\r\nHost: 192.168.1.20:8080").0,
+            200
+        );
         assert_eq!(get(&lan, "GET / HTTP/1.1\r\nHost: 10.0.0.1:8080").0, 421);
         let all = site("0.0.0.0:8080");
         assert_eq!(get(&all, "GET / HTTP/1.1\r\nHost: 10.0.0.1:8080").0, 200);
-        assert_eq!(get(&all, "GET / HTTP/1.1\r\nHost: evil.example:8080").0, 421);
+        assert_eq!(
+            get(&all, "GET / HTTP/1.1\r\nHost: evil.example:8080").0,
+            421
+        );
     }
 
     #[test]
@@ -437,14 +453,20 @@ mod tests {
         let (status, headers, body) = request("bytes=10-19");
         assert_eq!(status, 206);
         assert_eq!(body, (10..20u8).collect::<Vec<_>>());
-        assert_eq!(header(&headers, "Content-Range").as_deref(), Some("bytes 10-19/100"));
+        assert_eq!(
+            header(&headers, "Content-Range").as_deref(),
+            Some("bytes 10-19/100")
+        );
         assert_eq!(header(&headers, "Content-Length").as_deref(), Some("10"));
         assert_eq!(request("bytes=95-").2, (95..100u8).collect::<Vec<_>>());
         assert_eq!(request("bytes=-3").2, vec![97, 98, 99]);
         assert_eq!(request("bytes=90-1000").2, (90..100u8).collect::<Vec<_>>());
         let (status, headers, _) = request("bytes=100-");
         assert_eq!(status, 416);
-        assert_eq!(header(&headers, "Content-Range").as_deref(), Some("bytes */100"));
+        assert_eq!(
+            header(&headers, "Content-Range").as_deref(),
+            Some("bytes */100")
+        );
         assert_eq!(request("bytes=-0").0, 416);
         // Several ranges, another unit, nonsense: the whole file.
         for range in ["bytes=0-1,5-6", "items=0-1", "bytes=5-2", "bytes=x-y"] {

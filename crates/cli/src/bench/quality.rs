@@ -15,8 +15,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use f3g_avatar::train::TrainConfig;
 use f3g_avatar::infer::eval::{EvalReport, Scores};
+use f3g_avatar::train::TrainConfig;
 use f3g_data::split::SplitKind;
 use serde::Serialize;
 
