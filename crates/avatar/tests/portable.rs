@@ -174,9 +174,11 @@ fn set_format(dir: &Path, format: Option<u64>) {
 
 #[test]
 fn a_run_folder_of_another_format_is_refused_naming_it_and_what_to_do() {
+    let assets = tempfile::tempdir().unwrap();
+    let model = format!("gltf:{}", anonymous_gltf(assets.path()).display());
     let runs = tempfile::tempdir().unwrap();
     let run = runs.path().join("old-run");
-    make_run(&run, "builtin", &config());
+    make_run(&run, &model, &config());
     let written: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(run.join("run.json")).unwrap()).unwrap();
     assert_eq!(written["format"], RUN_FORMAT);
