@@ -421,11 +421,19 @@ mod tests {
             "Host: 192.168.1.20",
             "Host: localhost.evil.example",
             "X: y",
-            "Host: localhost\r\nHost: evil.example",
         ] {
             let (status, _, _) = get(&s, &format!("GET / HTTP/1.1\r\n{host}"));
             assert_eq!(status, 421, "{host}");
         }
+        // Two Host headers: a malformed request (RFC 9112: 400).
+        assert_eq!(
+            get(
+                &s,
+                "GET / HTTP/1.1\r\nHost: localhost\r\nHost: evil.example"
+            )
+            .0,
+            400
+        );
         // Listening on a LAN address or on all of them: clients name it by its IP address.
         let lan = site("192.168.1.20:8080");
         assert_eq!(
