@@ -5,8 +5,8 @@
 #   tools/gpu-check.sh run  [DIR] [OUT]    # default OUT: DIR/results
 #
 # pack builds, with CUDARC_CUDA_VERSION (default 13000: driver >= 580), the f3g binary and the
-# parity test binaries of f3g-splat and f3g-nets with CI's GPU feature set (CUDA and wgpu:
-# after the lavapipe tests, no rebuild of Burn), and one f3g with `cuda,autotune` (unless
+# parity test binaries of f3g-splat and f3g-nets with every GPU feature (CUDA and wgpu, one
+# build of Burn for all of them), and one f3g with `cuda,autotune` (unless
 # F3G_GPU_CHECK_AUTOTUNE=0), and downloads gsplat 1.5.3 (pure Python) and its small pure-Python dependencies
 # from PyPI; it strips the binaries, compresses them together (xz) and refuses a package of 64 MiB or
 # more (what the GPU machine is given).
@@ -48,9 +48,9 @@ pack() {
     set -e
     export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
     rm -rf "$dir" && mkdir -p "$dir/bin" "$dir/tests" "$dir/wheels" "$dir/tools"
-    # The f3g binary and the parity test binaries from one build with the feature set of CI's
-    # GPU tests (`tools/cuda-offline.sh features`: CUDA and wgpu), so that after the lavapipe
-    # tests nothing of Burn is rebuilt (another feature set rebuilds it: ~10 min on two cores).
+    # The f3g binary and the parity test binaries from one build with every GPU feature
+    # (`tools/cuda-offline.sh features`: CUDA and wgpu), one build of Burn for all of them
+    # (another feature set rebuilds Burn: 36 min cold on two cores, 2026-11-27).
     # `cargo test --no-run` names every executable it built: the test binaries and the f3g
     # binary the CLI's tests run.
     cargo test --release --locked --no-run -p f3g-nets -p f3g-splat -p f3g-cli \
