@@ -22,7 +22,7 @@ use glam::{DQuat, DVec3};
 
 use super::TrainedAvatar;
 use crate::AvatarError;
-use crate::model::pose;
+use crate::model::{host_values, pose};
 use f3g_rig::RigParams;
 use f3g_splat::sh::{basis, num_coeffs};
 use f3g_splat::{Camera, GaussianCloud};
@@ -93,10 +93,6 @@ fn distant_camera(centre: DVec3, dir: DVec3) -> Camera {
     Camera::look_at(eye.to_array(), centre.to_array(), up, 500.0, 64, 64)
 }
 
-fn host<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec::<f32>().expect("f32 tensor")
-}
-
 /// The posed Gaussians of `params` with SH colour fitted to the colour network, in the `up`
 /// convention; `use_pca` projects the pose onto the training poses first (unseen poses).
 pub fn export_cloud(
@@ -122,14 +118,14 @@ pub fn export_cloud(
     let front = distant_camera(DVec3::ZERO, DVec3::Z);
     let (c, transforms) = avatar.canonical_for(params, &front, use_pca)?;
     let (means, quats) = pose(&c, &transforms);
-    let (means, quats) = (host(means), host(quats));
+    let (means, quats) = (host_values(means), host_values(quats));
     let n = means.len() / 3;
     let centre = means.chunks_exact(3).fold(DVec3::ZERO, |a, m| {
         a + DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64)
     }) / n.max(1) as f64;
     let colours_from = |dir: DVec3| -> Result<Vec<f32>, AvatarError> {
         let (c, _) = avatar.canonical_for(params, &distant_camera(centre, dir), use_pca)?;
-        Ok(host(c.colours))
+        Ok(host_values(c.colours))
     };
     let rotation = options.up.rotation();
     let k = num_coeffs(options.degree);
@@ -199,9 +195,9 @@ pub fn export_cloud(
     }
     let cloud = GaussianCloud {
         means: out_means,
-        log_scales: host(c.log_scales),
+        log_scales: host_values(c.log_scales),
         quats: out_quats,
-        opacity_logits: host(c.opacity_logits),
+        opacity_logits: host_values(c.opacity_logits),
         sh,
         sh_degree: options.degree,
     }

@@ -6,6 +6,7 @@ use std::path::Path;
 use burn::tensor::Tensor;
 
 use crate::AvatarError;
+use crate::model::host_values;
 use f3g_data::imgops::paste;
 use f3g_io::Image;
 
@@ -20,7 +21,7 @@ pub fn tensor_to_image(t: Tensor<3>) -> Image {
         width: w,
         height: h,
         channels: c,
-        data: t.into_data().try_into_vec::<f32>().expect("f32 tensor"),
+        data: host_values(t),
     }
 }
 

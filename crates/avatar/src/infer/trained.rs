@@ -13,7 +13,7 @@ use crate::model::posing::Skinning;
 use crate::model::{
     AvatarNets, Canonical, Constants, FaceBase, STORED_SETUP, Setup, canonical, pose, render_posed,
 };
-use crate::model::{NetInputs, PcaTensors};
+use crate::model::{NetInputs, PcaTensors, host_values};
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
@@ -193,17 +193,12 @@ impl TrainedAvatar {
     ) -> Result<GaussianCloud, AvatarError> {
         let (c, skinning) = self.canonical_for(params, camera, use_pca)?;
         let (means, quats) = pose(&c, &skinning);
-        let v = |t: burn::tensor::Tensor<2>| t.into_data().try_into_vec::<f32>().expect("f32");
-        let colours = v(c.colours);
+        let colours = host_values(c.colours);
         Ok(GaussianCloud {
-            means: v(means),
-            log_scales: v(c.log_scales),
-            quats: v(quats),
-            opacity_logits: c
-                .opacity_logits
-                .into_data()
-                .try_into_vec::<f32>()
-                .expect("f32"),
+            means: host_values(means),
+            log_scales: host_values(c.log_scales),
+            quats: host_values(quats),
+            opacity_logits: host_values(c.opacity_logits),
             sh: colours
                 .iter()
                 .map(|x| (x - 0.5) / f3g_splat::sh::SH_C0 as f32)

@@ -34,3 +34,18 @@ pub(crate) use nets::{
 };
 pub use setup::{FramePose, Setup};
 pub use setup_file::STORED_SETUP;
+
+use burn::tensor::{Tensor, TensorData};
+
+/// A float tensor's values on the host as `f32`, whatever its element type on the device: the
+/// crate's one way out of a tensor, so every reader sees the same conversion.
+pub(crate) fn host_values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    host_data(t.into_data())
+}
+
+/// [`host_values`] for data already read back.
+pub(crate) fn host_data(data: TensorData) -> Vec<f32> {
+    data.convert::<f32>()
+        .try_into_vec::<f32>()
+        .expect("a float tensor converts to f32")
+}

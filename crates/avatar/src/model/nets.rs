@@ -34,6 +34,7 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 use super::config::{ColourActivation, ModelConfig};
+use super::host_values;
 use super::inputs::{GaussianTables, NetInputs};
 use super::posing::{Skinning, pose_gaussians};
 use super::setup::Setup;
@@ -401,13 +402,12 @@ fn body_attributes(
 /// model).
 pub fn body_attributes_host(raw: &Tensor<2>, constants: &Constants) -> BodyAttributes {
     let (means, colours, opacity, log_scales, quats, _) = body_attributes(raw, constants);
-    let v2 = |t: Tensor<2>| t.into_data().try_into_vec::<f32>().expect("f32");
     BodyAttributes {
-        positions: v2(means),
-        colours: v2(colours),
-        opacity_logits: opacity.into_data().try_into_vec::<f32>().expect("f32"),
-        log_scales: v2(log_scales),
-        quats: v2(quats),
+        positions: host_values(means),
+        colours: host_values(colours),
+        opacity_logits: host_values(opacity),
+        log_scales: host_values(log_scales),
+        quats: host_values(quats),
     }
 }
 

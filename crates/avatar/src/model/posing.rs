@@ -20,6 +20,8 @@ use f3g_rig::SkinWeights;
 use glam::Affine3A;
 use rayon::prelude::*;
 
+use super::{host_data, host_values};
+
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
 /// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
 /// body are) match the host reference's `f32` result after 5 (tested with 5 while choosing), so
@@ -117,7 +119,7 @@ impl Taps {
     /// [`Taps::apply`] on the host, row by row in parallel, uploaded to `x`'s device.
     fn apply_on_host(&self, host: &HostTaps, x: Tensor<2>) -> Tensor<2> {
         let (c, device) = (x.dims()[1], x.device());
-        let values = host_f32(x.into_data());
+        let values = host_values(x);
         let rows = self.rows;
         let mut out = vec![0.0f32; rows * c];
         out.par_chunks_mut(c.max(1))
@@ -349,7 +351,7 @@ impl Skinning {
     /// [`Skinning::new`] computed on the host, point by point in parallel, with the tensor
     /// path's arithmetic ([`nearest_rotation`], [`quaternions`]), uploaded to `joints`' device.
     fn on_host(joints: &Tensor<3>, skin: &Taps, host: &HostTaps) -> Self {
-        let joint_values = host_f32(joints.to_data());
+        let joint_values = host_data(joints.to_data());
         let rows = skin.rows;
         let per_point: Vec<PointSkinning> = (0..rows)
             .into_par_iter()
@@ -411,13 +413,6 @@ impl Skinning {
             quaternion: Tensor::cat(vec![self.quaternion, other.quaternion], 0),
         }
     }
-}
-
-/// A float tensor's values as `f32` on the host.
-fn host_f32(data: TensorData) -> Vec<f32> {
-    data.convert::<f32>()
-        .try_into_vec::<f32>()
-        .expect("a float tensor converts to f32")
 }
 
 /// One point's skinning transforms on the host (row-major, as [`Skinning`]'s tensors).
@@ -511,10 +506,6 @@ mod tests {
     use glam::{Mat3, Quat, Vec3};
     use proptest::prelude::*;
 
-    fn host(t: Tensor<2>) -> Vec<f32> {
-        t.into_data().try_into_vec::<f32>().unwrap()
-    }
-
     #[test]
     fn taps_gather_weighted_rows_and_pad_with_nothing() {
         let device = Device::flex();
@@ -526,9 +517,12 @@ mod tests {
         let taps = Taps::new(rows.iter().map(Vec::as_slice), &device);
         let expected = vec![3.0, 30.0, 1.0, 10.0, 0.0, 0.0];
         let host_taps = taps.host.as_deref().expect("taps on Flex keep host copies");
-        assert_eq!(host(taps.apply_on_host(host_taps, x.clone())), expected);
-        assert_eq!(host(taps.apply_as_tensors(x.clone())), expected);
-        assert_eq!(host(taps.apply(x)), expected);
+        assert_eq!(
+            host_values(taps.apply_on_host(host_taps, x.clone())),
+            expected
+        );
+        assert_eq!(host_values(taps.apply_as_tensors(x.clone())), expected);
+        assert_eq!(host_values(taps.apply(x)), expected);
     }
 
     proptest! {
@@ -577,9 +571,9 @@ mod tests {
             let host_taps = taps.host.as_deref().expect("taps on Flex keep host copies");
             for skinning in [Skinning::on_host(&joint_tensor, &taps, host_taps), Skinning::from_tensors(&joint_tensor, &taps)] {
                 let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
-                let got = host(transform_points(&skinning.linear, &skinning.translation, points));
-                let q = host(skinning.quaternion.clone());
-                let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host(c.clone())).collect();
+                let got = host_values(transform_points(&skinning.linear, &skinning.translation, points));
+                let q = host_values(skinning.quaternion.clone());
+                let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host_values(c.clone())).collect();
                 for (i, e) in expected.iter().enumerate() {
                     let want = e.affine.transform_point3(p);
                     prop_assert!((Vec3::from_slice(&got[3 * i..3 * i + 3]) - want).length() < 1e-5);
@@ -611,7 +605,7 @@ mod tests {
                 Tensor::from_data(TensorData::new(vec![m.col(k % 3)[k / 3]], [1, 1]), &device)
             });
             let rows: [f32; 9] = std::array::from_fn(|k| m.col(k % 3)[k / 3]);
-            for got in [host(quaternions(&r)), shepperd(&rows).to_vec()] {
+            for got in [host_values(quaternions(&r)), shepperd(&rows).to_vec()] {
                 let got = Quat::from_xyzw(got[1], got[2], got[3], got[0]);
                 prop_assert!(got.dot(q).abs() > 1.0 - 1e-6, "{got:?} vs {q:?}");
             }
@@ -639,7 +633,7 @@ mod tests {
             ),
             &skinning,
         );
-        let (m, q) = (host(m), host(q));
+        let (m, q) = (host_values(m), host_values(q));
         for g in 0..2 {
             let e = joint.transform_point3(Vec3::from_slice(&means[3 * g..3 * g + 3]));
             assert!((Vec3::from_slice(&m[3 * g..3 * g + 3]) - e).length() < 1e-5);

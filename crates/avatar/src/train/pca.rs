@@ -7,6 +7,7 @@ use burn::tensor::Device;
 use crate::AvatarError;
 use crate::model::GaussianTables;
 use crate::model::Setup;
+use crate::model::host_values;
 use f3g_template::PosePca;
 
 /// Fits the pose PCA on the networks' posed body maps of `frames` (root-relative, computed on
@@ -34,11 +35,7 @@ pub fn fit_pose_pca(
         .map(|p| {
             let pose = setup.pose(p)?.upload(device);
             let (_, _, posed) = tables.posed_body(&pose);
-            posed
-                .into_data()
-                .convert::<f32>()
-                .try_into_vec::<f32>()
-                .map_err(|e| AvatarError::Invalid(format!("posed map: {e:?}")))
+            Ok(host_values(posed))
         })
         .collect::<Result<Vec<_>, AvatarError>>()?;
     Ok(PosePca::fit(&samples, components, sigma)?)

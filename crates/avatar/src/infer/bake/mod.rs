@@ -39,6 +39,7 @@ use glam::{Affine3A, Mat3, Quat, Vec3};
 use crate::AvatarError;
 use crate::infer::TrainedAvatar;
 use crate::infer::export::{ExportOptions, Up, export_cloud};
+use crate::model::host_values;
 use correctives::{corrective_pca, ridge_map};
 use f3g_rig::{Posed, Rig, RigParams, SkinWeights};
 use f3g_splat::{Camera, GaussianCloud};
@@ -147,10 +148,6 @@ pub struct BakeReport {
     /// SH fit to the colour network (RMS colour error on held-out directions).
     pub sh_rms: f64,
     pub seconds: f64,
-}
-
-fn host<const D: usize>(t: burn::tensor::Tensor<D>) -> Vec<f32> {
-    t.into_data().try_into_vec::<f32>().expect("f32 tensor")
 }
 
 /// The pose features of skinning transforms `S` (module docs, step 4): `R_root⁻¹ R_j − I`
@@ -467,12 +464,12 @@ fn expression_displacements(
     let mut expression_names = Vec::new();
     let mut expressions = Vec::new();
     let (_, base) = avatar.canonical_with_inputs(canonical, front, false)?;
-    let base = host(base.displacement);
+    let base = host_values(base.displacement);
     for (e, name) in avatar.setup.rig.expression.names.iter().enumerate() {
         let mut p = canonical.clone();
         p.expression[e] = 1.0;
         let (_, inputs) = avatar.canonical_with_inputs(&p, front, false)?;
-        let d = host(inputs.displacement);
+        let d = host_values(inputs.displacement);
         expressions.extend(d.iter().zip(&base).map(|(a, b)| a - b));
         expression_names.push(name.clone());
     }

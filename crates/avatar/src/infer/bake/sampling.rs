@@ -1,13 +1,15 @@
 //! Baking's steps 1 and 2 (module docs): the sample poses, and the networks' canonical
 //! outputs at each as one row of `10·N` values.
 
+use f3g_nets::init::standard_normal;
 use glam::{Affine3A, Vec3};
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::{BakeOptions, CORRECTIVE_VALUES, host, pose_features};
+use super::{BakeOptions, CORRECTIVE_VALUES, pose_features};
 use crate::AvatarError;
 use crate::infer::{TrainedAvatar, evenly};
+use crate::model::host_values;
 use f3g_rig::{Rig, RigParams};
 use f3g_splat::Camera;
 
@@ -26,11 +28,6 @@ pub(super) fn sample_poses(
         .collect();
     let sigma = options.spread_deg.to_radians();
     let mut rng = ChaCha8Rng::seed_from_u64(options.seed);
-    // A standard normal value (Box–Muller).
-    let mut normal = move || {
-        let (u, v): (f32, f32) = (rng.random_range(f32::EPSILON..1.0), rng.random());
-        (-2.0 * u.ln()).sqrt() * (std::f32::consts::TAU * v).cos()
-    };
     let mut samples: Vec<RigParams> = Vec::new();
     for p in evenly(poses, options.poses.max(1)) {
         samples.push(p.clone());
@@ -38,7 +35,7 @@ pub(super) fn sample_poses(
             let mut q = p.clone();
             for (i, v) in q.pose.iter_mut().enumerate() {
                 if !skip.contains(&i) {
-                    *v += sigma * normal();
+                    *v += sigma * standard_normal(&mut rng);
                 }
             }
             samples.push(q);
@@ -103,14 +100,14 @@ pub(super) fn sample_outputs(
         let mut row = vec![0.0f32; CORRECTIVE_VALUES * n];
         for (v, camera) in views.iter().enumerate() {
             let (c, inputs) = avatar.canonical_with_inputs(params, camera, false)?;
-            for (acc, x) in colour.iter_mut().zip(host(c.colours)) {
+            for (acc, x) in colour.iter_mut().zip(host_values(c.colours)) {
                 *acc += x / views.len() as f32;
             }
             if v == 0 {
-                let means = host(c.means);
-                let displacement = host(inputs.displacement);
-                let scales = host(c.log_scales);
-                let opacity = host(c.opacity_logits);
+                let means = host_values(c.means);
+                let displacement = host_values(inputs.displacement);
+                let scales = host_values(c.log_scales);
+                let opacity = host_values(c.opacity_logits);
                 for g in 0..n {
                     let r = &mut row[g * CORRECTIVE_VALUES..(g + 1) * CORRECTIVE_VALUES];
                     for k in 0..3 {
