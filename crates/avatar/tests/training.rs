@@ -374,6 +374,7 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
         lpips_size: 64,
         lpips_net: LpipsNet::Alex,
         out: None,
+        overwrite: false,
     };
     let report = evaluate(&run, None, None, &options, &Device::flex(), &mut |_, _| {}).unwrap();
     assert!(!report.images.is_empty() && report.lpips_available);
@@ -429,6 +430,7 @@ fn novel_view_psnr(run: &Path) -> (f64, f64, f64) {
         lpips_size: 32,
         lpips_net: LpipsNet::Alex,
         out: None,
+        overwrite: false,
     };
     let report = evaluate(run, None, None, &options, &Device::flex(), &mut |_, _| {}).unwrap();
     let images = run.join("eval/novel-view/images");

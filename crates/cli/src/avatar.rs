@@ -2,8 +2,7 @@
 //! run), measure it on held-out views and poses, drive it with new poses, export it.
 
 use std::path::PathBuf;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::Ordering;
 
 use anyhow::{Context, Result};
 use clap::Args;
@@ -173,16 +172,6 @@ fn config_of(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Result<Tra
     })
 }
 
-/// Raised by Ctrl-C: the trainer writes a checkpoint and returns.
-fn stop_flag() -> Arc<AtomicBool> {
-    let flag = Arc::new(AtomicBool::new(false));
-    let f = flag.clone();
-    // A second handler cannot be installed (e.g. demo after train in one process): keep the
-    // first, which raises the same kind of flag.
-    let _ = ctrlc::set_handler(move || f.store(true, Ordering::Relaxed));
-    flag
-}
-
 pub fn train(a: &TrainArgs) -> Result<PathBuf> {
     train_with(a, |_| {})
 }
@@ -250,7 +239,9 @@ pub fn train_with(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Resul
         "{bar:30} {pos}/{len} {msg} [{per_sec} · {elapsed} < {eta}]",
     )?);
     bar.set_position(trainer.step());
-    let stop = stop_flag();
+    // An interrupt stops the trainer at the end of its step, with a checkpoint.
+    let graceful = crate::interrupt::GracefulStop::new();
+    let stop = graceful.flag();
     let limit = a.max_steps.map(|m| trainer.step() + m);
     let mut on_step = |r: &StepReport| {
         bar.set_position(r.step + 1);
@@ -259,7 +250,7 @@ pub fn train_with(a: &TrainArgs, adjust: impl FnOnce(&mut TrainConfig)) -> Resul
             stop.store(true, Ordering::Relaxed);
         }
     };
-    let outcome = trainer.train(&stop, &mut on_step)?;
+    let outcome = trainer.train(stop, &mut on_step)?;
     bar.finish_and_clear();
     match outcome {
         Outcome::Finished => println!(
@@ -315,9 +306,14 @@ pub struct EvalArgs {
     /// LPIPS backbone (default: the run's training one; alex for an avatar file).
     #[arg(long)]
     pub lpips: Option<LpipsNet>,
-    /// Output folder (default RUN/eval/<split>, or AVATAR.eval/<split> beside an avatar file).
+    /// Output folder (default RUN/eval/<split>, or AVATAR.eval/<split> beside an avatar file):
+    /// new, empty, or an earlier evaluation's.
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Write into an --out that holds other files (those of the same names are replaced,
+    /// nothing else is removed).
+    #[arg(long)]
+    pub overwrite: bool,
     #[command(flatten)]
     pub device: DeviceArg,
 }
@@ -380,6 +376,8 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::infer::eval::EvalReport> {
         lpips_size: a.lpips_size,
         lpips_net,
         out: Some(out.clone()),
+        // The default folder is f3g's own, beside the run or avatar file.
+        overwrite: a.overwrite || a.out.is_none(),
     };
     let bar = ProgressBar::new(0).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} images [{elapsed} < {eta}]",
@@ -443,9 +441,13 @@ pub struct AnimateArgs {
     /// `orbit`, or a camera JSON (`f3g render-ply`'s cam.json format).
     #[arg(long, default_value = "orbit")]
     pub camera: String,
-    /// Output folder.
+    /// Output folder: new, empty, or an earlier animation's (whose frames it replaces).
     #[arg(long)]
     pub out: PathBuf,
+    /// Write into an --out that holds other files (those of the same names are replaced,
+    /// nothing else is removed).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Also write every frame's posed Gaussians as a 3DGS .ply.
     #[arg(long)]
     pub export_ply: bool,
@@ -509,6 +511,7 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
         width,
         height,
         out: a.out.clone(),
+        overwrite: a.overwrite,
         export_ply: a.export_ply,
         fps: a.fps,
         use_pca: !a.no_pca,

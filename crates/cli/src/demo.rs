@@ -139,6 +139,7 @@ pub(crate) fn eval_args(run: &Path, split: SplitKind, every: usize, device: Devi
         lpips_size: 512,
         lpips: None,
         out: None,
+        overwrite: false,
         device,
     }
 }
@@ -178,6 +179,8 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         retarget: Default::default(),
         camera: "orbit".into(),
         out: animation.clone(),
+        // The demo's own subfolders: an earlier demo's (of any version) are written over.
+        overwrite: true,
         export_ply: false,
         size: (288, 384),
         turns: 1.0,
@@ -208,6 +211,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         port: 0,
         host: std::net::IpAddr::from([127, 0, 0, 1]),
         static_dir: Some(out.join("player")),
+        overwrite: true,
         correctives: 16,
         fps: 8.0,
         device,

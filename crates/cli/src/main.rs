@@ -7,6 +7,7 @@ mod cuda_probe;
 mod data;
 mod demo;
 mod device;
+mod interrupt;
 mod metrics;
 mod motion;
 mod render_ply;
@@ -82,6 +83,7 @@ enum Command {
 fn main() -> Result<()> {
     device::pin_burn_default_device();
     let cli = Cli::parse();
+    interrupt::install()?;
     // The command runs on a worker of rayon's global pool rather than on the main thread: its
     // parallel loops (convolution tiles, fused ops, the splat op: thousands a training step)
     // then split work with the other workers instead of handing every loop to the pool and

@@ -521,7 +521,8 @@ mod tests {
                     let started = Instant::now();
                     let mut s = TcpStream::connect(address).unwrap();
                     // Long enough to see an answer that waited for a stalled client to time out.
-                    s.set_read_timeout(Some(HEAD_DEADLINE + WRITE_TIMEOUT)).unwrap();
+                    s.set_read_timeout(Some(HEAD_DEADLINE + WRITE_TIMEOUT))
+                        .unwrap();
                     s.write_all(format!("GET / HTTP/1.1\r\n{host}\r\n\r\n").as_bytes())
                         .unwrap();
                     let mut answer = String::new();

@@ -45,8 +45,13 @@ pub struct ViewArgs {
     pub host: IpAddr,
     /// Write the player, the avatar and the motions into this folder (for any static file
     /// host) instead of serving them.
+    /// New, empty, or an earlier `--static` folder (whose files it replaces).
     #[arg(long = "static", value_name = "DIR")]
     pub static_dir: Option<PathBuf>,
+    /// Write into a --static folder that holds other files (those of the same names, e.g. an
+    /// `index.html`, are replaced; nothing else is removed).
+    #[arg(long, requires = "static_dir")]
+    pub overwrite: bool,
     /// Pose correctives when baking a run, 0–256.
     #[arg(long, default_value_t = 16, value_parser = crate::bounds::size::<0, 256>)]
     pub correctives: usize,
@@ -212,15 +217,17 @@ pub fn view(a: &ViewArgs) -> Result<()> {
     if !(a.fps.is_finite() && a.fps > 0.0 && a.fps <= 1000.0) {
         bail!("--fps {}: expected a rate in (0, 1000]", a.fps);
     }
+    // Refused before the avatar is baked, not after.
+    let out = match &a.static_dir {
+        Some(dir) => Some(f3g_io::OutputDir::open(dir, "view", a.overwrite)?),
+        None => None,
+    };
     let files = files(a)?;
-    if let Some(dir) = &a.static_dir {
+    if let (Some(mut out), Some(dir)) = (out, &a.static_dir) {
         for (path, bytes) in &files {
-            let target = dir.join(path);
-            if let Some(parent) = target.parent() {
-                std::fs::create_dir_all(parent).with_context(|| parent.display().to_string())?;
-            }
-            f3g_io::write_atomic(&target, bytes)?;
+            f3g_io::write_atomic(&out.file(path)?, bytes)?;
         }
+        out.finish()?;
         println!(
             "wrote the player ({} files) to {}: serve that folder with any static file host",
             files.len(),

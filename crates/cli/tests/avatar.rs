@@ -111,29 +111,69 @@ fn train_resume_evaluate_animate_and_export() {
     assert_eq!((frame.width, frame.height), (48, 64));
     let cloud = f3g_splat::ply::read_ply(&d.join("anim/ply/frame_00004.ply")).unwrap();
 
-    // The run folder works from anywhere: moved, it animates and exports as before. An
-    // animation into a reused folder leaves no frame of the earlier one (here a stale
-    // frame 99), and what f3g does not own there is kept.
+    // The run folder works from anywhere: moved, it animates and exports as before. Into the
+    // same folder, an animation removes what the earlier one wrote and this one does not (the
+    // `.ply` files, and their emptied folder), and nothing of the user's, even when named like
+    // a frame.
     std::fs::create_dir(d.join("moved")).unwrap();
     std::fs::rename(d.join("run"), d.join("moved/run")).unwrap();
-    std::fs::write(d.join("anim/frames/frame_00099.png"), b"stale").unwrap();
-    std::fs::write(d.join("anim/notes.txt"), b"mine").unwrap();
-    ok(&f3g(
-        d,
-        &[
+    for mine in [
+        "frames/frame_00099.png",
+        "frames/frame_abc.txt",
+        "notes.txt",
+    ] {
+        std::fs::write(d.join("anim").join(mine), b"mine").unwrap();
+    }
+    let animate_moved = |out: &str, extra: &[&str]| {
+        let mut args = vec![
             "animate",
             "moved/run",
             "--motion",
             "cap/body_params.npz",
             "--out",
-            "anim",
+            out,
             "--size",
             "48x64",
-        ],
-    ));
-    assert!(!d.join("anim/frames/frame_00099.png").exists());
-    assert!(!d.join("anim/ply").read_dir().unwrap().any(|_| true));
-    assert!(d.join("anim/frames/frame_00004.png").exists() && d.join("anim/notes.txt").exists());
+        ];
+        args.extend_from_slice(extra);
+        f3g(d, &args)
+    };
+    ok(&animate_moved("anim", &[]));
+    assert!(!d.join("anim/ply").exists());
+    assert!(d.join("anim/frames/frame_00004.png").exists());
+    for mine in [
+        "frames/frame_00099.png",
+        "frames/frame_abc.txt",
+        "notes.txt",
+    ] {
+        assert_eq!(std::fs::read(d.join("anim").join(mine)).unwrap(), b"mine");
+    }
+    // A folder of someone else's is refused, and written into only with --overwrite.
+    std::fs::create_dir(d.join("mine")).unwrap();
+    std::fs::write(d.join("mine/animation.gif"), b"mine").unwrap();
+    let refused = animate_moved("mine", &[]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--overwrite"));
+    assert_eq!(
+        std::fs::read(d.join("mine/animation.gif")).unwrap(),
+        b"mine"
+    );
+    ok(&animate_moved("mine", &["--overwrite"]));
+    assert!(d.join("mine/frames/frame_00004.png").exists());
+    // A link inside the folder is not followed: the frames folder pointing elsewhere.
+    #[cfg(unix)]
+    {
+        std::fs::create_dir(d.join("elsewhere")).unwrap();
+        std::fs::write(d.join("elsewhere/frame_00000.png"), b"precious").unwrap();
+        std::fs::remove_dir_all(d.join("mine/frames")).unwrap();
+        std::os::unix::fs::symlink(d.join("elsewhere"), d.join("mine/frames")).unwrap();
+        let refused = animate_moved("mine", &[]);
+        assert!(String::from_utf8_lossy(&refused.stderr).contains("symbolic link"));
+        assert_eq!(
+            std::fs::read(d.join("elsewhere/frame_00000.png")).unwrap(),
+            b"precious"
+        );
+    }
     std::fs::rename(d.join("moved/run"), d.join("run")).unwrap();
 
     // Its training poses go out as BVH, and a BVH motion drives it (retargeted by name).
@@ -213,6 +253,25 @@ fn train_resume_evaluate_animate_and_export() {
     );
     assert!(!bad.status.success() && !d.join("x.ply").exists());
     assert!(one.means.iter().all(|v| v.is_finite()));
+
+    // `view --static` does not replace a user's page without --overwrite, and with it keeps
+    // what it does not write.
+    std::fs::create_dir(d.join("site")).unwrap();
+    std::fs::write(d.join("site/index.html"), b"mine").unwrap();
+    std::fs::write(d.join("site/notes.txt"), b"mine").unwrap();
+    let view = |extra: &[&str]| {
+        let mut args = vec!["view", "run", "--static", "site", "--correctives", "0"];
+        args.extend_from_slice(extra);
+        f3g(d, &args)
+    };
+    let refused = view(&[]);
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--overwrite"));
+    assert_eq!(std::fs::read(d.join("site/index.html")).unwrap(), b"mine");
+    ok(&view(&["--overwrite"]));
+    assert_ne!(std::fs::read(d.join("site/index.html")).unwrap(), b"mine");
+    assert_eq!(std::fs::read(d.join("site/notes.txt")).unwrap(), b"mine");
+    // The folder is now the player's: written again without the flag.
+    ok(&view(&[]));
 
     // Clear errors.
     let e = f3g(d, &["eval", "cap"]);

@@ -225,3 +225,74 @@ fn a_failing_disk_is_a_clear_error_that_keeps_the_last_checkpoint() {
     ok(&new_run(d, "whole").output().unwrap());
     assert_eq!(after, losses(&d.join("whole")));
 }
+
+/// Temporary files under `dir`, at any depth.
+fn temporaries(dir: &Path) -> Vec<PathBuf> {
+    let mut all = Vec::new();
+    files(dir, &mut all);
+    all.retain(|p| {
+        p.file_name()
+            .is_some_and(|n| n.to_string_lossy().starts_with(f3g_io::TEMPORARY_PREFIX))
+    });
+    all
+}
+
+/// SIGINT and SIGTERM in the middle of writing (`synth` writes images on every worker) end the
+/// command with status 130 and no temporary file behind; a temporary that a killed process
+/// left is removed by the next write into its folder.
+#[test]
+fn interrupts_remove_unfinished_files_and_kills_leave_none_for_long() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let synth = |out: &str| {
+        let mut c = f3g(d);
+        c.args([
+            "synth",
+            "--out",
+            out,
+            "--frames",
+            "400",
+            "--resolution",
+            "256",
+        ])
+        .args(["--cameras", "8"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+        c.spawn().unwrap()
+    };
+    for (i, signal) in [libc::SIGINT, libc::SIGTERM, libc::SIGINT, libc::SIGTERM]
+        .into_iter()
+        .enumerate()
+    {
+        let out = format!("cap{i}");
+        let child = synth(&out);
+        // Once images are being written, wait a little more (moving through a write).
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while !d.join(&out).join("cam00/00000001.jpg").exists() {
+            assert!(
+                Instant::now() < deadline,
+                "synth wrote nothing in two minutes"
+            );
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        std::thread::sleep(Duration::from_millis(50 + 37 * i as u64));
+        // SAFETY: kill(2) with a child's pid and a valid signal number.
+        assert_eq!(unsafe { libc::kill(child.id() as i32, signal) }, 0);
+        let result = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&result.stderr);
+        assert_eq!(result.status.code(), Some(130), "{stderr}");
+        assert!(stderr.contains("interrupted"), "{stderr}");
+        assert_eq!(temporaries(&d.join(&out)), Vec::<PathBuf>::new());
+    }
+
+    // SIGKILL cannot be caught: what it leaves goes with the next write into the folder.
+    let folder = d.join("cap0");
+    let left = folder.join(format!("{}4294967295-abcdef", f3g_io::TEMPORARY_PREFIX));
+    std::fs::write(&left, b"half a file").unwrap();
+    ok(&f3g(d)
+        .args(["synth", "--out", "cap0", "--overwrite", "--frames", "1"])
+        .args(["--cameras", "1", "--resolution", "64"])
+        .output()
+        .unwrap());
+    assert!(!left.exists());
+}

@@ -6,6 +6,9 @@
 //! - Errors name the file and say what was expected.
 
 pub mod memory;
+mod outputs;
+
+pub use outputs::{MANIFEST, OutputDir, remove_pending_temporaries};
 
 use std::io::{Cursor, Write};
 use std::path::{Path, PathBuf};
@@ -30,8 +33,9 @@ impl IoError {
     }
 }
 
-/// How the temporary files of [`write_atomic`] begin: a process killed mid-write leaves one
-/// behind (never a file under its final name), which a later run may sweep away.
+/// How the temporary files of [`write_atomic`] begin (then the writer's process id and a dash):
+/// a process killed mid-write leaves one behind (never a file under its final name), which the
+/// next atomic write into that folder removes once the writer is gone.
 pub const TEMPORARY_PREFIX: &str = ".f3g-tmp-";
 
 /// Writes `bytes` to `path` atomically (temporary file in the same directory, then rename).
@@ -45,25 +49,30 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
+    outputs::sweep_stale_temporaries(dir);
+    let prefix = outputs::temporary_prefix();
     let mut builder = tempfile::Builder::new();
-    builder.prefix(TEMPORARY_PREFIX);
+    builder.prefix(&prefix);
     #[cfg(unix)]
     {
         use std::os::unix::fs::PermissionsExt;
         builder.permissions(std::fs::Permissions::from_mode(0o666));
     }
-    let mut tmp = builder.tempfile_in(dir).map_err(|e| {
+    let mut tmp = outputs::create_pending(&builder, dir).map_err(|e| {
         IoError::new(
             path,
             format!("cannot create a temporary file in {}: {e}", dir.display()),
         )
     })?;
-    tmp.write_all(bytes).map_err(|e| IoError::new(path, e))?;
-    tmp.as_file()
-        .sync_all()
-        .map_err(|e| IoError::new(path, e))?;
-    tmp.persist(path).map_err(|e| IoError::new(path, e.error))?;
-    Ok(())
+    let temporary = tmp.path().to_path_buf();
+    let written = (|| {
+        tmp.write_all(bytes)?;
+        tmp.as_file().sync_all()?;
+        tmp.persist(path).map_err(|e| e.error)?;
+        Ok::<(), std::io::Error>(())
+    })();
+    outputs::unregister_pending(&temporary);
+    written.map_err(|e| IoError::new(path, e))
 }
 
 /// An image of `f32` samples, `[height, width, channels]` row-major.
@@ -220,10 +229,11 @@ pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> 
     write_atomic(path, &out.into_inner())
 }
 
-/// Removes what a command wrote in `dir` on an earlier run — the entries whose names `owned`
-/// accepts (`is_dir` tells folders, removed whole) — so that a new run leaves no stale
-/// numbered files beside its own (e.g. the frames of a longer animation). Anything else in
-/// `dir` is left alone. Returns how many entries were removed; a missing `dir` has none.
+/// Removes the entries of `dir` whose names `owned` accepts (`is_dir` tells folders, removed
+/// whole): for a command that replaces a whole set of its files on the user's explicit
+/// `--overwrite` (`f3g synth`). Commands that write into a folder on every run use
+/// [`OutputDir`], which removes only files it recorded. Returns how many entries were removed; a
+/// missing `dir` has none.
 pub fn clear_outputs(dir: &Path, owned: impl Fn(&str, bool) -> bool) -> Result<usize, IoError> {
     let entries = match std::fs::read_dir(dir) {
         Ok(entries) => entries,

@@ -30,6 +30,8 @@ pub struct AnimateOptions {
     pub width: u32,
     pub height: u32,
     pub out: PathBuf,
+    /// Write into an `out` that holds files of someone else (same names replaced).
+    pub overwrite: bool,
     pub export_ply: bool,
     /// Frames per second of the GIF.
     pub fps: f32,
@@ -161,16 +163,8 @@ pub fn animate(
     options: &AnimateOptions,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<AnimateReport, AvatarError> {
-    let frames_dir = options.out.join("frames");
-    let ply_dir = options.out.join("ply");
-    // An earlier animation's frames go first, so a shorter one leaves none behind.
-    let numbered = |name: &str, is_dir: bool| !is_dir && name.starts_with("frame_");
-    f3g_io::clear_outputs(&frames_dir, numbered)?;
-    f3g_io::clear_outputs(&ply_dir, numbered)?;
-    std::fs::create_dir_all(&frames_dir).map_err(|e| AvatarError::file(&frames_dir, e))?;
-    if options.export_ply {
-        std::fs::create_dir_all(&ply_dir).map_err(|e| AvatarError::file(&ply_dir, e))?;
-    }
+    // The folder's earlier frames that this animation does not write again go at the end.
+    let mut out = f3g_io::OutputDir::open(&options.out, "animate", options.overwrite)?;
     let start = std::time::Instant::now();
     let mut images = Vec::new();
     let mut plys = Vec::new();
@@ -198,18 +192,19 @@ pub fn animate(
             }
         };
         let img = avatar.render(params, &camera, options.background, options.use_pca)?;
-        f3g_io::write_png(&frames_dir.join(format!("frame_{i:05}.png")), &img)?;
+        f3g_io::write_png(&out.file(&format!("frames/frame_{i:05}.png"))?, &img)?;
         if options.export_ply {
             let cloud = avatar.posed_cloud(params, &camera, options.use_pca)?;
-            let path = ply_dir.join(format!("frame_{i:05}.ply"));
+            let path = out.file(&format!("ply/frame_{i:05}.ply"))?;
             f3g_splat::ply::write_ply(&path, &cloud)?;
             plys.push(path);
         }
         images.push(img);
         progress(i + 1, motion.len());
     }
-    let gif = options.out.join("animation.gif");
+    let gif = out.file("animation.gif")?;
     write_gif(&gif, &images, options.fps)?;
+    out.finish()?;
     Ok(AnimateReport {
         frames: motion.len(),
         gif,

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 use super::TrainedAvatar;
 use super::report::{comparison_row, stack_rows};
 use crate::AvatarError;
+use crate::model::host_values;
 use f3g_data::Dataset;
 use f3g_data::crop::{crop_view, head_box};
 use f3g_data::imgops::{
@@ -54,8 +55,10 @@ pub struct EvalOptions {
     pub face_size: usize,
     pub lpips_size: usize,
     pub lpips_net: LpipsNet,
-    /// Output folder (default `RUN/eval/<split>`).
+    /// Output folder (default `RUN/eval/<split>`, which is f3g's own: written over freely).
     pub out: Option<PathBuf>,
+    /// Write into an `out` that holds files of someone else (same names replaced).
+    pub overwrite: bool,
 }
 
 /// Scores of one image (LPIPS `None` when the weights are unavailable).
@@ -136,9 +139,7 @@ fn lpips_distance(
 ) -> Result<Option<f64>, AvatarError> {
     let Some(l) = lpips else { return Ok(None) };
     let v = l.forward(image_tensor(a, device), image_tensor(b, device))?;
-    Ok(Some(
-        v.into_data().try_into_vec::<f32>().expect("f32")[0] as f64,
-    ))
+    Ok(Some(host_values(v)[0] as f64))
 }
 
 fn scores(
@@ -393,10 +394,10 @@ pub fn evaluate_avatar(
     }
     ensure_memory(&ds, &pairs, avatar.gaussian_count(), options)?;
     let lpips = Lpips::load(options.lpips_net, device).ok();
-    let renders = out_dir.join("images");
-    // The images of an earlier evaluation (other frames or cameras) go first.
-    f3g_io::clear_outputs(&renders, |name, is_dir| !is_dir && name.ends_with(".png"))?;
-    std::fs::create_dir_all(&renders).map_err(|e| AvatarError::file(&renders, e))?;
+    // The images of an earlier evaluation that this one does not write again (other frames or
+    // cameras) go at the end.
+    let mut out =
+        f3g_io::OutputDir::open(out_dir, "eval", options.overwrite || options.out.is_none())?;
     let use_pca = options.split == SplitKind::NovelPose;
     let rig = ds.rig()?;
     let mut images = Vec::new();
@@ -432,8 +433,8 @@ pub fn evaluate_avatar(
             let (a, b) = (lpips_crop(&render), lpips_crop(&gt));
             body.lpips = lpips_distance(lpips.as_ref(), &a, &b, device)?;
             let name = format!("{}_{f:08}_lpips", cam.name);
-            f3g_io::write_png(&renders.join(format!("{name}.png")), &a)?;
-            f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &b)?;
+            f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &a)?;
+            f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &b)?;
         }
         // Head: the face crop at full resolution.
         let posed = rig.pose(params)?;
@@ -450,8 +451,8 @@ pub fn evaluate_avatar(
                 let face = quantise(avatar.render(params, &face_cam, [1.0; 3], use_pca)?);
                 let s = scores(lpips.as_ref(), &face, &gt_face, device)?;
                 let name = format!("{}_{f:08}_head", cam.name);
-                f3g_io::write_png(&renders.join(format!("{name}.png")), &face)?;
-                f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt_face)?;
+                f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &face)?;
+                f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &gt_face)?;
                 if grids.len() < 8 {
                     grids.push(comparison_row(&gt_face, &face));
                 }
@@ -460,8 +461,8 @@ pub fn evaluate_avatar(
             None => None,
         };
         let name = format!("{}_{f:08}", cam.name);
-        f3g_io::write_png(&renders.join(format!("{name}.png")), &render)?;
-        f3g_io::write_png(&renders.join(format!("{name}_gt.png")), &gt)?;
+        f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &render)?;
+        f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &gt)?;
         if grids.len() < 8 {
             grids.push(comparison_row(&gt, &render));
         }
@@ -493,15 +494,16 @@ pub fn evaluate_avatar(
         mean_head,
     };
     f3g_io::write_atomic(
-        &out_dir.join("metrics.json"),
+        &out.file("metrics.json")?,
         serde_json::to_string_pretty(&report)
             .expect("serialisable")
             .as_bytes(),
     )?;
-    f3g_io::write_atomic(&out_dir.join("metrics.md"), markdown(&report).as_bytes())?;
+    f3g_io::write_atomic(&out.file("metrics.md")?, markdown(&report).as_bytes())?;
     if !grids.is_empty() {
-        f3g_io::write_png(&out_dir.join("comparison.png"), &stack_rows(&grids))?;
+        f3g_io::write_png(&out.file("comparison.png")?, &stack_rows(&grids))?;
     }
+    out.finish()?;
     Ok(report)
 }
 
