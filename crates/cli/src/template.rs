@@ -222,9 +222,13 @@ pub struct PosmapsArgs {
     /// Template (.npz) from `f3g template`.
     #[arg(long)]
     pub template: PathBuf,
-    /// Output directory.
+    /// Output directory: new, empty, or an earlier `posmaps` one (whose pictures it replaces).
     #[arg(long)]
     pub out: PathBuf,
+    /// Write into an --out that holds other files (those of the same names are replaced,
+    /// nothing else is removed).
+    #[arg(long)]
+    pub overwrite: bool,
     /// Pixels per side of each (front, back) map (16–4096).
     #[arg(long, default_value_t = 256, value_parser = crate::bounds::size::<16, 4096>)]
     pub resolution: usize,
@@ -252,11 +256,11 @@ fn save(
 
 pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
     let (template, rig) = Template::load(&a.template)?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let mut out = f3g_io::OutputDir::open(&a.out, "posmaps", a.overwrite)?;
     let maps = PositionMaps::build(&template, a.resolution, None)?;
     let (w, h) = maps.size();
     save(
-        &a.out.join("canonical.png"),
+        &out.file("canonical.png")?,
         w,
         h,
         3,
@@ -267,9 +271,9 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
         .iter()
         .map(|n| (*n * 0.5 + 0.5).to_array())
         .collect();
-    save(&a.out.join("normals.png"), w, h, 3, maps.scatter(&normals))?;
+    save(&out.file("normals.png")?, w, h, 3, maps.scatter(&normals))?;
     save(
-        &a.out.join("mask.png"),
+        &out.file("mask.png")?,
         w,
         h,
         1,
@@ -278,7 +282,7 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
     let head = HeadMaps::build(&maps, &rig.head_joints()?, f3g_template::head::DENSIFY)?;
     let hs = head.size;
     save(
-        &a.out.join("head.png"),
+        &out.file("head.png")?,
         2 * hs,
         hs,
         3,
@@ -297,7 +301,7 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
         let poser = Poser::new(&rig, &template)?;
         let posed = posed_positions(&poser, &maps, frame)?;
         save(
-            &a.out.join("posed.png"),
+            &out.file("posed.png")?,
             w,
             h,
             3,
@@ -305,13 +309,14 @@ pub fn posmaps(a: &PosmapsArgs) -> Result<()> {
         )?;
         let posed_head = poser.pose_points(&head.positions, &head.skin, frame, false)?;
         save(
-            &a.out.join("head_posed.png"),
+            &out.file("head_posed.png")?,
             2 * hs,
             hs,
             3,
             head.scatter(&position_colours(&posed_head)),
         )?;
     }
+    out.finish()?;
     println!(
         "{} Gaussians on {}×{} maps; head crop {:?} densified to {} face Gaussians on {}×{} head maps; pictures in {}",
         maps.len(),

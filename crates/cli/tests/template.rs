@@ -58,6 +58,22 @@ fn builds_a_clothed_template_and_draws_its_maps() {
     }
     let (w, h) = f3g_io::image_size(&dir.path().join("maps/canonical.png")).unwrap();
     assert_eq!((w, h), (128, 64));
+    // Again without --params: the posed pictures of the first run go, the user's file stays.
+    let maps = dir.path().join("maps");
+    std::fs::write(maps.join("notes.txt"), b"mine").unwrap();
+    let again = f3g()
+        .args(["posmaps", "--template", "t.npz", "--out", "maps"])
+        .args(["--resolution", "64"])
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        again.status.success(),
+        "{}",
+        String::from_utf8_lossy(&again.stderr)
+    );
+    assert!(!maps.join("posed.png").exists() && maps.join("canonical.png").exists());
+    assert_eq!(std::fs::read(maps.join("notes.txt")).unwrap(), b"mine");
 }
 
 #[test]
