@@ -14,7 +14,7 @@ use f3g_data::split::SplitKind;
 use f3g_data::synth::{SynthOptions, generate};
 use f3g_nets::LpipsNet;
 
-/// 16 cameras (the synthetic split holds out 7 and 13), 5 frames, 96×128.
+/// 16 cameras (the synthetic split holds out 0, 7 and 13), 5 frames, 96×128.
 fn capture(dir: &Path) {
     let options = SynthOptions {
         cameras: 16,
@@ -414,6 +414,36 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
     assert!((mean - report.mean_body.psnr).abs() < 1e-9);
     let md = std::fs::read_to_string(run.join("eval/novel-view/metrics.md")).unwrap();
     assert!(md.contains("body PSNR") && md.contains("head LPIPS"));
+    // Per view class: each class's mean is that of its images' heads, and the classes share
+    // out every head. The first frame stands still facing camera 0: cam00 sees it from the
+    // front, cam07 from the back.
+    let mut counted = 0;
+    for (class, v) in &report.head_by_view {
+        let heads: Vec<f64> = report
+            .images
+            .iter()
+            .filter(|i| i.view == *class)
+            .filter_map(|i| i.head.as_ref().map(|h| h.psnr))
+            .collect();
+        assert_eq!(heads.len(), v.images, "{class:?}");
+        let mean = heads.iter().sum::<f64>() / heads.len() as f64;
+        assert!((mean - v.head.psnr).abs() < 1e-9, "{class:?}");
+        counted += v.images;
+    }
+    assert_eq!(
+        counted,
+        report.images.iter().filter(|i| i.head.is_some()).count()
+    );
+    let first = |camera: &str| {
+        report
+            .images
+            .iter()
+            .find(|i| i.camera == camera && i.frame == 0)
+            .unwrap_or_else(|| panic!("{camera} at frame 0 evaluated"))
+            .view
+    };
+    assert_eq!(first("cam00"), f3g_data::crop::ViewClass::Front);
+    assert_eq!(first("cam07"), f3g_data::crop::ViewClass::Back);
 }
 
 /// Mean body and head PSNR of `run` on the novel views of its capture, and the best flat
@@ -666,7 +696,7 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
     // The colour network does depend on the view: degree 3 follows it better than one colour.
     assert!(fit3.rms < fit0.rms, "{fit3:?} vs {fit0:?}");
     // What a 3DGS viewer shows from a camera behind and to the side (the test captures hold
-    // out cameras 7 and 13) is what the avatar renders itself.
+    // out cameras 0, 7 and 13) is what the avatar renders itself.
     let camera = &ds.cameras[7].camera;
     let own = avatar.render(params, camera, [1.0; 3], false).unwrap();
     let viewer = render_cloud(&sh3, camera);

@@ -413,13 +413,11 @@ pub fn eval(a: &EvalArgs) -> Result<f3g_avatar::infer::eval::EvalReport> {
         }
     };
     bar.finish_and_clear();
+    // The header and the means (whole and per view class), not the per-image table.
+    let markdown = f3g_avatar::infer::eval::markdown(&report);
     print!(
         "{}",
-        f3g_avatar::infer::eval::markdown(&report)
-            .lines()
-            .take(7)
-            .collect::<Vec<_>>()
-            .join("\n")
+        markdown.split("\n\n| image").next().unwrap_or(&markdown)
     );
     println!("\n\nwrote {}", out.join("metrics.json").display());
     Ok(report)

@@ -270,14 +270,32 @@ fn html(
             rel(out, &p)
         )
     };
+    // The means, then the head seen from the front, the side and the back.
     let row = |name: &str, r: &EvalReport| {
-        format!(
+        let mut rows = format!(
             "<tr><td>{name} ({} images, step {})</td>{}{}</tr>",
             r.images.len(),
             r.step,
             cell(Some(&r.mean_body)),
             cell(r.mean_head.as_ref())
-        )
+        );
+        for (class, v) in &r.head_by_view {
+            rows += &format!(
+                "\n<tr><td>&nbsp;&nbsp;head seen from the {} ({} images)</td>{}{}</tr>",
+                class.name(),
+                v.images,
+                cell(None),
+                cell(Some(&v.head))
+            );
+        }
+        rows
+    };
+    let cameras = {
+        let mut names: Vec<&str> = nv.images.iter().map(|i| i.camera.as_str()).collect();
+        names.dedup();
+        names.sort();
+        names.dedup();
+        names.join(", ")
     };
     Ok(format!(
         r#"<!doctype html>
@@ -325,7 +343,10 @@ the CPU in {minutes:.1} minutes.</p>
         np_md = rel(out, &run.join("eval/novel-pose/metrics.md")),
         nv_grid = img(
             run.join("eval/novel-view/comparison.png"),
-            "held-out cameras 7 and 13"
+            &format!(
+                "held-out cameras {cameras}: head crops seen from the front first, then from \
+                 the side and the back, then whole bodies"
+            )
         ),
         np_grid = img(
             run.join("eval/novel-pose/comparison.png"),

@@ -52,7 +52,10 @@ fn train_resume_evaluate_animate_and_export() {
         8
     );
 
-    ok(&f3g(d, &["eval", "run", "--every", "2", "--lpips", "alex"]));
+    let evaluated = f3g(d, &["eval", "run", "--every", "2", "--lpips", "alex"]);
+    ok(&evaluated);
+    // The summary gives the head per view class; the held-out frontal camera sees it.
+    assert!(String::from_utf8_lossy(&evaluated.stdout).contains("head seen from the front"));
     let metrics: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(d.join("run/eval/novel-view/metrics.json")).unwrap(),
     )
@@ -91,6 +94,34 @@ fn train_resume_evaluate_animate_and_export() {
         );
     }
     ok(&f3g(d, &["eval", "run", "--split", "novel-pose"]));
+
+    // A run that trained on a camera its split now holds out is refused, unless the cameras
+    // are chosen by hand.
+    let info_path = d.join("run/run.json");
+    let info = std::fs::read_to_string(&info_path).unwrap();
+    let mut older: serde_json::Value = serde_json::from_str(&info).unwrap();
+    older["train_cameras"]
+        .as_array_mut()
+        .unwrap()
+        .push(0.into());
+    std::fs::write(&info_path, older.to_string()).unwrap();
+    let refused = f3g(d, &["eval", "run", "--split", "novel-pose"]);
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("trained on"));
+    ok(&f3g(
+        d,
+        &[
+            "eval",
+            "run",
+            "--split",
+            "novel-pose",
+            "--cameras",
+            "7,13",
+            "--out",
+            "e713",
+        ],
+    ));
+    std::fs::write(&info_path, info).unwrap();
 
     ok(&f3g(
         d,

@@ -4,7 +4,11 @@
 //! |---|---|---|---|
 //! | AvatarReX | all frames, cameras except 7 and 13 | all frames, cameras 7 and 13 | — (not defined by the dataset: give `--frames`) |
 //! | THuman4.0 (subject00) | frames 0–1999, cameras except 7 | frames 0–1999, camera 7 | frames 2000–2499, camera 18 (Animatable Gaussians' evaluation) |
-//! | synthetic (`f3g synth`) | first 80 % of frames, cameras except 7 and 13 | same frames, cameras 7 and 13 | last 20 % of frames, cameras 7 and 13 |
+//! | synthetic (`f3g synth`) | first 80 % of frames, cameras except 0, 7 and 13 | same frames, cameras 0, 7 and 13 | last 20 % of frames, cameras 0, 7 and 13 |
+//!
+//! The synthetic capture holds out a frontal camera (0: yaw 0°, where the body faces) beside
+//! AvatarReX's 7 and 13 (in the 16-camera ring behind at 157.5° and beside at −67.5°), so that
+//! the evaluation sees the face; a one-camera capture holds out none.
 //!
 //! Preset frame ranges are cut to the frames a capture has. Missing images are skipped by the
 //! loader, not by the split.
@@ -74,6 +78,9 @@ impl Protocol {
     }
 }
 
+/// The synthetic ring's held-out cameras: frontal (0), behind (7) and beside (13).
+pub const SYNTH_HELD_OUT: [usize; 3] = [0, 7, 13];
+
 /// The preset split of `kind` for a capture with `cameras` cameras and `frames` frames.
 pub fn preset(
     protocol: Protocol,
@@ -122,17 +129,18 @@ pub fn preset(
         },
         (Protocol::Synthetic, kind) => {
             let cut = (frames * 4).div_ceil(5);
+            let held: &[usize] = if cameras > 1 { &SYNTH_HELD_OUT } else { &[] };
             match kind {
                 SplitKind::Train => Split {
-                    cameras: all_but(&[7, 13]),
+                    cameras: all_but(held),
                     frames: range(0, cut),
                 },
                 SplitKind::NovelView => Split {
-                    cameras: only(&[7, 13]),
+                    cameras: only(held),
                     frames: range(0, cut),
                 },
                 SplitKind::NovelPose => Split {
-                    cameras: only(&[7, 13]),
+                    cameras: only(held),
                     frames: range(cut, frames),
                 },
             }
@@ -221,7 +229,32 @@ mod tests {
         let syn = preset(Protocol::Synthetic, SplitKind::NovelPose, 16, 50).unwrap();
         assert_eq!(
             (syn.cameras, syn.frames[0], syn.frames.len()),
-            (vec![7, 13], 40, 10)
+            (vec![0, 7, 13], 40, 10)
+        );
+        assert_eq!(
+            preset(Protocol::Synthetic, SplitKind::NovelView, 16, 50)
+                .unwrap()
+                .cameras,
+            vec![0, 7, 13]
+        );
+        assert_eq!(
+            preset(Protocol::Synthetic, SplitKind::Train, 16, 50)
+                .unwrap()
+                .cameras,
+            vec![1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 14, 15]
+        );
+        // Fewer cameras: those that exist; one camera trains and holds out none.
+        assert_eq!(
+            preset(Protocol::Synthetic, SplitKind::NovelView, 4, 50)
+                .unwrap()
+                .cameras,
+            vec![0]
+        );
+        assert_eq!(
+            preset(Protocol::Synthetic, SplitKind::Train, 1, 50)
+                .unwrap()
+                .cameras,
+            vec![0]
         );
         assert_eq!(
             preset(Protocol::Synthetic, SplitKind::Train, 16, 50)

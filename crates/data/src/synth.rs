@@ -430,3 +430,32 @@ pub fn generate(
     )?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::crop::{ViewClass, head_facing, view_angle_deg};
+    use crate::split::SYNTH_HELD_OUT;
+
+    /// The synthetic split's held-out cameras see the head of the first (still, facing) frame
+    /// from the front, the back and the side, in that order.
+    #[test]
+    fn the_held_out_cameras_see_the_face_from_front_back_and_side() {
+        let human = f3g_rig::builtin::load().unwrap();
+        let rig = &human.rig;
+        let cameras = ring_cameras(&SynthOptions::default());
+        let first = &f3g_rig::choreography::motion(rig, 20, 0)[0];
+        let posed = rig.pose(first).unwrap();
+        let facing = head_facing(rig, &posed).unwrap();
+        let h = rig.role(Role::Head).unwrap();
+        let head = posed.skinning[h].transform_point3(rig.skeleton.rest(None)[h].translation);
+        let classes: Vec<ViewClass> = SYNTH_HELD_OUT
+            .iter()
+            .map(|&c| ViewClass::of_angle(view_angle_deg(&cameras[c].camera, head, facing)))
+            .collect();
+        assert_eq!(
+            classes,
+            [ViewClass::Front, ViewClass::Back, ViewClass::Side]
+        );
+    }
+}

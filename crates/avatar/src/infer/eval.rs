@@ -9,12 +9,18 @@
 //!   (padding as in training), cut from the full-resolution image and resized to
 //!   `face_size` (default [`DEFAULT_FACE_SIZE`]; shrinking averages each pixel's footprint),
 //!   and the avatar rendered with that crop's camera; PSNR, SSIM, LPIPS on it;
-//! - novel poses go through the pose PCA (clamped coefficients) as in Animatable Gaussians.
+//! - novel poses go through the pose PCA (clamped coefficients) as in Animatable Gaussians;
+//! - each image's head is classed by the side the camera sees it from
+//!   ([`f3g_data::crop::ViewClass`]: front within 45° of the posed head's facing direction,
+//!   back beyond 135°, side between), and head metrics are given per class beside the mean;
+//!   `comparison.png` shows the frontal head crops first (the most frontal first), then side
+//!   and back ones, then bodies.
 //!
 //! Renders and ground truths are rounded to 8 bits and written as PNG (`images/`: the body
 //! image, its LPIPS crop and the head crop, each with `_gt`), and the metrics are computed on
 //! exactly those pixels, so anyone can recompute them from the files.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
@@ -25,7 +31,7 @@ use super::report::{comparison_row, stack_rows};
 use crate::AvatarError;
 use crate::model::host_values;
 use f3g_data::Dataset;
-use f3g_data::crop::{crop_view, head_box};
+use f3g_data::crop::{ViewClass, crop_view, head_box, head_facing, view_angle_deg};
 use f3g_data::imgops::{
     CentredSquare, crop_resize, resize, resized_camera, scaled_size, square_image,
 };
@@ -79,6 +85,18 @@ pub struct ImageScores {
     pub body: Scores,
     /// `None` when the head is not in view.
     pub head: Option<Scores>,
+    /// The side the camera sees the head from, and the angle (degrees) between the head's
+    /// facing direction and the direction to the camera.
+    pub view: ViewClass,
+    pub view_angle_deg: f32,
+}
+
+/// Mean head scores of the images of one view class.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewScores {
+    pub images: usize,
+    #[serde(flatten)]
+    pub head: Scores,
 }
 
 /// The evaluation report (`metrics.json`).
@@ -94,6 +112,38 @@ pub struct EvalReport {
     pub images: Vec<ImageScores>,
     pub mean_body: Scores,
     pub mean_head: Option<Scores>,
+    /// Mean head scores per view class that has images with the head in view.
+    pub head_by_view: BTreeMap<ViewClass, ViewScores>,
+}
+
+/// A held-out split that names cameras the run trained on (a run trained before the synthetic
+/// split held out its frontal camera) would score seen views as novel: refused, unless the
+/// cameras were chosen by hand.
+fn refuse_training_cameras(
+    avatar: &dyn EvalAvatar,
+    ds: &Dataset,
+    split: &Split,
+    options: &EvalOptions,
+) -> Result<(), AvatarError> {
+    let Some((data, trained)) = avatar.training_views() else {
+        return Ok(());
+    };
+    let same_capture = match (data.canonicalize(), ds.root.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if options.split == SplitKind::Train || options.cameras.is_some() || !same_capture {
+        return Ok(());
+    }
+    match split.cameras.iter().find(|c| trained.contains(c)) {
+        Some(&c) => Err(AvatarError::Invalid(format!(
+            "camera {} of the {:?} split is one this run trained on (it was trained with an \
+             older split of this capture): retrain the run, or choose held-out cameras with \
+             --cameras",
+            ds.cameras[c].name, options.split
+        ))),
+        None => Ok(()),
+    }
 }
 
 /// Mean of scores (LPIPS only when every image has it).
@@ -230,9 +280,17 @@ pub trait EvalAvatar {
         camera: &Camera,
         unseen: bool,
     ) -> Result<f3g_splat::GaussianCloud, AvatarError>;
+    /// The capture and cameras it was trained on, when known (a run; an avatar file does not
+    /// record them).
+    fn training_views(&self) -> Option<(&Path, &[usize])> {
+        None
+    }
 }
 
 impl EvalAvatar for TrainedAvatar {
+    fn training_views(&self) -> Option<(&Path, &[usize])> {
+        Some((&self.info.data, &self.info.train_cameras))
+    }
     fn render(
         &self,
         params: &RigParams,
@@ -378,6 +436,7 @@ pub fn evaluate_avatar(
             }
         }
     };
+    refuse_training_cameras(avatar, &ds, &split, options)?;
     let pairs: Vec<(usize, usize)> = split
         .frames
         .iter()
@@ -401,7 +460,7 @@ pub fn evaluate_avatar(
     let use_pca = options.split == SplitKind::NovelPose;
     let rig = ds.rig()?;
     let mut images = Vec::new();
-    let mut grids = Vec::new();
+    let mut rows = ComparisonRows::default();
     for (i, &(c, f)) in pairs.iter().enumerate() {
         let cam = &ds.cameras[c];
         let full = ds.image(c, f)?;
@@ -443,6 +502,10 @@ pub fn evaluate_avatar(
             .iter()
             .map(|&v| posed.vertices[v])
             .collect();
+        let head_centre =
+            head_points.iter().copied().sum::<glam::Vec3>() / head_points.len().max(1) as f32;
+        let view_angle_deg = view_angle_deg(&cam.camera, head_centre, head_facing(rig, &posed)?);
+        let view = ViewClass::of_angle(view_angle_deg);
         let head = match head_box(&cam.camera, &head_points, avatar.face_padding()) {
             Some(b) => {
                 let (gt_face, face_cam) =
@@ -453,9 +516,7 @@ pub fn evaluate_avatar(
                 let name = format!("{}_{f:08}_head", cam.name);
                 f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &face)?;
                 f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &gt_face)?;
-                if grids.len() < 8 {
-                    grids.push(comparison_row(&gt_face, &face));
-                }
+                rows.offer_head(view, view_angle_deg, || comparison_row(&gt_face, &face));
                 Some(s)
             }
             None => None,
@@ -463,14 +524,14 @@ pub fn evaluate_avatar(
         let name = format!("{}_{f:08}", cam.name);
         f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &render)?;
         f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &gt)?;
-        if grids.len() < 8 {
-            grids.push(comparison_row(&gt, &render));
-        }
+        rows.offer_body(|| comparison_row(&gt, &render));
         images.push(ImageScores {
             frame: f,
             camera: cam.name.clone(),
             body,
             head,
+            view,
+            view_angle_deg,
         });
         progress(i + 1, pairs.len());
     }
@@ -481,6 +542,24 @@ pub fn evaluate_avatar(
             .filter_map(|i| i.head.as_ref())
             .collect::<Vec<_>>(),
     );
+    let head_by_view = ViewClass::ALL
+        .into_iter()
+        .filter_map(|class| {
+            let heads: Vec<&Scores> = images
+                .iter()
+                .filter(|i| i.view == class)
+                .filter_map(|i| i.head.as_ref())
+                .collect();
+            let head = mean(&heads)?;
+            Some((
+                class,
+                ViewScores {
+                    images: heads.len(),
+                    head,
+                },
+            ))
+        })
+        .collect();
     let report = EvalReport {
         run: source.to_path_buf(),
         step: avatar.step(),
@@ -492,6 +571,7 @@ pub fn evaluate_avatar(
         images,
         mean_body,
         mean_head,
+        head_by_view,
     };
     f3g_io::write_atomic(
         &out.file("metrics.json")?,
@@ -500,6 +580,7 @@ pub fn evaluate_avatar(
             .as_bytes(),
     )?;
     f3g_io::write_atomic(&out.file("metrics.md")?, markdown(&report).as_bytes())?;
+    let grids = rows.into_rows();
     if !grids.is_empty() {
         f3g_io::write_png(&out.file("comparison.png")?, &stack_rows(&grids))?;
     }
@@ -527,32 +608,88 @@ pub fn markdown(r: &EvalReport) -> String {
         r.face_size
     );
     s += "| | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n";
-    let row = |name: String, b: &Scores, h: Option<&Scores>| {
-        let (hp, hs, hl) = h.map_or(("–".into(), "–".into(), "–".into()), |h| {
-            (
-                format!("{:.3}", h.psnr),
-                format!("{:.4}", h.ssim),
-                fmt_lpips(h.lpips),
-            )
-        });
-        format!(
-            "| {name} | {:.3} | {:.4} | {} | {hp} | {hs} | {hl} |\n",
-            b.psnr,
-            b.ssim,
-            fmt_lpips(b.lpips)
-        )
+    let cells = |x: Option<&Scores>| -> String {
+        x.map_or("– | – | –".into(), |x| {
+            format!("{:.3} | {:.4} | {}", x.psnr, x.ssim, fmt_lpips(x.lpips))
+        })
+    };
+    let row = |name: String, b: Option<&Scores>, h: Option<&Scores>| {
+        format!("| {name} | {} | {} |\n", cells(b), cells(h))
     };
     s += &row(
         format!("**mean of {}**", r.images.len()),
-        &r.mean_body,
+        Some(&r.mean_body),
         r.mean_head.as_ref(),
     );
+    for (class, v) in &r.head_by_view {
+        s += &row(
+            format!("head seen from the {} ({})", class.name(), v.images),
+            None,
+            Some(&v.head),
+        );
+    }
+    s += "\n";
+    s += "| image (view, angle) | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n";
     for i in &r.images {
         s += &row(
-            format!("{} / {}", i.camera, i.frame),
-            &i.body,
+            format!(
+                "{} / {} ({} {:.0}°)",
+                i.camera,
+                i.frame,
+                i.view.name(),
+                i.view_angle_deg
+            ),
+            Some(&i.body),
             i.head.as_ref(),
         );
     }
     s
+}
+
+/// The rows of `comparison.png`, chosen as images are scored so that only those kept are held:
+/// head crops by view class (the most frontal first; at most [`HEAD_ROWS`] of each class), then
+/// the first [`BODY_ROWS`] bodies.
+#[derive(Default)]
+struct ComparisonRows {
+    heads: Vec<(ViewClass, f32, Image)>,
+    bodies: Vec<Image>,
+}
+
+/// Head rows kept per view class (front, side, back) and body rows: eight rows at most.
+const HEAD_ROWS: [usize; 3] = [3, 2, 1];
+const BODY_ROWS: usize = 2;
+
+impl ComparisonRows {
+    fn offer_head(&mut self, view: ViewClass, angle: f32, row: impl FnOnce() -> Image) {
+        let cap = HEAD_ROWS[view as usize];
+        let same: Vec<usize> = (0..self.heads.len())
+            .filter(|&i| self.heads[i].0 == view)
+            .collect();
+        if same.len() < cap {
+            self.heads.push((view, angle, row()));
+        } else if let Some(&worst) = same
+            .iter()
+            .max_by(|&&a, &&b| self.heads[a].1.total_cmp(&self.heads[b].1))
+            && (view == ViewClass::Front && angle < self.heads[worst].1)
+        {
+            // Frontal rows keep the most frontal views; the others the first seen.
+            self.heads[worst] = (view, angle, row());
+        }
+    }
+
+    fn offer_body(&mut self, row: impl FnOnce() -> Image) {
+        if self.bodies.len() < BODY_ROWS {
+            self.bodies.push(row());
+        }
+    }
+
+    fn into_rows(mut self) -> Vec<Image> {
+        self.heads
+            .sort_by(|a, b| a.0.cmp(&b.0).then(a.1.total_cmp(&b.1)));
+        self.heads
+            .into_iter()
+            .map(|(_, _, row)| row)
+            .chain(self.bodies)
+            .collect()
+    }
 }
