@@ -1,10 +1,10 @@
 //! `f3g synth` and `f3g data`: make, check and look at captures.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
-use f3g_data::synth::{SynthOptions, generate};
+use f3g_data::synth::{SynthOptions, generate, generate_motion};
 use f3g_data::{Dataset, check};
 use f3g_rig::ModelSpec;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -18,9 +18,19 @@ pub struct SynthArgs {
     /// Number of cameras in the ring (1–256).
     #[arg(long, value_parser = crate::bounds::size::<1, 256>)]
     pub cameras: Option<usize>,
-    /// Number of frames (1–100000).
+    /// Number of frames (1–100000); with --motion, its first frames (default all).
     #[arg(long, value_parser = crate::bounds::size::<1, 100_000>)]
     pub frames: Option<usize>,
+    /// The built-in human performs this motion instead of its own choreography: any file
+    /// `--motion` reads elsewhere (an f3g sequence, AMASS .npz, .smpl, BVH, glTF, FBX),
+    /// retargeted onto it and moved so that its first frame stands at the ring's centre.
+    #[arg(long)]
+    pub motion: Option<PathBuf>,
+    #[command(flatten)]
+    pub retarget: crate::motion::RetargetArgs,
+    /// With --motion: resample it to this frame rate (default: the file's).
+    #[arg(long, requires = "motion")]
+    pub fps: Option<f32>,
     /// Image height in pixels, 16–8192 (width is 3/4 of it).
     #[arg(long, value_parser = crate::bounds::size::<16, 8192>)]
     pub resolution: Option<usize>,
@@ -43,6 +53,32 @@ pub struct SynthArgs {
     pub overwrite: bool,
 }
 
+/// The frames of `--motion` for the built-in human: retargeted, cut to `--frames`, centred.
+fn synth_motion(path: &Path, a: &SynthArgs) -> Result<Vec<f3g_rig::RigParams>> {
+    if let Some(fps) = a.fps
+        && !(fps.is_finite() && fps > 0.0 && fps <= 1000.0)
+    {
+        bail!("--fps {fps}: expected a rate in (0, 1000]");
+    }
+    let rig = &f3g_rig::builtin::load()?.rig;
+    let read = f3g_avatar::infer::animate::read_motion(
+        path,
+        rig,
+        &rig.zero_params(),
+        &a.retarget.options(a.fps)?,
+    )?;
+    if let Some(r) = &read.retargeted {
+        eprintln!("{}", crate::motion::describe(path, r, read.frames.len()));
+    }
+    let mut frames = read.frames;
+    frames.truncate(a.frames.unwrap_or(usize::MAX));
+    if frames.is_empty() {
+        bail!("{}: the motion has no frames", path.display());
+    }
+    f3g_data::synth::centre_on_ring(rig, &mut frames)?;
+    Ok(frames)
+}
+
 pub fn synth(a: &SynthArgs) -> Result<()> {
     let mut options = match a.preset.as_deref() {
         None => SynthOptions::default(),
@@ -55,6 +91,14 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
     options.elevation_deg = a.elevation.unwrap_or(options.elevation_deg);
     options.supersample = a.supersample.unwrap_or(options.supersample);
     options.seed = a.seed;
+    let motion = match &a.motion {
+        Some(path) => {
+            let frames = synth_motion(path, a)?;
+            options.frames = frames.len();
+            Some(frames)
+        }
+        None => None,
+    };
     if f3g_data::synth::holds_capture(&a.out) {
         if !a.overwrite {
             bail!(
@@ -69,7 +113,16 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
     )?);
     bar.set_message(format!("{} cameras", options.cameras));
     let start = std::time::Instant::now();
-    generate(&a.out, &options, &|f| bar.set_position(f as u64))?;
+    match &motion {
+        Some(frames) => generate_motion(
+            &a.out,
+            &options,
+            frames,
+            a.motion.as_deref().map(|p| p.to_string_lossy()).as_deref(),
+            &|f| bar.set_position(f as u64),
+        )?,
+        None => generate(&a.out, &options, &|f| bar.set_position(f as u64))?,
+    }
     bar.finish_and_clear();
     println!(
         "wrote {} frames × {} cameras at {}×{} to {} in {:.1} s",

@@ -78,6 +78,9 @@ pub(crate) fn ensure_capture(dir: &Path, c: &CaptureAndTraining) -> Result<()> {
         seed: c.seed,
         preset: None,
         overwrite: false,
+        motion: None,
+        retarget: Default::default(),
+        fps: None,
     })
 }
 

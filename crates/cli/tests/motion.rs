@@ -167,3 +167,125 @@ fn bad_motion_files_are_refused_and_nothing_is_written() {
     let out = f3g(d, &["motion", "export", "notes.txt", "--out", "x.bvh"]);
     assert!(!out.status.success() && !d.join("x.bvh").exists());
 }
+
+/// `f3g synth --motion`: a motion of each kind `--motion` reads becomes a capture of the
+/// built-in human whose body parameters are that motion retargeted (cut to `--frames`, its
+/// first frame moved over the ring's centre), with the body in view.
+#[test]
+fn every_motion_kind_becomes_a_capture_of_that_motion() {
+    use f3g_testkit::{Array, write_arrays};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(&f3g(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "6",
+            "--resolution",
+            "32",
+        ],
+    ));
+    let mut files = vec!["cap/body_params.npz".to_string()];
+    for format in ["bvh", "glb", "fbx"] {
+        let out = format!("walk.{format}");
+        ok(&f3g(
+            d,
+            &[
+                "motion",
+                "export",
+                "cap/body_params.npz",
+                "--format",
+                format,
+                "--out",
+                &out,
+            ],
+        ));
+        files.push(out);
+    }
+    // AMASS (SMPL-H, Z up, walking away from the origin) and the `.smpl` codec.
+    let frames = 4;
+    let mut poses = vec![0.0f32; frames * 156];
+    for f in 0..frames {
+        poses[f * 156] = std::f32::consts::FRAC_PI_2;
+        poses[f * 156 + 12] = 0.1 * f as f32;
+    }
+    let trans: Vec<f32> = (0..frames)
+        .flat_map(|f| [2.0 + 0.1 * f as f32, 1.0, 0.9])
+        .collect();
+    write_arrays(
+        &d.join("amass.npz"),
+        &[
+            Array::f32("poses", &[frames, 156], &poses),
+            Array::f32("trans", &[frames, 3], &trans),
+            Array::f32("betas", &[16], &[0.0; 16]),
+            Array::f32("mocap_framerate", &[], &[30.0]),
+        ],
+    );
+    files.push("amass.npz".into());
+    write_arrays(
+        &d.join("walk.smpl"),
+        &[
+            Array::i64("codecVersion", &[], &[1]),
+            Array::i64("smplVersion", &[], &[2]),
+            Array::i64("frameCount", &[], &[frames as i64]),
+            Array::f32("frameRate", &[], &[30.0]),
+            Array::f32("shapeParameters", &[10], &[0.0; 10]),
+            Array::f32("bodyTranslation", &[frames, 3], &vec![0.0; frames * 3]),
+            Array::f32("bodyPose", &[frames, 22, 3], &vec![0.1; frames * 66]),
+            Array::f32("headPose", &[frames, 3, 3], &vec![0.0; frames * 9]),
+            Array::f32("leftHandPose", &[frames, 15, 3], &vec![0.0; frames * 45]),
+            Array::f32("rightHandPose", &[frames, 15, 3], &vec![0.0; frames * 45]),
+        ],
+    );
+    files.push("walk.smpl".into());
+
+    let rig = &f3g_rig::builtin::load().unwrap().rig;
+    for (i, file) in files.iter().enumerate() {
+        let out = format!("of{i}");
+        ok(&f3g(
+            d,
+            &[
+                "synth",
+                "--out",
+                &out,
+                "--motion",
+                file,
+                "--frames",
+                "3",
+                "--cameras",
+                "2",
+                "--resolution",
+                "48",
+                "--supersample",
+                "1",
+            ],
+        ));
+        let mut expected = f3g_avatar::infer::animate::read_motion(
+            &d.join(file),
+            rig,
+            &rig.zero_params(),
+            &Default::default(),
+        )
+        .unwrap()
+        .frames;
+        expected.truncate(3);
+        f3g_data::synth::centre_on_ring(rig, &mut expected).unwrap();
+        let got = f3g_rig::sequence::read(&d.join(&out).join("body_params.npz"), rig).unwrap();
+        assert_eq!(got.len(), expected.len(), "{file}");
+        for (g, e) in got.iter().zip(&expected) {
+            for (a, b) in g.pose.iter().zip(&e.pose) {
+                assert!((a - b).abs() < 1e-5, "{file}: {a} ≠ {b}");
+            }
+        }
+        // The first frame's root stands over the ring's centre, the body in view.
+        let root = rig.joint_world(&got[0]).unwrap()[0].translation;
+        assert!(root.x.abs() < 1e-4 && root.z.abs() < 1e-4, "{file}: {root}");
+        let mask = f3g_io::read_rgb(&d.join(&out).join("cam00/mask/pha/00000000.jpg")).unwrap();
+        assert!(mask.data.iter().any(|&v| v > 0.5), "{file}: nobody in view");
+        let meta = std::fs::read_to_string(d.join(&out).join("synth.json")).unwrap();
+        assert!(meta.contains(file.as_str()), "{meta}");
+    }
+}

@@ -32,8 +32,8 @@ use crate::dataset::BODY_PARAMS;
 use crate::split::SYNTH_MARKER;
 use f3g_camera::Camera;
 use f3g_io::Image;
-use f3g_rig::Role;
 use f3g_rig::builtin::BuiltinHuman;
+use f3g_rig::{RigParams, Role};
 use f3g_template::{Projection, rasterize};
 
 /// Settings of a synthetic capture.
@@ -361,18 +361,54 @@ pub fn clear(dir: &Path) -> Result<usize, DataError> {
     })?)
 }
 
-/// Writes a synthetic capture into `out`; `progress` is called after each frame.
+/// Writes a synthetic capture of the built-in choreography (`options.frames` frames, seeded)
+/// into `out`; `progress` is called after each frame.
 pub fn generate(
     out: &Path,
     options: &SynthOptions,
     progress: &(dyn Fn(usize) + Sync),
 ) -> Result<(), DataError> {
     options.validate()?;
+    let rig = &f3g_rig::builtin::load()?.rig;
+    let params = f3g_rig::choreography::motion(rig, options.frames, options.seed);
+    generate_motion(out, options, &params, None, progress)
+}
+
+/// Moves a motion of the built-in human so that its first frame's root stands over the centre
+/// of the camera ring (its height unchanged): a walk recorded elsewhere in its room then starts
+/// in view.
+pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<(), DataError> {
+    let Some(first) = frames.first() else {
+        return Ok(());
+    };
+    let root = rig.joint_world(first)?[0].translation;
+    let shift = Vec3::new(root.x, 0.0, root.z);
+    for f in frames.iter_mut() {
+        let t = rig.root_translation(f);
+        rig.set_root_translation(f, t - shift)?;
+    }
+    Ok(())
+}
+
+/// Writes a synthetic capture of the built-in human performing `params` (one frame each;
+/// `options.frames` is not read) into `out`; `motion` names where the motion came from, for
+/// `synth.json`.
+pub fn generate_motion(
+    out: &Path,
+    options: &SynthOptions,
+    params: &[RigParams],
+    motion: Option<&str>,
+    progress: &(dyn Fn(usize) + Sync),
+) -> Result<(), DataError> {
+    let options = &SynthOptions {
+        frames: params.len(),
+        ..options.clone()
+    };
+    options.validate()?;
     let human = f3g_rig::builtin::load()?;
     let rig = &human.rig;
     std::fs::create_dir_all(out).map_err(|e| DataError::file(out, e))?;
     let cameras = ring_cameras(options);
-    let params = f3g_rig::choreography::motion(rig, options.frames, options.seed);
     let part = |n: &str| human.part(n).expect("documented part");
     let rest = rig.skeleton.rest(None);
     let eye = |role| -> Result<Vec3, DataError> { Ok(rest[rig.role(role)?].translation) };
@@ -419,9 +455,10 @@ pub fn generate(
         progress(f + 1);
     }
     write_calibration(&out.join(CALIBRATION), &cameras)?;
-    f3g_rig::sequence::write(&out.join(BODY_PARAMS), rig, &params)?;
-    let meta =
-        serde_json::json!({ "generator": "f3g synth", "model": "builtin", "options": options });
+    f3g_rig::sequence::write(&out.join(BODY_PARAMS), rig, params)?;
+    let meta = serde_json::json!({
+        "generator": "f3g synth", "model": "builtin", "options": options, "motion": motion,
+    });
     f3g_io::write_atomic(
         &out.join(SYNTH_MARKER),
         serde_json::to_string_pretty(&meta)

@@ -203,6 +203,26 @@ impl Rig {
         }
     }
 
+    /// The translation of the root joint that [`Rig::set_root_translation`] sets.
+    pub fn root_translation(&self, params: &RigParams) -> Vec3 {
+        let mut t = Vec3::ZERO;
+        match &self.parameterization {
+            Parameterization::AxisAngle => {
+                let n = params.pose.len();
+                t = Vec3::from_slice(&params.pose[n - 3..]);
+            }
+            Parameterization::Momentum(_) => {
+                for k in 0..3 {
+                    // A channel the model lacks stays at zero, as setting it would fail.
+                    if let Some(p) = self.channel_parameter(0, k) {
+                        t[k] = params.pose[p];
+                    }
+                }
+            }
+        }
+        t
+    }
+
     /// World transforms of the joints for parameters: forward kinematics without the mesh.
     pub fn joint_world(&self, params: &RigParams) -> Result<Vec<Similarity>, RigError> {
         let poses = self.joint_poses(&params.pose)?;
