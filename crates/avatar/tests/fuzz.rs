@@ -367,6 +367,130 @@ fn the_small_avatar_file_reads() {
     avatar.posed(&avatar.rig.zero_params()).unwrap();
 }
 
+/// The small avatar file with its JSON document edited.
+fn with_document(edit: impl FnOnce(&mut serde_json::Value)) -> Vec<u8> {
+    let mut file = f3g_rig::glb::GlbFile::parse(&small_avatar_file()).unwrap();
+    edit(&mut file.document);
+    file.to_bytes()
+}
+
+/// The small avatar file with element `element` of the accessor at `pointer` (a JSON pointer
+/// to its index) set to `value`.
+fn with_float(pointer: &str, element: usize, value: f32) -> Vec<u8> {
+    with_floats(pointer, &[(element, value)])
+}
+
+/// [`with_float`] for several elements.
+fn with_floats(pointer: &str, edits: &[(usize, f32)]) -> Vec<u8> {
+    let mut bytes = small_avatar_file();
+    let file = f3g_rig::glb::GlbFile::parse(&bytes).unwrap();
+    let doc = &file.document;
+    let accessor = &doc["accessors"][doc.pointer(pointer).unwrap().as_u64().unwrap() as usize];
+    let view = &doc["bufferViews"][accessor["bufferView"].as_u64().unwrap() as usize];
+    let offset =
+        view["byteOffset"].as_u64().unwrap_or(0) + accessor["byteOffset"].as_u64().unwrap_or(0);
+    // The binary chunk's data follow the 12-byte header, the JSON chunk and an 8-byte header.
+    let json = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    for &(element, value) in edits {
+        let at = 12 + 8 + json + 8 + offset as usize + 4 * element;
+        bytes[at..at + 4].copy_from_slice(&value.to_le_bytes());
+    }
+    bytes
+}
+
+/// What a player or `eval` would take as it is, refused with the field named: a face padding
+/// that crops nothing (a perfect score) or everything (a hang), values out of their range, a
+/// node cycle, a buffer larger than the file, non-finite inverse-bind matrices, no Gaussians
+/// extension.
+#[test]
+fn avatar_files_out_of_range_are_refused_naming_the_field() {
+    let primitive = "/meshes/0/primitives/0";
+    let attribute = |name: &str| format!("{primitive}/attributes/{name}");
+    let cases: Vec<(Vec<u8>, &str)> = vec![
+        (
+            with_document(|d| d["extensions"]["F3G_avatar"]["facePadding"] = (-5.0).into()),
+            "facePadding",
+        ),
+        (
+            with_document(|d| d["extensions"]["F3G_avatar"]["facePadding"] = 0.into()),
+            "facePadding",
+        ),
+        (
+            with_document(|d| d["extensions"]["F3G_avatar"]["facePadding"] = 1e6.into()),
+            "facePadding",
+        ),
+        (
+            with_document(|d| d["extensions"]["F3G_avatar"]["faceCropSize"] = 0.into()),
+            "faceCropSize",
+        ),
+        (
+            with_document(|d| {
+                let child = d["nodes"][0]["children"][0].clone();
+                d["nodes"][child.as_u64().unwrap() as usize]["children"] = serde_json::json!([0]);
+            }),
+            "cycle",
+        ),
+        (
+            with_document(|d| d["buffers"][0]["byteLength"] = (1u64 << 40).into()),
+            "buffer 0",
+        ),
+        (
+            with_document(|d| {
+                d.pointer_mut(&format!("{primitive}/extensions"))
+                    .unwrap()
+                    .as_object_mut()
+                    .unwrap()
+                    .remove("KHR_gaussian_splatting");
+            }),
+            "KHR_gaussian_splatting",
+        ),
+        (
+            with_float(&attribute("KHR_gaussian_splatting:OPACITY"), 2, 5.0),
+            "OPACITY of Gaussian 2",
+        ),
+        (
+            with_float(&attribute("KHR_gaussian_splatting:SCALE"), 4, -1.0),
+            "SCALE of Gaussian 1",
+        ),
+        (
+            with_floats(
+                &attribute("KHR_gaussian_splatting:ROTATION"),
+                &[(12, 0.0), (13, 0.0), (14, 0.0), (15, 0.0)],
+            ),
+            "ROTATION of Gaussian 3",
+        ),
+        (
+            with_float("/skins/0/inverseBindMatrices", 5, f32::NAN),
+            "inverse-bind",
+        ),
+    ];
+    for (bytes, field) in cases {
+        match f3g_avatar::infer::avatar_file::from_bytes(&bytes) {
+            Ok(_) => panic!("accepted an avatar file that should fail on `{field}`"),
+            Err(e) => assert!(e.contains(field), "expected `{field}` in: {e}"),
+        }
+    }
+}
+
+/// The JSON fields of the avatar file that a mutation of its bytes rarely reaches intact:
+/// sizes, offsets, indices, the node graph and the extensions' numbers.
+const AVATAR_FIELDS: [&str; 14] = [
+    "/extensions/F3G_avatar/facePadding",
+    "/extensions/F3G_avatar/faceCropSize",
+    "/extensions/F3G_avatar/bodyModel/bufferView",
+    "/extensions/F3G_avatar/headVertices",
+    "/buffers/0/byteLength",
+    "/bufferViews/0/byteOffset",
+    "/bufferViews/1/byteLength",
+    "/accessors/0/count",
+    "/accessors/1/bufferView",
+    "/nodes/0/children/0",
+    "/skins/0/joints/1",
+    "/skins/0/inverseBindMatrices",
+    "/meshes/0/primitives/0/extensions/F3G_pose_correctives/count",
+    "/meshes/0/primitives/0/attributes/JOINTS_0",
+];
+
 proptest! {
     #![proptest_config(config(1000))]
 
@@ -383,6 +507,33 @@ proptest! {
                 prop_assert!(posed.is_ok(), "{:?}", posed.err());
             }
             Err(e) => prop_assert!(e.to_string().contains("avatar.glb"), "{}", e),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
+    }
+
+    /// Structure-aware: one field of the glTF document or the extensions set to any number
+    /// (negative, zero, huge, fractional): the file reads to an avatar that poses, or is an
+    /// error.
+    #[test]
+    fn avatar_files_with_a_field_changed_read_or_error(
+        field in proptest::sample::select(AVATAR_FIELDS.to_vec()),
+        value in prop_oneof![
+            Just(-1.0f64), Just(0.0), Just(0.5), Just(1e6), Just(4294967296.0), Just(1e300),
+            -10.0f64..10.0, 0.0f64..100.0,
+        ],
+    ) {
+        let bytes = with_document(|d| {
+            if let Some(v) = d.pointer_mut(field) {
+                *v = if value.fract() == 0.0 && (0.0..1e18).contains(&value) {
+                    (value as u64).into()
+                } else {
+                    value.into()
+                };
+            }
+        });
+        if let Ok(avatar) = f3g_avatar::infer::avatar_file::from_bytes(&bytes) {
+            let posed = avatar.posed(&avatar.rig.zero_params());
+            prop_assert!(posed.is_ok(), "{:?}", posed.err());
         }
         prop_assert!(GUARD.largest() <= 256 << 20);
     }

@@ -323,6 +323,11 @@ impl GlbFile {
             .collect())
     }
 
+    /// Bytes in the binary chunk.
+    pub fn bin_len(&self) -> usize {
+        self.bin.len()
+    }
+
     /// The bytes of buffer view `index` (e.g. an embedded file).
     pub fn view(&self, index: usize) -> Result<&[u8], String> {
         let view = self

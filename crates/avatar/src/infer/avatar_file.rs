@@ -245,6 +245,91 @@ pub fn read(path: &Path) -> Result<BakedAvatar, AvatarError> {
     from_bytes(&bytes).map_err(|e| AvatarError::file(path, e))
 }
 
+/// The glTF structure a player reads beyond what [`from_bytes`] takes: buffer sizes against
+/// the file, buffer views inside their buffer, a node tree (children that exist, one parent
+/// each, no cycle) and finite inverse-bind matrices.
+fn check_structure(file: &GlbFile) -> Result<(), String> {
+    let doc = &file.document;
+    let array = |name: &str| doc[name].as_array().map_or(&[][..], Vec::as_slice);
+    let buffers = array("buffers");
+    for (i, b) in buffers.iter().enumerate() {
+        let length = b["byteLength"].as_u64().unwrap_or(u64::MAX);
+        if b.get("uri").is_some() || length > file.bin_len() as u64 {
+            return Err(format!(
+                "buffer {i} declares {} bytes{}, the file's binary chunk holds {}",
+                b["byteLength"],
+                if b.get("uri").is_some() {
+                    " in another file"
+                } else {
+                    ""
+                },
+                file.bin_len()
+            ));
+        }
+    }
+    for (i, v) in array("bufferViews").iter().enumerate() {
+        let buffer = v["buffer"].as_u64().and_then(|b| buffers.get(b as usize));
+        let end = v["byteOffset"]
+            .as_u64()
+            .unwrap_or(0)
+            .checked_add(v["byteLength"].as_u64().unwrap_or(u64::MAX));
+        match (buffer, end) {
+            (Some(b), Some(end)) if end <= b["byteLength"].as_u64().unwrap_or(0) => {}
+            _ => return Err(format!("buffer view {i} lies outside its buffer")),
+        }
+    }
+    let nodes = array("nodes");
+    let mut parent = vec![None; nodes.len()];
+    for (i, node) in nodes.iter().enumerate() {
+        for c in node["children"].as_array().map_or(&[][..], Vec::as_slice) {
+            let c = c
+                .as_u64()
+                .map(|c| c as usize)
+                .filter(|&c| c < nodes.len())
+                .ok_or_else(|| format!("node {i} has a child {c} that is not a node"))?;
+            if parent[c].replace(i).is_some() {
+                return Err(format!("node {c} is the child of two nodes"));
+            }
+        }
+    }
+    for start in 0..nodes.len() {
+        let (mut at, mut steps) = (start, 0);
+        while let Some(p) = parent[at] {
+            at = p;
+            steps += 1;
+            if steps > nodes.len() {
+                return Err(format!("node {start} lies on a cycle of nodes"));
+            }
+        }
+    }
+    for (i, skin) in array("skins").iter().enumerate() {
+        let joints = skin["joints"].as_array().map_or(&[][..], Vec::as_slice);
+        if joints
+            .iter()
+            .any(|j| j.as_u64().is_none_or(|j| j as usize >= nodes.len()))
+        {
+            return Err(format!("skin {i} names a joint that is not a node"));
+        }
+        if let Some(a) = skin["inverseBindMatrices"].as_u64() {
+            let matrices = file.floats(a as usize, 16)?;
+            if matrices.len() != 16 * joints.len() {
+                return Err(format!(
+                    "skin {i} has {} inverse-bind matrices for {} joints",
+                    matrices.len() / 16,
+                    joints.len()
+                ));
+            }
+            if let Some(at) = matrices.iter().position(|x| !x.is_finite()) {
+                return Err(format!(
+                    "skin {i}'s inverse-bind matrix {} holds a non-finite value",
+                    at / 16
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// An index field of a JSON object.
 fn index(v: &Value, what: &str) -> Result<usize, String> {
     v.as_u64()
@@ -255,6 +340,7 @@ fn index(v: &Value, what: &str) -> Result<usize, String> {
 /// Reads an avatar from `.glb` bytes; errors say what is wrong.
 pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     let file = GlbFile::parse(bytes)?;
+    check_structure(&file)?;
     let doc = &file.document;
     let ext = doc
         .pointer(&format!("/extensions/{AVATAR}"))
@@ -301,8 +387,25 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     if head_vertices.iter().any(|&v| v >= rig.mesh.vertices.len()) {
         return Err("headVertices names a vertex the body model does not have".into());
     }
-    let face_padding = ext["facePadding"].as_f64().unwrap_or(1.3) as f32;
-    let face_crop_size = ext["faceCropSize"].as_u64().unwrap_or(128).clamp(16, 2048) as usize;
+    // The training range of `face_padding`: anything else crops the head wrongly (≤ 0: a
+    // four-pixel crop that scores as a perfect head; huge: an image-sized crop).
+    let face_padding = match &ext["facePadding"] {
+        Value::Null => 1.3,
+        v => v
+            .as_f64()
+            .filter(|p| (1.0..=4.0).contains(p))
+            .ok_or_else(|| format!("F3G_avatar.facePadding is {v}, expected a number in [1, 4]"))?
+            as f32,
+    };
+    let face_crop_size = match &ext["faceCropSize"] {
+        Value::Null => 128,
+        v => v
+            .as_u64()
+            .filter(|s| (16..=2048).contains(s))
+            .ok_or_else(|| {
+                format!("F3G_avatar.faceCropSize is {v}, expected a whole number in [16, 2048]")
+            })? as usize,
+    };
 
     let primitive = doc
         .pointer("/meshes/0/primitives/0")
@@ -321,18 +424,56 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
             ))
         }
     };
+    if primitive
+        .pointer(&format!("/extensions/{SPLATS}"))
+        .is_none()
+    {
+        return Err(format!("the primitive has no `{SPLATS}` extension"));
+    }
+    // Values out of range are refused, not clamped: the player would draw them as they are.
+    let in_range =
+        |values: &[f32], width: usize, what: &str, ok: &dyn Fn(&[f32]) -> bool, expected: &str| {
+            match values.chunks_exact(width).position(|v| !ok(v)) {
+                Some(g) => Err(format!(
+                    "{what} of Gaussian {g} is {:?}, expected {expected}",
+                    &values[g * width..(g + 1) * width]
+                )),
+                None => Ok(()),
+            }
+        };
     let rotation = format!("{SPLATS}:ROTATION");
-    let quats: Vec<f32> = sized(floats(&attributes[&rotation], 4, &rotation)?, 4, &rotation)?
+    let rotations = sized(floats(&attributes[&rotation], 4, &rotation)?, 4, &rotation)?;
+    in_range(
+        &rotations,
+        4,
+        &rotation,
+        &|q| q.iter().map(|x| x * x).sum::<f32>() > 1e-12,
+        "a quaternion that is not zero",
+    )?;
+    let quats: Vec<f32> = rotations
         .chunks_exact(4)
         .flat_map(|q| [q[3], q[0], q[1], q[2]])
         .collect();
     let scale = format!("{SPLATS}:SCALE");
-    let log_scales: Vec<f32> = sized(floats(&attributes[&scale], 3, &scale)?, 3, &scale)?
-        .iter()
-        .map(|s| s.max(1e-12).ln())
-        .collect();
+    let scales = sized(floats(&attributes[&scale], 3, &scale)?, 3, &scale)?;
+    in_range(
+        &scales,
+        3,
+        &scale,
+        &|s| s.iter().all(|&x| x > 0.0),
+        "three positive scales",
+    )?;
+    let log_scales: Vec<f32> = scales.iter().map(|s| s.ln()).collect();
     let opacity = format!("{SPLATS}:OPACITY");
-    let opacity_logits: Vec<f32> = sized(floats(&attributes[&opacity], 1, &opacity)?, 1, &opacity)?
+    let opacities = sized(floats(&attributes[&opacity], 1, &opacity)?, 1, &opacity)?;
+    in_range(
+        &opacities,
+        1,
+        &opacity,
+        &|o| (0.0..=1.0).contains(&o[0]),
+        "an opacity in [0, 1]",
+    )?;
+    let opacity_logits: Vec<f32> = opacities
         .iter()
         .map(|&o| logit(o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN)))
         .collect();
@@ -364,6 +505,13 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     if joints.len() != 4 * n || joints.iter().any(|&j| j as usize >= rig.skeleton.len()) {
         return Err("JOINTS_0 does not name four joints of the skeleton per Gaussian".into());
     }
+    in_range(
+        &weights,
+        4,
+        "WEIGHTS_0",
+        &|w| w.iter().all(|&x| x >= 0.0) && w.iter().sum::<f32>() > 1e-6,
+        "four weights ≥ 0 with a positive sum",
+    )?;
     let correctives_ext = primitive
         .pointer(&format!("/extensions/{CORRECTIVES}"))
         .ok_or_else(|| format!("the primitive has no `{CORRECTIVES}`"))?;

@@ -206,6 +206,11 @@ fn scores(
     })
 }
 
+/// The smallest head crop (capture pixels a side) that is scored: below it the crop is
+/// degenerate (a head far off or a broken avatar), and upsampling it to `face_size` would score
+/// a few flat pixels as a head.
+const MIN_HEAD_PIXELS: f32 = 8.0;
+
 /// Padding (capture pixels) of the body's LPIPS box (Animatable Gaussians' `eval/score.py`).
 const LPIPS_PAD: f32 = 50.0;
 
@@ -452,6 +457,13 @@ pub fn evaluate_avatar(
         )));
     }
     ensure_memory(&ds, &pairs, avatar.gaussian_count(), options)?;
+    if avatar.head_vertices().is_empty() {
+        return Err(AvatarError::file(
+            source,
+            "names no head vertices, so its head crops cannot be cut: head metrics would be \
+             missing",
+        ));
+    }
     let lpips = Lpips::load(options.lpips_net, device).ok();
     // The images of an earlier evaluation that this one does not write again (other frames or
     // cameras) go at the end.
@@ -507,6 +519,13 @@ pub fn evaluate_avatar(
         let view_angle_deg = view_angle_deg(&cam.camera, head_centre, head_facing(rig, &posed)?);
         let view = ViewClass::of_angle(view_angle_deg);
         let head = match head_box(&cam.camera, &head_points, avatar.face_padding()) {
+            Some(b) if b.side < MIN_HEAD_PIXELS => {
+                return Err(AvatarError::Invalid(format!(
+                    "the head crop of {} at frame {f} is {:.1} pixels wide: too small to score \
+                     (at least {MIN_HEAD_PIXELS})",
+                    cam.name, b.side
+                )));
+            }
             Some(b) => {
                 let (gt_face, face_cam) =
                     crop_view(&gt_full, &cam.camera, &b, options.face_size, &[1.0; 3]);
