@@ -6,7 +6,7 @@ fn in_range(text: &str, min: usize, max: usize) -> Result<usize, String> {
     let v: usize = text
         .trim()
         .parse()
-        .map_err(|_| format!("`{text}` is not a whole number"))?;
+        .map_err(|_| format!("{} is not a whole number", f3g_io::quoted(text)))?;
     if !(min..=max).contains(&v) {
         return Err(format!("{v} is not in {min}..={max}"));
     }
@@ -27,7 +27,7 @@ pub fn side<const MIN: u32, const MAX: u32>(text: &str) -> Result<u32, String> {
 pub fn image_size(text: &str) -> Result<(u32, u32), String> {
     let (w, h) = text
         .split_once('x')
-        .ok_or_else(|| format!("`{text}`: expected WIDTHxHEIGHT"))?;
+        .ok_or_else(|| format!("{}: expected WIDTHxHEIGHT", f3g_io::quoted(text)))?;
     Ok((side::<16, 8192>(w)?, side::<16, 8192>(h)?))
 }
 
@@ -46,9 +46,12 @@ pub fn eval_scale(text: &str) -> Result<f32, String> {
     let v: f32 = text
         .trim()
         .parse()
-        .map_err(|_| format!("`{text}` is not a number"))?;
+        .map_err(|_| format!("{} is not a number", f3g_io::quoted(text)))?;
     if !(0.01..=4.0).contains(&v) {
-        return Err(format!("{v} is not in 0.01..=4"));
+        return Err(format!(
+            "{} is not in 0.01..=4",
+            f3g_io::quoted(text.trim())
+        ));
     }
     Ok(v)
 }

@@ -75,6 +75,18 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     written.map_err(|e| IoError::new(path, e))
 }
 
+/// How much of an offending input an error message quotes.
+pub const QUOTE_CHARS: usize = 200;
+
+/// `text` in backticks for an error message, cut to its first [`QUOTE_CHARS`] characters (then
+/// `…` and its whole length): a 5 MB token in a file is named, not echoed.
+pub fn quoted(text: &str) -> String {
+    match text.char_indices().nth(QUOTE_CHARS) {
+        None => format!("`{text}`"),
+        Some((end, _)) => format!("`{}…` ({} bytes)", &text[..end], text.len()),
+    }
+}
+
 /// An image of `f32` samples, `[height, width, channels]` row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Image {
@@ -582,6 +594,15 @@ pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Res
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn long_inputs_are_quoted_cut() {
+        assert_eq!(quoted("abc"), "`abc`");
+        let long = "é".repeat(5 << 20);
+        let q = quoted(&long);
+        assert!(q.chars().count() < QUOTE_CHARS + 40, "{}", q.len());
+        assert!(q.ends_with(&format!("({} bytes)", long.len())));
+    }
 
     #[test]
     fn npz_bytes_do_not_depend_on_the_time_of_writing() {

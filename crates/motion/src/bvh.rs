@@ -56,15 +56,23 @@ impl<'a> Tokens<'a> {
         if w.eq_ignore_ascii_case(word) {
             Ok(())
         } else {
-            Err(self.error(format!("expected `{word}`, found `{w}`")))
+            Err(self.error(format!("expected `{word}`, found {}", f3g_io::quoted(w))))
         }
     }
 
     fn number(&mut self, what: &str) -> Result<f32, MotionError> {
+        Ok(self.number_as_written(what)?.0)
+    }
+
+    /// A number and its text as the file writes it (for messages: `1e-300` is not `0`).
+    fn number_as_written(&mut self, what: &str) -> Result<(f32, &'a str), MotionError> {
         let w = self.next(what)?;
         match w.parse::<f32>() {
-            Ok(v) if v.is_finite() => Ok(v),
-            _ => Err(self.error(format!("{what}: `{w}` is not a finite number"))),
+            Ok(v) if v.is_finite() => Ok((v, w)),
+            _ => Err(self.error(format!(
+                "{what}: {} is not a finite number",
+                f3g_io::quoted(w)
+            ))),
         }
     }
 
@@ -100,7 +108,8 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
             "ROOT" | "JOINT" => {
                 if (w == "ROOT") != stack.is_empty() {
                     return Err(t.error(format!(
-                        "`{w}` where a {} was expected",
+                        "{} where a {} was expected",
+                        f3g_io::quoted(w),
                         if stack.is_empty() { "ROOT" } else { "JOINT" }
                     )));
                 }
@@ -164,23 +173,25 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
                 }
             }
             "MOTION" if stack.is_empty() && !joints.is_empty() => break,
-            _ => return Err(t.error(format!("unexpected `{w}`"))),
+            _ => return Err(t.error(format!("unexpected {}", f3g_io::quoted(w)))),
         }
     }
     t.expect("Frames:")?;
-    let frames = t.number("the frame count")?;
+    let (frames, written) = t.number_as_written("the frame count")?;
     if !(1.0..=MAX_FRAMES as f32).contains(&frames) || frames.fract() != 0.0 {
         return Err(t.error(format!(
-            "{frames} frames: expected a whole number from 1 to {MAX_FRAMES}"
+            "{} frames: expected a whole number from 1 to {MAX_FRAMES}",
+            f3g_io::quoted(written)
         )));
     }
     let frames = frames as usize;
     t.expect("Frame")?;
     t.expect("Time:")?;
-    let frame_time = t.number("the frame time")?;
+    let (frame_time, written) = t.number_as_written("the frame time")?;
     if !(frame_time > 1e-4 && frame_time <= 10.0) {
         return Err(t.error(format!(
-            "frame time {frame_time} s: expected between 0.0001 and 10 seconds"
+            "frame time {} s: expected between 0.0001 and 10 seconds",
+            f3g_io::quoted(written)
         )));
     }
     let per_frame: usize = channels.iter().map(Vec::len).sum();
@@ -230,7 +241,10 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
         return Err(MotionError::line(
             path,
             line,
-            format!("`{w}` after the {frames} frames the header announces"),
+            format!(
+                "{} after the {frames} frames the header announces",
+                f3g_io::quoted(w)
+            ),
         ));
     }
     let (up, metres_per_unit) = infer_up_and_units(&skeleton);

@@ -432,6 +432,53 @@ fn a_bvh_whose_offsets_are_all_zero_is_an_error() {
     );
 }
 
+/// The BVH fixture with its header line starting with `key` replaced by `line`.
+fn bvh_with_line(key: &str, line: &str) -> String {
+    bvh()
+        .lines()
+        .map(|l| {
+            if l.starts_with(key) {
+                format!("{line}\n")
+            } else {
+                format!("{l}\n")
+            }
+        })
+        .collect()
+}
+
+/// Numbers are reported as the file writes them (an `f32` would print `1e-300` as `0` and
+/// `999999999999` as `1000000000000`), and a huge token is quoted cut, not echoed.
+#[test]
+fn a_bvh_error_quotes_the_input_as_written_and_briefly() {
+    refused(
+        parse_bvh(
+            bvh_with_line("Frame Time", "Frame Time: 1e-300").as_bytes(),
+            Path::new("m.bvh"),
+        ),
+        &["m.bvh", "frame time `1e-300` s"],
+    );
+    refused(
+        parse_bvh(
+            bvh_with_line("Frames:", "Frames: 999999999999").as_bytes(),
+            Path::new("m.bvh"),
+        ),
+        &["m.bvh", "`999999999999` frames"],
+    );
+    let token = "x".repeat(5 << 20);
+    let text = bvh().replacen("HIERARCHY", &token, 1);
+    match parse_bvh(text.as_bytes(), Path::new("m.bvh")) {
+        Ok(_) => panic!("accepted a BVH without HIERARCHY"),
+        Err(e) => {
+            let e = e.to_string();
+            assert!(
+                e.len() < 600 && e.contains(&format!("({} bytes)", token.len())),
+                "{}",
+                &e[..e.len().min(600)]
+            );
+        }
+    }
+}
+
 /// The BVH fixture with the first value of frame 1 — its `column`-th channel — set to `value`.
 fn bvh_with_value(column: usize, value: &str) -> String {
     let text = bvh();
