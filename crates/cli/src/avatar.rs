@@ -436,6 +436,8 @@ pub struct AnimateArgs {
     pub motion: PathBuf,
     #[command(flatten)]
     pub retarget: crate::motion::RetargetArgs,
+    #[command(flatten)]
+    pub frames: crate::motion::FramesArg,
     /// `orbit`, or a camera JSON (`f3g render-ply`'s cam.json format).
     #[arg(long, default_value = "orbit")]
     pub camera: String,
@@ -488,7 +490,7 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
             crate::motion::describe(&a.motion, r, motion.frames.len())
         );
     }
-    let motion = motion.frames;
+    let motion = a.frames.cut(motion.frames)?;
     let (width, height) = a.size;
     let camera = if a.camera == "orbit" {
         CameraPath::Orbit {

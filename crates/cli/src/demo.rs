@@ -180,6 +180,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         run: run.clone(),
         motion: capture.join("body_params.npz"),
         retarget: Default::default(),
+        frames: Default::default(),
         camera: "orbit".into(),
         out: animation.clone(),
         // The demo's own subfolders: an earlier demo's (of any version) are written over.
@@ -211,6 +212,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         source: glb.clone(),
         motion: vec![capture.join("body_params.npz")],
         retarget: Default::default(),
+        frames: Default::default(),
         port: 0,
         host: std::net::IpAddr::from([127, 0, 0, 1]),
         static_dir: Some(out.join("player")),

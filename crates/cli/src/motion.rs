@@ -33,6 +33,57 @@ impl RetargetArgs {
     }
 }
 
+/// `--frames START..END` of a motion, flattened into the commands that read one.
+#[derive(Args, Debug, Clone, Default)]
+pub struct FramesArg {
+    /// Only the motion's frames START..END (end exclusive; `..END` and `START..` too), counted
+    /// at the rate the command uses (after --fps).
+    #[arg(long, value_name = "START..END")]
+    pub frames: Option<String>,
+}
+
+impl FramesArg {
+    /// The frames of `len` that the flag keeps (all without it).
+    pub fn range(&self, len: usize) -> Result<std::ops::Range<usize>> {
+        match &self.frames {
+            Some(text) => parse_range(text, len),
+            None => Ok(0..len),
+        }
+    }
+
+    /// `frames` cut to the flag's range.
+    pub fn cut<T>(&self, mut frames: Vec<T>) -> Result<Vec<T>> {
+        let range = self.range(frames.len())?;
+        frames.truncate(range.end);
+        frames.drain(..range.start);
+        Ok(frames)
+    }
+}
+
+/// `START..END` (end exclusive; an end left out is the sequence's) inside `0..len`.
+pub fn parse_range(text: &str, len: usize) -> Result<std::ops::Range<usize>> {
+    let quoted = f3g_io::quoted(text);
+    let (a, b) = text
+        .split_once("..")
+        .with_context(|| format!("--frames {quoted}: expected START..END"))?;
+    let number = |t: &str, default: usize| -> Result<usize> {
+        match t.trim() {
+            "" => Ok(default),
+            t => t.parse().with_context(|| {
+                format!(
+                    "--frames {quoted}: {} is not a frame number",
+                    f3g_io::quoted(t)
+                )
+            }),
+        }
+    };
+    let (start, end) = (number(a, 0)?, number(b, len)?);
+    if start >= end || end > len {
+        bail!("--frames {start}..{end} is not inside the {len} frames of the motion");
+    }
+    Ok(start..end)
+}
+
 /// One line on how a motion was retargeted, and the joints that drive nothing.
 pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
     let mut text = format!(
@@ -104,6 +155,8 @@ pub struct ShowArgs {
     pub view: View,
     #[command(flatten)]
     pub retarget: RetargetArgs,
+    #[command(flatten)]
+    pub frames: FramesArg,
 }
 
 /// Where `f3g motion show` looks from.
@@ -136,6 +189,8 @@ pub struct ConvertArgs {
     pub out: PathBuf,
     #[command(flatten)]
     pub retarget: RetargetArgs,
+    #[command(flatten)]
+    pub frames: FramesArg,
     /// Resample to this frame rate (default: the file's).
     #[arg(long)]
     pub fps: Option<f32>,
@@ -196,7 +251,8 @@ fn convert(a: &ConvertArgs) -> Result<()> {
     let rig = a.to.load()?;
     let via = a.via.as_ref().map(|m| m.load()).transpose()?;
     let motion = f3g_motion::read(&a.input)?;
-    let r = f3g_motion::retarget(&motion, via.as_ref().unwrap_or(&rig), &options, &a.input)?;
+    let mut r = f3g_motion::retarget(&motion, via.as_ref().unwrap_or(&rig), &options, &a.input)?;
+    r.frames = a.frames.cut(std::mem::take(&mut r.frames))?;
     eprintln!("{}", describe(&a.input, &r, r.frames.len()));
     for c in &r.correspondence {
         let by = match c.by {
@@ -333,10 +389,11 @@ fn show(a: &ShowArgs) -> Result<()> {
     let motion = f3g_motion::read(&a.input)?;
     let r = f3g_motion::retarget(&motion, &rig, &options, &a.input)?;
     eprintln!("{}", describe(&a.input, &r, r.frames.len()));
-    let n = r.frames.len();
+    let range = a.frames.range(r.frames.len())?;
+    let n = range.len();
     let columns = a.columns.min(n);
     let picked: Vec<usize> = (0..columns)
-        .map(|k| k * (n - 1) / (columns - 1).max(1))
+        .map(|k| range.start + k * (n - 1) / (columns - 1).max(1))
         .collect();
     let parents = |s: &f3g_rig::Skeleton| -> Vec<Option<usize>> {
         s.joints().iter().map(|j| j.parent).collect()

@@ -123,32 +123,12 @@ fn show(a: &ShowArgs) -> Result<()> {
     Ok(())
 }
 
-fn parse_range(text: &str, len: usize) -> Result<std::ops::Range<usize>> {
-    let (a, b) = text
-        .split_once("..")
-        .with_context(|| format!("--frames `{text}`: expected START..END"))?;
-    let start: usize = if a.is_empty() {
-        0
-    } else {
-        a.parse().with_context(|| format!("--frames start `{a}`"))?
-    };
-    let end: usize = if b.is_empty() {
-        len
-    } else {
-        b.parse().with_context(|| format!("--frames end `{b}`"))?
-    };
-    if start >= end || end > len {
-        bail!("--frames {start}..{end} is not inside the {len} frames of the file");
-    }
-    Ok(start..end)
-}
-
 fn fit_params(a: &FitArgs) -> Result<()> {
     let source = a.from.load()?;
     let model = a.to.load()?;
     let frames = sequence::read(&a.params, &source)?;
     let range = match &a.frames {
-        Some(r) => parse_range(r, frames.len())?,
+        Some(r) => crate::motion::parse_range(r, frames.len())?,
         None => 0..frames.len(),
     };
     let correspondence = match &a.correspondence {

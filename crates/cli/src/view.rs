@@ -37,6 +37,8 @@ pub struct ViewArgs {
     pub motion: Vec<PathBuf>,
     #[command(flatten)]
     pub retarget: crate::motion::RetargetArgs,
+    #[command(flatten)]
+    pub frames: crate::motion::FramesArg,
     /// Port to listen on (0: any free port).
     #[arg(long, default_value_t = 8080)]
     pub port: u16,
@@ -184,7 +186,7 @@ fn files(a: &ViewArgs) -> Result<BTreeMap<String, Vec<u8>>> {
         if let Some(r) = &motion.retargeted {
             eprintln!("{}", crate::motion::describe(path, r, motion.frames.len()));
         }
-        let frames = motion.frames;
+        let frames = a.frames.cut(motion.frames)?;
         let name = path
             .file_stem()
             .map_or("motion".into(), |s| s.to_string_lossy().into_owned());

@@ -39,6 +39,31 @@ fn a_capture_motion_goes_out_as_bvh_and_back() {
     let bvh = std::fs::read_to_string(d.join("cap.bvh")).unwrap();
     assert!(bvh.starts_with("HIERARCHY\nROOT ") && bvh.contains("Frames: 6\n"));
 
+    // A frame range: frames 2, 3 and 4 of the six; one past the end is refused.
+    ok(&f3g(
+        d,
+        &[
+            "motion", "convert", "cap.bvh", "--out", "cut.npz", "--frames", "2..5",
+        ],
+    ));
+    ok(&f3g(
+        d,
+        &["motion", "convert", "cap.bvh", "--out", "whole.npz"],
+    ));
+    let rig = f3g_rig::builtin::load().unwrap().rig;
+    let cut = f3g_rig::sequence::read(&d.join("cut.npz"), &rig).unwrap();
+    let whole = f3g_rig::sequence::read(&d.join("whole.npz"), &rig).unwrap();
+    assert_eq!((cut.len(), whole.len()), (3, 6));
+    assert_eq!(cut, whole[2..5]);
+    let past = f3g(
+        d,
+        &[
+            "motion", "convert", "cap.bvh", "--out", "x.npz", "--frames", "4..7",
+        ],
+    );
+    assert!(!past.status.success());
+    assert!(String::from_utf8_lossy(&past.stderr).contains("not inside the 6 frames"));
+
     let out = f3g(
         d,
         &[

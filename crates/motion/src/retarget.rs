@@ -6,9 +6,13 @@
 //!    orientation and translation turned from the file's up axis to +Y).
 //! 2. **Correspondence.** Otherwise joints correspond by role: the target's roles are the body
 //!    model's ([`f3g_rig::Rig::roles`]); the source's are inferred from its joint names
-//!    ([`f3g_rig::Roles::infer`]: prefixes, side markers and synonyms), overridden by a
-//!    `--joint-map` ([`f3g_rig::RoleMap`], role → source joint name). Joints without a role
-//!    correspond when their names are equal. The pelvis and both hips must correspond.
+//!    ([`f3g_rig::Roles::infer`]: prefixes, side markers and synonyms; completed from the
+//!    skeleton's shape, [`f3g_rig::Roles::completed`]), overridden by a `--joint-map`
+//!    ([`f3g_rig::RoleMap`], role → source joint name). Joints whose names are equal
+//!    correspond first, unless the pair contradicts the roles: where the target joint's role
+//!    belongs to another source joint that no name pairs (Unreal's `root` on the floor is not
+//!    the built-in human's `root`, its pelvis: the motion's `pelvis` is), or the other way
+//!    round. The pelvis and both hips must correspond.
 //! 3. **Axes and units.** The source is scaled to metres, turned from its up axis to +Y and
 //!    turned about +Y so that its rest pose faces the target's (left hip to right hip).
 //! 4. **Rest-pose alignment.** Each corresponding joint's rotation is taken relative to its own
@@ -230,69 +234,12 @@ fn leg_length(joint: impl Fn(Role) -> Option<usize>, rest: &[Vec3], floor: f32) 
     }
 }
 
-/// Roles the names left out, from the skeleton's shape: the pelvis is where the two legs
-/// meet, the chest where the two arms meet (when it is not the spine's joint), and the chain
-/// that leaves the chest toward neither arm runs neck to head (Blender's `spine.004` to
-/// `spine.006`). A spine that is the pelvis's own joint is moved up the chain.
+/// Roles the names left out, from the skeleton's shape ([`Roles::completed`]): the pelvis
+/// where the two legs meet, the chest where the two arms meet, the spine after the pelvis
+/// toward it, and the chain that leaves the chest toward neither arm neck to head (Blender's
+/// `spine.004` to `spine.006`).
 pub fn complete_by_topology(skeleton: &f3g_rig::Skeleton, roles: Roles) -> Roles {
-    let joints = skeleton.joints();
-    let mut map: BTreeMap<Role, usize> = roles.iter().collect();
-    let ancestors = |j: usize| -> Vec<usize> {
-        std::iter::successors(Some(j), |&k| joints[k].parent).collect()
-    };
-    let meet = |a: usize, b: usize| -> Option<usize> {
-        let up = ancestors(b);
-        ancestors(a).into_iter().find(|k| up.contains(k))
-    };
-    let sided =
-        |l: Role, r: Role, map: &BTreeMap<Role, usize>| Some((*map.get(&l)?, *map.get(&r)?));
-    if !map.contains_key(&Role::Pelvis)
-        && let Some((l, r)) = sided(Role::LeftHip, Role::RightHip, &map)
-        && let Some(m) = meet(l, r)
-    {
-        map.insert(Role::Pelvis, m);
-    }
-    let arms = sided(Role::LeftClavicle, Role::RightClavicle, &map)
-        .or_else(|| sided(Role::LeftShoulder, Role::RightShoulder, &map));
-    if let Some((l, r)) = arms
-        && let Some(chest) = meet(l, r)
-    {
-        if map.get(&Role::Spine) == map.get(&Role::Pelvis) {
-            map.remove(&Role::Spine);
-            // The joint after the pelvis on the way to the chest.
-            if let Some(&pelvis) = map.get(&Role::Pelvis) {
-                let path = ancestors(chest);
-                if let Some(i) = path.iter().position(|&k| k == pelvis)
-                    && i >= 1
-                {
-                    map.insert(Role::Spine, path[i - 1]);
-                }
-            }
-        }
-        if !map.contains_key(&Role::Chest) && map.get(&Role::Spine) != Some(&chest) {
-            map.insert(Role::Chest, chest);
-        }
-        // The chain that leaves the chest toward neither arm: neck … head.
-        let toward_arm =
-            |c: usize| skeleton.is_ancestor_or_self(c, l) || skeleton.is_ancestor_or_self(c, r);
-        let mut chain = Vec::new();
-        let mut at = chest;
-        while let Some(next) =
-            (0..joints.len()).find(|&c| joints[c].parent == Some(at) && !toward_arm(c))
-        {
-            chain.push(next);
-            at = next;
-        }
-        if let Some(&head) = chain.last()
-            && !map.contains_key(&Role::Head)
-        {
-            map.insert(Role::Head, head);
-            if chain.len() >= 2 {
-                map.entry(Role::Neck).or_insert(chain[0]);
-            }
-        }
-    }
-    Roles::from_pairs(map)
+    roles.completed(skeleton)
 }
 
 /// Up to three of `names` closest to `role`'s name: edit distance between the lowercase
@@ -374,6 +321,27 @@ fn by_rotations(
         .iter()
         .map(|j| source.index_of(&j.name))
         .collect();
+    // A pair by name yields where it contradicts the roles: the target joint's role is
+    // another source joint's, one no name pairs (Unreal's `root` on the floor is not the
+    // built-in human's `root`, its pelvis; the motion's `pelvis` is), or the other way round.
+    let named: Vec<Option<usize>> = pair.clone();
+    let name_paired_source = |s: usize| named.contains(&Some(s));
+    for t in 0..target.len() {
+        let Some(s) = named[t] else { continue };
+        let (rt, rs) = (target_role[t], source_role[s]);
+        if rt == rs {
+            continue;
+        }
+        let source_has_other = rt
+            .and_then(|r| source_roles.get(r))
+            .is_some_and(|o| o != s && !name_paired_source(o));
+        let target_has_other = rs
+            .and_then(|r| rig.roles.get(r))
+            .is_some_and(|o| o != t && named[o].is_none());
+        if source_has_other || target_has_other {
+            pair[t] = None;
+        }
+    }
     let mut by: Vec<Option<Matched>> = pair.iter().map(|p| p.map(|_| Matched::Name)).collect();
     for t in 0..target.len() {
         if let (None, Some(r)) = (pair[t], target_role[t])

@@ -7,14 +7,22 @@
 //! ([`RoleMap`], `MODEL.roles.json` next to a glTF file), which overrides the inference.
 //!
 //! Name inference splits a name into words (separators, camelCase, letter/digit boundaries),
-//! drops rig prefixes (`mixamorig:`, `Bip01`, `DEF-`, `J_Bip_`, …) and reads a side marker
-//! (`Left`, `L`, `l_`, `.L`, `_l`, `lft`; `c_` means centre). What is left is matched against
-//! the synonyms of each role (hips/pelvis, upleg/thigh/upperleg, leg/shin/calf/lowerleg,
-//! upperarm/arm/uparm, forearm/lowerarm, collar/clavicle, hand/wrist, …). When several joints
+//! drops rig prefixes (`mixamorig:`, `Bip01`, `DEF-`, `ORG-`, `MCH-`, `J_Bip_`, …) and reads a
+//! side marker (`Left`, `L`, `l_`, `L_`, `.L`, `_l`, `lft`, one glued letter as in CMU's
+//! `lfemur`; `c_` means centre). What is left is matched against the synonyms of each role
+//! (hips/pelvis, upleg/thigh/upperleg/femur, leg/shin/calf/lowerleg/tibia,
+//! upperarm/arm/uparm/humerus, forearm/lowerarm/radius, collar/clavicle, hand/wrist, neck and
+//! lowerneck/upperneck, …), so that Blender/Rigify, Mixamo, CMU (both its BVH and ASF names),
+//! MotionBuilder/HumanIK, LAFAN1, Unreal and Unity humanoid names are read. When several joints
 //! match a role, the one nearest the root wins (`upperarm01.L` over `upperarm02.L`). `shoulder`
 //! is the clavicle when the same side has an upper-arm joint (Mixamo's `LeftShoulder` →
-//! `LeftArm`), the upper arm otherwise (SMPL's `left_shoulder`). Joints whose names mark them as
-//! helpers (`_end`, `nub`, `twist`, `roll`, `ik`, …) never take a role.
+//! `LeftArm`, Rigify's `shoulder.L` → `upper_arm.L`), the upper arm otherwise (SMPL's
+//! `left_shoulder`). A sided `pelvis` (Rigify's and MakeHuman's `pelvis.L`, beside the thigh)
+//! is the hip only where the side has no thigh. A rig whose bones come in layers (Rigify's
+//! deform `DEF-`, original `ORG-`, unprefixed controls, mechanism `MCH-`) takes its roles from
+//! the lowest layer that names any. Joints whose names mark them as helpers (`_end`, `nub`,
+//! `twist`, `roll`, `ik`, `tweak`, …) never take a role. [`Roles::completed`] then fills what
+//! the names left out from the skeleton's shape.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -124,7 +132,7 @@ impl Role {
             Kind::UpperArm | Kind::Shoulder => pick(LeftShoulder, RightShoulder),
             Kind::Elbow => pick(LeftElbow, RightElbow),
             Kind::Wrist | Kind::Hand => pick(LeftWrist, RightWrist),
-            Kind::Hip => pick(LeftHip, RightHip),
+            Kind::Hip | Kind::PelvisSide => pick(LeftHip, RightHip),
             Kind::Knee => pick(LeftKnee, RightKnee),
             Kind::Ankle => pick(LeftAnkle, RightAnkle),
         }
@@ -173,24 +181,36 @@ impl Roles {
         let depth: Vec<usize> = (0..joints.len())
             .map(|j| std::iter::successors(joints[j].parent, |&p| joints[p].parent).count())
             .collect();
-        let read: Vec<Option<(Kind, Side)>> = joints.iter().map(|j| read_name(&j.name)).collect();
-        // Whether a side has an upper-arm joint, which makes its `shoulder` the clavicle.
-        let has_upper_arm = |side: Side| {
+        let mut read: Vec<Option<(Kind, Side)>> =
+            joints.iter().map(|j| read_name(&j.name)).collect();
+        // A rig whose bones come in layers (Rigify's `DEF-`, `ORG-`, controls, `MCH-`) takes
+        // its roles from one: the lowest that names any.
+        let layers: Vec<u8> = joints.iter().map(|j| layer(&j.name)).collect();
+        if let Some(lowest) = (0..joints.len())
+            .filter(|&j| read[j].is_some())
+            .map(|j| layers[j])
+            .min()
+        {
+            for (r, l) in read.iter_mut().zip(&layers) {
+                if *l != lowest {
+                    *r = None;
+                }
+            }
+        }
+        let has = |kind: Kind, side: Side| {
             read.iter()
-                .any(|r| matches!(r, Some((Kind::UpperArm, s)) if *s == side))
+                .any(|r| matches!(r, Some((k, s)) if *k == kind && *s == side))
         };
         let mut best: BTreeMap<Role, usize> = BTreeMap::new();
         for (j, r) in read.iter().enumerate() {
             let Some((mut kind, side)) = *r else { continue };
-            if kind == Kind::Shoulder && has_upper_arm(side) {
-                kind = Kind::Clavicle;
-            }
-            if kind == Kind::Hand
-                && read
-                    .iter()
-                    .any(|r| matches!(r, Some((Kind::Wrist, s)) if *s == side))
-            {
-                continue;
+            match kind {
+                // `shoulder` is the clavicle where the side has an upper arm.
+                Kind::Shoulder if has(Kind::UpperArm, side) => kind = Kind::Clavicle,
+                // `hand` is the wrist where the side has none; a sided `pelvis` the hip.
+                Kind::Hand if has(Kind::Wrist, side) => continue,
+                Kind::PelvisSide if has(Kind::Hip, side) => continue,
+                _ => {}
             }
             let Some(role) = Role::sided(kind, side) else {
                 continue;
@@ -203,6 +223,100 @@ impl Roles {
             }
         }
         Self { joints: best }
+    }
+
+    /// These roles completed from the skeleton's shape, for the roles the names left out:
+    /// the pelvis is where the two legs meet, the chest where the two arms meet (when it is
+    /// not the spine's joint); the spine is the joint after the pelvis on the way to the chest
+    /// when no name gave it, or gave the pelvis's own joint (Blender's root `spine`); the
+    /// chain that leaves the chest toward neither arm runs neck to head. That chain follows
+    /// the child named like the spine, neck or head, else the one with the most joints below
+    /// it (the neck, not a breast bone), and ends at the last joint so named (Blender's
+    /// `spine.006`, not a face bone below it).
+    pub fn completed(self, skeleton: &Skeleton) -> Self {
+        let joints = skeleton.joints();
+        let mut map = self.joints;
+        let ancestors = |j: usize| -> Vec<usize> {
+            std::iter::successors(Some(j), |&k| joints[k].parent).collect()
+        };
+        let meet = |a: usize, b: usize| -> Option<usize> {
+            let up = ancestors(b);
+            ancestors(a).into_iter().find(|k| up.contains(k))
+        };
+        let sided =
+            |l: Role, r: Role, map: &BTreeMap<Role, usize>| Some((*map.get(&l)?, *map.get(&r)?));
+        if !map.contains_key(&Role::Pelvis)
+            && let Some((l, r)) = sided(Role::LeftHip, Role::RightHip, &map)
+            && let Some(m) = meet(l, r)
+        {
+            map.insert(Role::Pelvis, m);
+        }
+        let arms = sided(Role::LeftClavicle, Role::RightClavicle, &map)
+            .or_else(|| sided(Role::LeftShoulder, Role::RightShoulder, &map));
+        let Some((l, r)) = arms else {
+            return Self { joints: map };
+        };
+        let Some(chest) = meet(l, r) else {
+            return Self { joints: map };
+        };
+        let spine = map.get(&Role::Spine).copied();
+        if spine.is_none() || spine == map.get(&Role::Pelvis).copied() {
+            map.remove(&Role::Spine);
+            // The joint after the pelvis on the way to the chest.
+            if let Some(&pelvis) = map.get(&Role::Pelvis) {
+                let path = ancestors(chest);
+                if let Some(i) = path.iter().position(|&k| k == pelvis)
+                    && i >= 1
+                {
+                    map.insert(Role::Spine, path[i - 1]);
+                }
+            }
+        }
+        if !map.contains_key(&Role::Chest) && map.get(&Role::Spine) != Some(&chest) {
+            map.insert(Role::Chest, chest);
+        }
+        // The chain that leaves the chest toward neither arm: neck … head.
+        let toward_arm =
+            |c: usize| skeleton.is_ancestor_or_self(c, l) || skeleton.is_ancestor_or_self(c, r);
+        let torso_named = |j: usize| {
+            matches!(
+                read_name(&joints[j].name),
+                Some((
+                    Kind::Spine | Kind::Chest | Kind::Neck | Kind::Head,
+                    Side::Centre
+                ))
+            )
+        };
+        let below = |j: usize| {
+            (0..joints.len())
+                .filter(|&k| skeleton.is_ancestor_or_self(j, k))
+                .count()
+        };
+        let mut chain = Vec::new();
+        let mut at = chest;
+        while let Some(next) = (0..joints.len())
+            .filter(|&c| joints[c].parent == Some(at) && !toward_arm(c))
+            .max_by_key(|&c| (torso_named(c), below(c), std::cmp::Reverse(c)))
+        {
+            chain.push(next);
+            at = next;
+        }
+        if let Some(last) = chain.iter().rposition(|&c| torso_named(c)) {
+            chain.truncate(last + 1);
+        }
+        let head = match map.get(&Role::Head) {
+            Some(&head) => Some(head),
+            None => chain.last().copied().inspect(|&head| {
+                map.insert(Role::Head, head);
+            }),
+        };
+        if let (Some(head), Some(&first)) = (head, chain.first())
+            && first != head
+            && skeleton.is_ancestor_or_self(first, head)
+        {
+            map.entry(Role::Neck).or_insert(first);
+        }
+        Self { joints: map }
     }
 
     /// These roles with the map's entries put over them; an entry naming a joint the skeleton
@@ -286,6 +400,9 @@ enum Kind {
     /// `hand`: the wrist when the skeleton has no `wrist`.
     Hand,
     Hip,
+    /// A sided `pelvis` (Rigify's and MakeHuman's `pelvis.L`: the bone from the pelvis toward
+    /// the hip, which does not turn the thigh): the hip only when the side has no thigh.
+    PelvisSide,
     Knee,
     Ankle,
 }
@@ -314,10 +431,38 @@ const PREFIXES: [&str; 12] = [
 ];
 
 /// Words that mark a helper joint, which takes no role.
-const HELPERS: [&str; 14] = [
-    "end", "nub", "tip", "twist", "roll", "ik", "fk", "target", "pole", "helper", "null", "socket",
-    "top", "ctrl",
+const HELPERS: [&str; 18] = [
+    "end",
+    "nub",
+    "tip",
+    "twist",
+    "roll",
+    "ik",
+    "fk",
+    "target",
+    "pole",
+    "helper",
+    "null",
+    "socket",
+    "top",
+    "ctrl",
+    "tweak",
+    "vis",
+    "wgt",
+    "corrective",
 ];
+
+/// The layer of a rig whose bones come in copies (Blender's Rigify: `DEF-` deform bones,
+/// `ORG-` originals, `MCH-` mechanism, controls unprefixed): the lower, the likelier to
+/// carry the pose as the mesh sees it.
+fn layer(name: &str) -> u8 {
+    match words(name).first().map(String::as_str) {
+        Some("def") => 0,
+        Some("org") => 1,
+        Some("mch") => 3,
+        _ => 2,
+    }
+}
 
 /// Synonyms of each kind, as the words left after prefixes, sides and numbers are dropped
 /// (joined without separators).
@@ -328,7 +473,7 @@ const SYNONYMS: [(Kind, &[&str]); 16] = [
         &["spine", "abdomen", "waist", "torso", "spine0"],
     ),
     (Kind::Chest, &["chest", "upperchest", "thorax", "ribs"]),
-    (Kind::Neck, &["neck"]),
+    (Kind::Neck, &["neck", "lowerneck", "upperneck"]),
     (Kind::Head, &["head"]),
     (Kind::Jaw, &["jaw", "mandible"]),
     (Kind::Eye, &["eye", "eyeball"]),
@@ -414,12 +559,30 @@ fn read_name(name: &str) -> Option<(Kind, Side)> {
             side = s;
         }
     }
-    let kind = SYNONYMS
-        .iter()
-        .find(|(_, names)| names.contains(&base.as_str()))
-        .map(|(k, _)| *k)?;
-    // `hip` alone is the pelvis; with a side, the thigh's joint.
+    let synonym = |base: &str| {
+        SYNONYMS
+            .iter()
+            .find(|(_, names)| names.contains(&base))
+            .map(|(k, _)| *k)
+    };
+    // One glued side letter, as CMU's ASF names have it (`lfemur`, `rhumerus`): only where
+    // the rest is a synonym and the whole is not (`leg` stays a leg).
+    if side == Side::Centre && synonym(&base).is_none() {
+        for (prefix, s) in [('l', Side::Left), ('r', Side::Right)] {
+            if let Some(stripped) = base.strip_prefix(prefix)
+                && synonym(stripped).is_some()
+            {
+                base = stripped.to_string();
+                side = s;
+                break;
+            }
+        }
+    }
+    let kind = synonym(&base)?;
+    // `hip` alone is the pelvis; with a side, the thigh's joint. A sided `pelvis` is the
+    // pelvis bone of that side, the hip only where nothing else is.
     let kind = match (kind, side) {
+        (Kind::Pelvis, Side::Left | Side::Right) if base == "pelvis" => Kind::PelvisSide,
         (Kind::Pelvis, Side::Left | Side::Right) => Kind::Hip,
         (Kind::Hip, Side::Centre) if base == "hip" => Kind::Pelvis,
         (k, _) => k,
@@ -486,6 +649,54 @@ mod tests {
             ("eye.R", Some((Kind::Eye, Side::Right))),
             ("jaw", Some((Kind::Jaw, Side::Centre))),
             ("Bone.012", None),
+            ("mixamorig1:LeftArm", Some((Kind::UpperArm, Side::Left))),
+            ("mixamorig_LeftForeArm", Some((Kind::Elbow, Side::Left))),
+            // Blender / Rigify, with its layers' prefixes.
+            ("thigh.L", Some((Kind::Hip, Side::Left))),
+            ("DEF-shin.R", Some((Kind::Knee, Side::Right))),
+            ("ORG-upper_arm.L", Some((Kind::UpperArm, Side::Left))),
+            ("DEF-upper_arm.L.001", Some((Kind::UpperArm, Side::Left))),
+            ("MCH-foot.L", Some((Kind::Ankle, Side::Left))),
+            ("shoulder.L", Some((Kind::Shoulder, Side::Left))),
+            ("pelvis.L", Some((Kind::PelvisSide, Side::Left))),
+            ("spine.003", Some((Kind::Spine, Side::Centre))),
+            ("upper_arm_tweak.L", None),
+            ("upper_arm_parent.L", None),
+            ("hand_ik.L", None),
+            // CMU's ASF names: one glued side letter.
+            ("lfemur", Some((Kind::Hip, Side::Left))),
+            ("rhumerus", Some((Kind::UpperArm, Side::Right))),
+            ("lradius", Some((Kind::Elbow, Side::Left))),
+            ("ltibia", Some((Kind::Knee, Side::Left))),
+            ("rclavicle", Some((Kind::Clavicle, Side::Right))),
+            ("lwrist", Some((Kind::Wrist, Side::Left))),
+            ("lhipjoint", None),
+            ("LHipJoint", None),
+            ("lowerback", None),
+            ("lowerneck", Some((Kind::Neck, Side::Centre))),
+            ("thorax", Some((Kind::Chest, Side::Centre))),
+            ("leg", Some((Kind::Knee, Side::Centre))),
+            // Unreal.
+            ("upperarm_l", Some((Kind::UpperArm, Side::Left))),
+            ("lowerarm_r", Some((Kind::Elbow, Side::Right))),
+            ("calf_l", Some((Kind::Knee, Side::Left))),
+            ("clavicle_l", Some((Kind::Clavicle, Side::Left))),
+            ("spine_01", Some((Kind::Spine, Side::Centre))),
+            ("upperarm_twist_01_l", None),
+            ("ik_foot_l", None),
+            ("ball_l", None),
+            // Unity's humanoid, MotionBuilder / HumanIK, LAFAN1, other side markers.
+            ("LeftUpperLeg", Some((Kind::Hip, Side::Left))),
+            ("RightLowerLeg", Some((Kind::Knee, Side::Right))),
+            ("LeftUpperArm", Some((Kind::UpperArm, Side::Left))),
+            ("LeftLowerArm", Some((Kind::Elbow, Side::Left))),
+            ("UpperChest", Some((Kind::Chest, Side::Centre))),
+            ("Spine1", Some((Kind::Spine, Side::Centre))),
+            ("LeftUpLegRoll", None),
+            ("LeftToe", None),
+            ("L_Thigh", Some((Kind::Hip, Side::Left))),
+            ("Thigh_R", Some((Kind::Hip, Side::Right))),
+            ("ThighLeft", Some((Kind::Hip, Side::Left))),
         ];
         for (name, expected) in cases {
             assert_eq!(read_name(name), expected, "{name}");
@@ -542,6 +753,95 @@ mod tests {
         let bad = RoleMap([(Role::Head, "Bone.8".to_string())].into());
         let e = Roles::default().with_map(&s, &bad).unwrap_err();
         assert!(e.contains("Bone.8") && e.contains("`head`"), "{e}");
+    }
+
+    #[test]
+    fn a_sided_pelvis_is_the_hip_only_without_a_thigh() {
+        // Rigify's `pelvis.L` leaves the root beside `thigh.L`, and first.
+        let s = skeleton(&[
+            ("spine", None),
+            ("pelvis.L", Some(0)),
+            ("thigh.L", Some(0)),
+            ("shin.L", Some(2)),
+        ]);
+        let roles = Roles::infer(&s);
+        assert_eq!(roles.get(Role::LeftHip), Some(2));
+        let s = skeleton(&[("spine", None), ("pelvis.L", Some(0)), ("shin.L", Some(1))]);
+        assert_eq!(Roles::infer(&s).get(Role::LeftHip), Some(1));
+    }
+
+    #[test]
+    fn a_layered_rig_takes_its_roles_from_its_deform_bones() {
+        // A generated Rigify rig: controls, originals and deform bones of the same limbs.
+        let s = skeleton(&[
+            ("root", None),
+            ("ORG-thigh.L", Some(0)),
+            ("hips", Some(0)),
+            ("thigh_fk.L", Some(0)),
+            ("DEF-spine", Some(0)),
+            ("DEF-thigh.L", Some(4)),
+            ("DEF-thigh.L.001", Some(5)),
+            ("DEF-shin.L", Some(6)),
+            ("MCH-shin.L", Some(0)),
+        ]);
+        let roles = Roles::infer(&s);
+        assert_eq!(roles.get(Role::LeftHip), Some(5));
+        assert_eq!(roles.get(Role::LeftKnee), Some(7));
+        // The `hips` control is not the deform layer's: the pelvis comes from the shape.
+        assert_eq!(roles.get(Role::Pelvis), None);
+        assert_eq!(roles.get(Role::Spine), Some(4));
+    }
+
+    #[test]
+    fn the_head_chain_follows_the_spine_names_past_breasts_and_faces() {
+        // Rigify's metarig: `breast.L` before `spine.004` under the chest, the face below
+        // `spine.006`; the root `spine` is the pelvis.
+        let s = skeleton(&[
+            ("spine", None),          // 0
+            ("spine.001", Some(0)),   // 1
+            ("spine.002", Some(1)),   // 2
+            ("spine.003", Some(2)),   // 3
+            ("breast.L", Some(3)),    // 4
+            ("shoulder.L", Some(3)),  // 5
+            ("upper_arm.L", Some(5)), // 6
+            ("shoulder.R", Some(3)),  // 7
+            ("upper_arm.R", Some(7)), // 8
+            ("spine.004", Some(3)),   // 9
+            ("spine.005", Some(9)),   // 10
+            ("spine.006", Some(10)),  // 11
+            ("face", Some(11)),       // 12
+            ("nose", Some(12)),       // 13
+            ("thigh.L", Some(0)),     // 14
+            ("thigh.R", Some(0)),     // 15
+        ]);
+        let roles = Roles::infer(&s).completed(&s);
+        for (role, joint) in [
+            (Role::Pelvis, 0),
+            (Role::Spine, 1),
+            (Role::Chest, 3),
+            (Role::Neck, 9),
+            (Role::Head, 11),
+            (Role::LeftClavicle, 5),
+            (Role::LeftShoulder, 6),
+        ] {
+            assert_eq!(roles.get(role), Some(joint), "{role:?}");
+        }
+        // Unnamed: the chain with the most joints below, to its end.
+        let s = skeleton(&[
+            ("Bone", None),
+            ("Bone.001", Some(0)),
+            ("Bone.002", Some(1)),
+            ("Bone.003", Some(1)),
+            ("Bone.004", Some(3)),
+            ("Arm_L", Some(1)),
+            ("Arm_R", Some(1)),
+            ("Leg_L", Some(0)),
+            ("Leg_R", Some(0)),
+        ]);
+        let roles = Roles::infer(&s).completed(&s);
+        assert_eq!(roles.get(Role::Chest), Some(1));
+        assert_eq!(roles.get(Role::Neck), Some(3));
+        assert_eq!(roles.get(Role::Head), Some(4));
     }
 
     #[test]

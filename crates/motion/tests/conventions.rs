@@ -1,0 +1,838 @@
+//! Skeletons of other tools, as their BVH files lay them out (rest layout, naming, helper
+//! bones, units, up axis), get their joint roles without a `--joint-map`, and drive the
+//! built-in human the way they move: Blender's Rigify (metarig names, the generated rig's
+//! `DEF-` deform bones with their twist segments, and the plain `neck`/`head` variant),
+//! Mixamo, Unreal's mannequin and CMU's ASF names.
+//!
+//! Each layout is written here from the tool's conventions (the fixtures' provenance): Rigify's
+//! from the human metarig's bone heads (Blender, Z up, facing −Y, metres), Mixamo's T-pose in
+//! centimetres (Y up, facing +Z), Unreal's mannequin (Z up, facing +Y, centimetres, bones
+//! `root` → `pelvis` …), CMU's ASF skeleton (Y up, facing +Z, centimetres). Face, finger and
+//! foot-helper bones are placed roughly: they take no role, but they are where the old
+//! inference went wrong (a face bone as the head) or must not be picked.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use f3g_motion::retarget::complete_by_topology;
+use f3g_motion::{Motion, RetargetOptions, read, retarget};
+use f3g_rig::{Rig, Role, Roles};
+use glam::{EulerRot, Quat, Vec3};
+
+fn builtin() -> Rig {
+    f3g_rig::builtin::load().unwrap().rig
+}
+
+/// A bone of a layout: name, parent name, head position in the file's axes and units.
+type Bone = (String, Option<String>, Vec3);
+
+fn bone(name: &str, parent: &str, head: [f32; 3]) -> Bone {
+    (
+        name.to_string(),
+        (!parent.is_empty()).then(|| parent.to_string()),
+        Vec3::from_array(head),
+    )
+}
+
+/// `bones` followed by their mirror images: every bone whose name holds the left marker `l`
+/// again, across x = 0, named with the right marker `r`.
+fn mirrored(bones: Vec<Bone>, l: &str, r: &str) -> Vec<Bone> {
+    let mut out = bones.clone();
+    for (name, parent, head) in &bones {
+        if name.contains(l) {
+            out.push((
+                name.replace(l, r),
+                parent.as_ref().map(|p| p.replace(l, r)),
+                Vec3::new(-head.x, head.y, head.z),
+            ));
+        }
+    }
+    out
+}
+
+/// Orders `bones` depth first from the root, children in the order given (as exporters
+/// write them).
+fn depth_first(bones: &[Bone]) -> Vec<usize> {
+    fn visit(bones: &[Bone], at: usize, out: &mut Vec<usize>) {
+        out.push(at);
+        for (c, b) in bones.iter().enumerate() {
+            if b.1.as_deref() == Some(bones[at].0.as_str()) {
+                visit(bones, c, out);
+            }
+        }
+    }
+    let mut out = Vec::new();
+    let root = bones.iter().position(|b| b.1.is_none()).unwrap();
+    visit(bones, root, &mut out);
+    assert_eq!(out.len(), bones.len(), "a bone's parent is missing");
+    out
+}
+
+/// BVH text of `bones` (rest offsets from the heads; each leaf gets an `End Site` along its
+/// own offset) with `frames` of world rotations by bone name (BVH frames are
+/// world-aligned: a bone's channels hold `parent_world⁻¹ · world`), rotation channels in
+/// `order` (e.g. "ZXY": `Zrotation Xrotation Yrotation`).
+fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
+    let order_rot = match order {
+        "ZXY" => EulerRot::ZXY,
+        "XYZ" => EulerRot::XYZ,
+        "ZYX" => EulerRot::ZYX,
+        "YXZ" => EulerRot::YXZ,
+        _ => unreachable!(),
+    };
+    let channels: Vec<String> = order.chars().map(|c| format!("{c}rotation")).collect();
+    let channels = channels.join(" ");
+    let seq = depth_first(bones);
+    let index = |name: &str| bones.iter().position(|b| b.0 == name).unwrap();
+    let mut out = String::from("HIERARCHY\n");
+    // Written recursively for the braces.
+    fn write(bones: &[Bone], at: usize, depth: usize, channels: &str, out: &mut String) {
+        let pad = "  ".repeat(depth);
+        let (name, parent, head) = &bones[at];
+        let offset = match parent {
+            Some(p) => *head - bones.iter().find(|b| &b.0 == p).unwrap().2,
+            None => *head,
+        };
+        let kind = if parent.is_some() { "JOINT" } else { "ROOT" };
+        let _ = writeln!(out, "{pad}{kind} {name}\n{pad}{{");
+        let _ = writeln!(out, "{pad}  OFFSET {} {} {}", offset.x, offset.y, offset.z);
+        if parent.is_some() {
+            let _ = writeln!(out, "{pad}  CHANNELS 3 {channels}");
+        } else {
+            let _ = writeln!(
+                out,
+                "{pad}  CHANNELS 6 Xposition Yposition Zposition {channels}"
+            );
+        }
+        let children: Vec<usize> = (0..bones.len())
+            .filter(|&c| bones[c].1.as_deref() == Some(name.as_str()))
+            .collect();
+        for &c in &children {
+            write(bones, c, depth + 1, channels, out);
+        }
+        if children.is_empty() {
+            let tip = offset.normalize_or_zero() * 0.3 * offset.length();
+            let _ = writeln!(
+                out,
+                "{pad}  End Site\n{pad}  {{\n{pad}    OFFSET {} {} {}\n{pad}  }}",
+                tip.x, tip.y, tip.z
+            );
+        }
+        let _ = writeln!(out, "{pad}}}");
+    }
+    write(bones, seq[0], 0, &channels, &mut out);
+    let _ = writeln!(
+        out,
+        "MOTION\nFrames: {}\nFrame Time: 0.033333",
+        frames.len()
+    );
+    for frame in frames {
+        let world = |j: usize| {
+            frame
+                .iter()
+                .find(|(n, _)| *n == bones[j].0)
+                .map(|(_, q)| *q)
+        };
+        // A bone without its own world rotation turns with its parent.
+        let mut worlds = vec![Quat::IDENTITY; bones.len()];
+        for &j in &seq {
+            let parent = bones[j].1.as_deref().map(index);
+            let inherited = parent.map_or(Quat::IDENTITY, |p| worlds[p]);
+            worlds[j] = world(j).unwrap_or(inherited);
+        }
+        let mut values = Vec::new();
+        for &j in &seq {
+            let parent = bones[j].1.as_deref().map(index);
+            if parent.is_none() {
+                // The root stands where it stands at rest (position channels are absolute).
+                values.extend(bones[j].2.to_array().map(|v| v.to_string()));
+            }
+            let local = parent.map_or(Quat::IDENTITY, |p| worlds[p]).inverse() * worlds[j];
+            let (a, b, c) = local.as_dquat().to_euler(order_rot);
+            values.extend([a, b, c].map(|v| format!("{:.6}", v.to_degrees())));
+        }
+        let _ = writeln!(out, "{}", values.join(" "));
+    }
+    out
+}
+
+/// Blender's Rigify human metarig: bone heads (Z up, facing −Y, metres; the torso, limbs and
+/// feet as the metarig places them, a few face and finger bones roughly), parents before
+/// children.
+fn rigify_metarig() -> Vec<Bone> {
+    let left = vec![
+        bone("spine", "", [0.0, 0.0552, 1.0099]),
+        bone("spine.001", "spine", [0.0, 0.0172, 1.1573]),
+        bone("pelvis.L", "spine", [0.0, 0.0552, 1.0099]),
+        bone("thigh.L", "spine", [0.0980, 0.0124, 1.0720]),
+        bone("spine.002", "spine.001", [0.0, 0.0004, 1.2929]),
+        bone("shin.L", "thigh.L", [0.0980, -0.0286, 0.5372]),
+        bone("spine.003", "spine.002", [0.0, 0.0059, 1.4657]),
+        bone("foot.L", "shin.L", [0.0980, 0.0162, 0.0852]),
+        bone("spine.004", "spine.003", [0.0, 0.0114, 1.6582]),
+        bone("shoulder.L", "spine.003", [0.0183, -0.0684, 1.6051]),
+        bone("breast.L", "spine.003", [0.1184, 0.0485, 1.4596]),
+        bone("toe.L", "foot.L", [0.0985, -0.0950, 0.0198]),
+        bone("heel.02.L", "foot.L", [0.0600, 0.0459, 0.0]),
+        bone("spine.005", "spine.004", [0.0, -0.0067, 1.7197]),
+        bone("upper_arm.L", "shoulder.L", [0.1953, 0.0267, 1.5846]),
+        bone("spine.006", "spine.005", [0.0, -0.0247, 1.7813]),
+        bone("forearm.L", "upper_arm.L", [0.4424, 0.0676, 1.3329]),
+        bone("face", "spine.006", [0.0, -0.0247, 1.7813]),
+        bone("hand.L", "forearm.L", [0.6594, 0.0442, 1.1388]),
+        bone("jaw", "face", [0.0, 0.0, 1.75]),
+        bone("eye.L", "face", [0.03, -0.09, 1.83]),
+        bone("ear.L", "face", [0.07, 0.0, 1.82]),
+        bone("palm.01.L", "hand.L", [0.6734, 0.0330, 1.1215]),
+        bone("thumb.01.L", "palm.01.L", [0.6700, 0.0100, 1.1100]),
+        bone("f_index.01.L", "palm.01.L", [0.7234, 0.0068, 1.0648]),
+        bone("f_index.02.L", "f_index.01.L", [0.7500, 0.0000, 1.0350]),
+        bone("palm.02.L", "hand.L", [0.6734, 0.0440, 1.1215]),
+        bone("f_middle.01.L", "palm.02.L", [0.7300, 0.0300, 1.0600]),
+    ];
+    // The metarig interleaves the sides (`thigh.L`, `thigh.R`, …); here the right side
+    // follows the left. Either way `pelvis.L` comes before `thigh.L` under `spine`, as
+    // Blender's exporter writes it.
+    mirrored(left, ".L", ".R")
+}
+
+/// The generated rig's deform bones (`DEF-…`): the metarig's bones with the limbs split into
+/// twist segments (`DEF-upper_arm.L.001` …), as a BVH export of a Rigify rig's deform layer
+/// holds them.
+fn rigify_deform() -> Vec<Bone> {
+    let metarig = rigify_metarig();
+    let head = |n: &str| metarig.iter().find(|b| b.0 == n).unwrap().2;
+    let mut out: Vec<Bone> = Vec::new();
+    for (name, parent, at) in &metarig {
+        let no_deform = ["heel", "face", "ear", "eye"];
+        if no_deform.iter().any(|n| name.starts_with(n)) {
+            continue;
+        }
+        let parent = parent.as_ref().map(|p| {
+            let p = if p == "face" { "spine.006" } else { p };
+            // The second segment of a split parent carries the child.
+            let split = ["upper_arm", "forearm", "thigh", "shin"]
+                .iter()
+                .any(|s| p.starts_with(s));
+            if split {
+                format!("DEF-{p}.001")
+            } else {
+                format!("DEF-{p}")
+            }
+        });
+        out.push((format!("DEF-{name}"), parent, *at));
+        for (split, next) in [
+            ("upper_arm", "forearm"),
+            ("forearm", "hand"),
+            ("thigh", "shin"),
+            ("shin", "foot"),
+        ] {
+            if let Some(side) = name.strip_prefix(split).filter(|s| s.len() == 2) {
+                let middle = (*at + head(&format!("{next}{side}"))) / 2.0;
+                out.push((
+                    format!("DEF-{name}.001"),
+                    Some(format!("DEF-{name}")),
+                    middle,
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// World rotations (file axes) that make `bone` point along `direction` from its rest
+/// direction toward `end`.
+fn aim(bones: &[Bone], bone: &str, end: &str, direction: Vec3) -> (String, Quat) {
+    let at = |n: &str| bones.iter().find(|b| b.0 == n).unwrap().2;
+    let rest = (at(end) - at(bone)).normalize();
+    (
+        bone.to_string(),
+        Quat::from_rotation_arc(rest, direction.normalize()),
+    )
+}
+
+/// Unit vector of the bone `from` → `to` at frame `f` of `motion`, in +Y-up axes.
+fn source_direction(motion: &Motion, f: usize, from: &str, to: &str) -> Vec3 {
+    let p = motion.positions(f);
+    let j = |n: &str| motion.skeleton.index_of(n).unwrap();
+    (p[j(to)] - p[j(from)]).normalize()
+}
+
+/// Unit vector of the target's bone `from` → `to` (roles) at frame `f`.
+fn target_direction(
+    rig: &Rig,
+    frames: &[f3g_rig::RigParams],
+    f: usize,
+    from: Role,
+    to: Role,
+) -> Vec3 {
+    let w = rig.joint_world(&frames[f]).unwrap();
+    let j = |r: Role| rig.roles.get(r).unwrap();
+    (w[j(to)].translation - w[j(from)].translation).normalize()
+}
+
+fn degrees(a: Vec3, b: Vec3) -> f32 {
+    a.dot(b).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Roles inferred (and completed from the shape) for `motion`'s skeleton, by joint name.
+fn roles_by_name(motion: &Motion) -> Vec<(Role, String)> {
+    let s = &motion.skeleton;
+    complete_by_topology(s, Roles::infer(s))
+        .iter()
+        .map(|(r, j)| (r, s.joints()[j].name.clone()))
+        .collect()
+}
+
+fn write_read(dir: &Path, name: &str, text: &str) -> Motion {
+    let path = dir.join(name);
+    std::fs::write(&path, text).unwrap();
+    read(&path).unwrap()
+}
+
+/// Mixamo's rig (a Y Bot export): Y up, facing +Z, left +X, centimetres, T-pose, with the
+/// `mixamorig:` namespace, fingers and the `_End` joints.
+fn mixamo() -> Vec<Bone> {
+    let left = vec![
+        bone("Hips", "", [0.0, 104.0, 1.0]),
+        bone("Spine", "Hips", [0.0, 114.0, 0.0]),
+        bone("Spine1", "Spine", [0.0, 126.0, -1.0]),
+        bone("Spine2", "Spine1", [0.0, 139.0, -1.5]),
+        bone("Neck", "Spine2", [0.0, 155.0, -1.0]),
+        bone("Head", "Neck", [0.0, 165.0, 1.0]),
+        bone("HeadTop_End", "Head", [0.0, 184.0, 3.0]),
+        bone("LeftShoulder", "Spine2", [6.0, 148.0, -1.0]),
+        bone("LeftArm", "LeftShoulder", [18.0, 147.0, -2.0]),
+        bone("LeftForeArm", "LeftArm", [45.0, 147.0, -3.0]),
+        bone("LeftHand", "LeftForeArm", [71.0, 147.0, -2.0]),
+        bone("LeftHandThumb1", "LeftHand", [74.0, 145.0, 2.0]),
+        bone("LeftHandThumb2", "LeftHandThumb1", [76.0, 144.0, 5.0]),
+        bone("LeftHandIndex1", "LeftHand", [80.0, 147.0, 1.0]),
+        bone("LeftHandIndex2", "LeftHandIndex1", [84.0, 147.0, 1.0]),
+        bone("LeftHandMiddle1", "LeftHand", [81.0, 147.0, -1.0]),
+        bone("LeftUpLeg", "Hips", [9.0, 97.0, 0.0]),
+        bone("LeftLeg", "LeftUpLeg", [9.0, 54.0, 1.0]),
+        bone("LeftFoot", "LeftLeg", [9.0, 9.0, -3.0]),
+        bone("LeftToeBase", "LeftFoot", [9.0, 1.0, 10.0]),
+        bone("LeftToe_End", "LeftToeBase", [9.0, 1.0, 19.0]),
+    ];
+    mirrored(left, "Left", "Right")
+        .into_iter()
+        .map(|(n, p, h)| {
+            (
+                format!("mixamorig:{n}"),
+                p.map(|p| format!("mixamorig:{p}")),
+                h,
+            )
+        })
+        .collect()
+}
+
+/// Unreal's UE4 mannequin (`SK_Mannequin`): Z up, centimetres, facing +Y (its left side at
+/// −X), A-pose, `root` on the floor above `pelvis`, twist bones and the IK bones.
+fn unreal() -> Vec<Bone> {
+    let arm = |from: [f32; 3], length: f32| -> [f32; 3] {
+        // 40° below the horizontal, outward (−X on the left).
+        let a = 40f32.to_radians();
+        [
+            from[0] - length * a.cos(),
+            from[1],
+            from[2] - length * a.sin(),
+        ]
+    };
+    let shoulder = [-16.0, -2.0, 148.0];
+    let elbow = arm(shoulder, 28.0);
+    let wrist = arm(elbow, 26.0);
+    let hand_end = arm(wrist, 8.0);
+    let mid = |a: [f32; 3], b: [f32; 3]| {
+        [
+            (a[0] + b[0]) / 2.0,
+            (a[1] + b[1]) / 2.0,
+            (a[2] + b[2]) / 2.0,
+        ]
+    };
+    let (hip, knee, ankle) = ([-9.0, 1.0, 92.0], [-10.0, 0.0, 50.0], [-11.0, -3.0, 8.0]);
+    let left = vec![
+        bone("root", "", [0.0, 0.0, 0.0]),
+        bone("pelvis", "root", [0.0, 1.0, 97.0]),
+        bone("spine_01", "pelvis", [0.0, 2.0, 108.0]),
+        bone("spine_02", "spine_01", [0.0, 0.0, 126.0]),
+        bone("spine_03", "spine_02", [0.0, -2.0, 139.0]),
+        bone("clavicle_l", "spine_03", [-4.0, -2.0, 150.0]),
+        bone("upperarm_l", "clavicle_l", shoulder),
+        bone("upperarm_twist_01_l", "upperarm_l", mid(shoulder, elbow)),
+        bone("lowerarm_l", "upperarm_l", elbow),
+        bone("lowerarm_twist_01_l", "lowerarm_l", mid(elbow, wrist)),
+        bone("hand_l", "lowerarm_l", wrist),
+        bone("index_01_l", "hand_l", hand_end),
+        bone(
+            "thumb_01_l",
+            "hand_l",
+            [wrist[0] - 2.0, wrist[1] + 3.0, wrist[2] - 1.0],
+        ),
+        bone("neck_01", "spine_03", [0.0, -1.0, 155.0]),
+        bone("head", "neck_01", [0.0, 1.0, 164.0]),
+        bone("thigh_l", "pelvis", hip),
+        bone("thigh_twist_01_l", "thigh_l", mid(hip, knee)),
+        bone("calf_l", "thigh_l", knee),
+        bone("calf_twist_01_l", "calf_l", mid(knee, ankle)),
+        bone("foot_l", "calf_l", ankle),
+        bone("ball_l", "foot_l", [-12.0, 12.0, 2.0]),
+        bone("ik_foot_root", "root", [0.0, 0.0, 0.0]),
+        bone("ik_foot_l", "ik_foot_root", ankle),
+        bone("ik_hand_root", "root", [0.0, 0.0, 0.0]),
+        bone(
+            "ik_hand_gun",
+            "ik_hand_root",
+            [-wrist[0], wrist[1], wrist[2]],
+        ),
+        bone("ik_hand_l", "ik_hand_gun", wrist),
+    ];
+    mirrored(left, "_l", "_r")
+}
+
+/// CMU's motion-capture skeleton under its ASF bone names (as `amc2bvh` writes them): Y up,
+/// facing +Z, left +X, T-pose; each joint at the start of its ASF bone (`lhipjoint` at the
+/// root, `lfemur` at the hip, `lradius` at the elbow, `lwrist` at the wrist).
+fn cmu() -> Vec<Bone> {
+    let left = vec![
+        bone("root", "", [0.0, 100.0, 0.0]),
+        bone("lhipjoint", "root", [0.0, 100.0, 0.0]),
+        bone("lfemur", "lhipjoint", [9.0, 93.0, 1.0]),
+        bone("ltibia", "lfemur", [9.0, 51.0, 0.0]),
+        bone("lfoot", "ltibia", [9.0, 8.0, -2.0]),
+        bone("ltoes", "lfoot", [9.0, 2.0, 10.0]),
+        bone("lowerback", "root", [0.0, 100.0, 0.0]),
+        bone("upperback", "lowerback", [0.0, 112.0, -1.0]),
+        bone("thorax", "upperback", [0.0, 124.0, -1.0]),
+        bone("lowerneck", "thorax", [0.0, 143.0, -1.0]),
+        bone("upperneck", "lowerneck", [0.0, 150.0, 0.0]),
+        bone("head", "upperneck", [0.0, 157.0, 1.0]),
+        bone("lclavicle", "thorax", [0.0, 143.0, -1.0]),
+        bone("lhumerus", "lclavicle", [17.0, 145.0, -2.0]),
+        bone("lradius", "lhumerus", [45.0, 145.0, -2.0]),
+        bone("lwrist", "lradius", [69.0, 145.0, -2.0]),
+        bone("lhand", "lwrist", [72.0, 145.0, -2.0]),
+        bone("lfingers", "lhand", [78.0, 145.0, -2.0]),
+        bone("lthumb", "lhand", [71.0, 145.0, 2.0]),
+    ];
+    // ASF's sides are one glued letter: `l…` and `r…` (only the sided bones hold `l`
+    // first, so the mirror renames by the first letter).
+    let mut out = left.clone();
+    for (name, parent, head) in &left {
+        if let Some(rest) = name.strip_prefix('l') {
+            let parent = parent.as_ref().map(|p| match p.strip_prefix('l') {
+                Some(r) if p != "lowerback" && p != "lowerneck" => format!("r{r}"),
+                _ => p.clone(),
+            });
+            if name != "lowerback" && name != "lowerneck" {
+                out.push((
+                    format!("r{rest}"),
+                    parent,
+                    Vec3::new(-head.x, head.y, head.z),
+                ));
+            }
+        }
+    }
+    out
+}
+
+/// Source joint names and target roles of the bones compared: (from, to) each.
+type Compared<'a> = [(&'a str, &'a str, Role, Role)];
+
+/// The largest angle (degrees) between each compared source bone (in the target's axes: its
+/// up axis to +Y, turned about +Y so that its rest hips face the target's) and the target's
+/// bone, over the frames.
+fn worst_angle(motion: &Motion, rig: &Rig, frames: &[f3g_rig::RigParams], bones: &Compared) -> f32 {
+    let rest = rig.joint_world(&rig.zero_params()).unwrap();
+    let at = |r: Role| rest[rig.roles.get(r).unwrap()].translation;
+    let names: std::collections::BTreeMap<Role, String> =
+        roles_by_name(motion).into_iter().collect();
+    let source_rest = motion.positions(0);
+    let s = |r: Role| source_rest[motion.skeleton.index_of(&names[&r]).unwrap()];
+    let flat = |v: Vec3| Vec3::new(v.x, 0.0, v.z).normalize();
+    let turn = Quat::from_rotation_arc(
+        flat(s(Role::LeftHip) - s(Role::RightHip)),
+        flat(at(Role::LeftHip) - at(Role::RightHip)),
+    );
+    let mut worst = 0.0f32;
+    for f in 0..motion.frames() {
+        for (from, to, role_from, role_to) in bones {
+            let source = turn * source_direction(motion, f, from, to);
+            let target = target_direction(rig, frames, f, *role_from, *role_to);
+            let angle = degrees(source, target);
+            assert!(
+                angle < 20.0,
+                "frame {f}: the source's {from} → {to} points {source}, the target's {role_from:?} → {role_to:?} {target} ({angle}°)"
+            );
+            worst = worst.max(angle);
+        }
+    }
+    worst
+}
+
+/// The roles of the limbs and torso, `(role, joint)`, for left and right names made by
+/// `side` from the bone words `[clavicle, upper arm, forearm, hand, thigh, shin, foot]`.
+fn expected(
+    torso: [&str; 5],
+    limbs: [&str; 7],
+    side: impl Fn(&str, bool) -> String,
+) -> Vec<(Role, String)> {
+    use Role::*;
+    let mut out: Vec<(Role, String)> = [Pelvis, Spine, Chest, Neck, Head]
+        .into_iter()
+        .zip(torso.map(String::from))
+        .collect();
+    let left = [
+        LeftClavicle,
+        LeftShoulder,
+        LeftElbow,
+        LeftWrist,
+        LeftHip,
+        LeftKnee,
+        LeftAnkle,
+    ];
+    let right = [
+        RightClavicle,
+        RightShoulder,
+        RightElbow,
+        RightWrist,
+        RightHip,
+        RightKnee,
+        RightAnkle,
+    ];
+    for (i, word) in limbs.iter().enumerate() {
+        out.push((left[i], side(word, true)));
+        out.push((right[i], side(word, false)));
+    }
+    out
+}
+
+/// Checks the roles inferred for `motion`, then retargets it onto the built-in human without
+/// a joint map: the correspondence takes each role's joint, and the compared bones point the
+/// same way in every frame.
+fn converts(motion: &Motion, family: &str, roles: &[(Role, String)], bones: &Compared) -> f32 {
+    let inferred = roles_by_name(motion);
+    for (role, name) in roles {
+        let got = inferred
+            .iter()
+            .find(|(r, _)| r == role)
+            .map(|(_, n)| n.as_str());
+        assert_eq!(
+            got,
+            Some(name.as_str()),
+            "{family}: {role:?} (inferred: {inferred:?})"
+        );
+    }
+    let rig = builtin();
+    let path = format!("{family}.bvh");
+    let r = retarget(motion, &rig, &RetargetOptions::default(), Path::new(&path))
+        .unwrap_or_else(|e| panic!("{family}: {e}"));
+    for (role, name) in roles {
+        let target = &rig.skeleton.joints()[rig.roles.get(*role).unwrap()].name;
+        let c = r.correspondence.iter().find(|c| &c.target == target);
+        assert_eq!(
+            c.map(|c| c.source.as_str()),
+            Some(name.as_str()),
+            "{family}: the target's {role:?} joint `{target}` ({:?})",
+            c.map(|c| c.by)
+        );
+        assert_eq!(
+            r.source_roles.0.get(role),
+            Some(name),
+            "{family}: saved map, {role:?}"
+        );
+    }
+    worst_angle(motion, &rig, &r.frames, bones)
+}
+
+/// The arm and leg bones of both sides, compared source against target, for joint names made
+/// by `side` from `[upper arm, forearm, hand, thigh, shin, foot]`.
+fn limb_bones(
+    words: [&str; 6],
+    side: impl Fn(&str, bool) -> String,
+) -> Vec<(String, String, Role, Role)> {
+    use Role::*;
+    let mut out = Vec::new();
+    for left in [true, false] {
+        let n = |i: usize| side(words[i], left);
+        let (s, e, w, h, k, a) = if left {
+            (
+                LeftShoulder,
+                LeftElbow,
+                LeftWrist,
+                LeftHip,
+                LeftKnee,
+                LeftAnkle,
+            )
+        } else {
+            (
+                RightShoulder,
+                RightElbow,
+                RightWrist,
+                RightHip,
+                RightKnee,
+                RightAnkle,
+            )
+        };
+        out.push((n(0), n(1), s, e));
+        out.push((n(1), n(2), e, w));
+        out.push((n(3), n(4), h, k));
+        out.push((n(4), n(5), k, a));
+    }
+    out
+}
+
+fn compared(bones: &[(String, String, Role, Role)]) -> Vec<(&str, &str, Role, Role)> {
+    bones
+        .iter()
+        .map(|(a, b, r, s)| (a.as_str(), b.as_str(), *r, *s))
+        .collect()
+}
+
+/// A pose for the frames: the arms hanging (upper arms and forearms straight down), the
+/// forearms bent forward, the upper arms out sideways with the forearms hanging, and the
+/// torso turned 70° with the arms hanging; the thighs swing forward in the second and third.
+/// `up`, `forward` and `left` are the file's axes; the names as `limb_bones`'s.
+fn poses(
+    bones: &[Bone],
+    words: [&str; 6],
+    side: impl Fn(&str, bool) -> String,
+    torso: &str,
+    (up, forward, left): (Vec3, Vec3, Vec3),
+) -> Vec<Vec<(String, Quat)>> {
+    let down = -up;
+    let mut frames = vec![Vec::new(); 5];
+    let turn = Quat::from_axis_angle(up, 70f32.to_radians());
+    frames[4].push((torso.to_string(), turn));
+    for is_left in [true, false] {
+        let n = |i: usize| side(words[i], is_left);
+        let out = if is_left { left } else { -left };
+        let hang = [
+            aim(bones, &n(0), &n(1), down),
+            aim(bones, &n(1), &n(2), down),
+        ];
+        frames[1].extend(hang.iter().cloned());
+        frames[2].push(aim(bones, &n(0), &n(1), down));
+        frames[2].push(aim(bones, &n(1), &n(2), forward));
+        frames[3].push(aim(bones, &n(0), &n(1), out));
+        frames[3].push(aim(bones, &n(1), &n(2), down));
+        frames[4].extend(hang.iter().map(|(b, q)| (b.clone(), turn * *q)));
+        let thigh = (down * 0.8 + forward * 0.6).normalize();
+        frames[2].push(aim(bones, &n(3), &n(4), thigh));
+        frames[3].push(aim(bones, &n(3), &n(4), thigh));
+        frames[3].push(aim(bones, &n(4), &n(5), down));
+    }
+    frames
+}
+
+/// Blender's axes: Z up, facing −Y, the body's left +X.
+const BLENDER: (Vec3, Vec3, Vec3) = (Vec3::Z, Vec3::NEG_Y, Vec3::X);
+
+fn rigify_side(prefix: &'static str) -> impl Fn(&str, bool) -> String {
+    move |w: &str, left: bool| format!("{prefix}{w}.{}", if left { "L" } else { "R" })
+}
+
+const RIGIFY_LIMBS: [&str; 7] = [
+    "shoulder",
+    "upper_arm",
+    "forearm",
+    "hand",
+    "thigh",
+    "shin",
+    "foot",
+];
+const RIGIFY_BONES: [&str; 6] = ["upper_arm", "forearm", "hand", "thigh", "shin", "foot"];
+
+#[test]
+fn rigify_skeletons_get_their_roles_and_convert() {
+    let dir = tempfile::tempdir().unwrap();
+    // The metarig's names, the generated rig's deform bones, and a rig whose neck and head
+    // are named so.
+    let renamed: Vec<Bone> = rigify_metarig()
+        .into_iter()
+        .map(|(n, p, h)| {
+            let f = |n: &str| match n {
+                "spine.004" => "neck".to_string(),
+                "spine.005" => "neck.001".to_string(),
+                "spine.006" => "head".to_string(),
+                n => n.to_string(),
+            };
+            (f(&n), p.map(|p| f(&p)), h)
+        })
+        .collect();
+    for (family, bones, prefix, torso) in [
+        (
+            "metarig",
+            rigify_metarig(),
+            "",
+            ["spine", "spine.001", "spine.003", "spine.004", "spine.006"],
+        ),
+        (
+            "DEF",
+            rigify_deform(),
+            "DEF-",
+            [
+                "DEF-spine",
+                "DEF-spine.001",
+                "DEF-spine.003",
+                "DEF-spine.004",
+                "DEF-spine.006",
+            ],
+        ),
+        (
+            "neck-head",
+            renamed,
+            "",
+            ["spine", "spine.001", "spine.003", "neck", "head"],
+        ),
+    ] {
+        let side = rigify_side(prefix);
+        let frames = poses(
+            &bones,
+            RIGIFY_BONES,
+            &side,
+            &format!("{prefix}spine"),
+            BLENDER,
+        );
+        let motion = write_read(
+            dir.path(),
+            &format!("{family}.bvh"),
+            &bvh(&bones, &frames, "YXZ"),
+        );
+        let roles = expected(torso, RIGIFY_LIMBS, &side);
+        let limbs = limb_bones(RIGIFY_BONES, &side);
+        let worst = converts(&motion, family, &roles, &compared(&limbs));
+        eprintln!("rigify {family}: limb bones within {worst:.2}°");
+    }
+}
+
+/// The forearm bug: a Rigify source whose forearms hang down gives a built-in human whose
+/// forearms hang down (elbow → wrist, world directions within 20°).
+#[test]
+fn rigify_forearms_that_hang_down_hang_down_on_the_human() {
+    let dir = tempfile::tempdir().unwrap();
+    let rig = builtin();
+    for (family, bones, prefix) in [
+        ("metarig", rigify_metarig(), ""),
+        ("DEF", rigify_deform(), "DEF-"),
+    ] {
+        let side = rigify_side(prefix);
+        let frames = poses(
+            &bones,
+            RIGIFY_BONES,
+            &side,
+            &format!("{prefix}spine"),
+            BLENDER,
+        );
+        let motion = write_read(
+            dir.path(),
+            &format!("{family}.bvh"),
+            &bvh(&bones, &frames, "YXZ"),
+        );
+        let r = retarget(
+            &motion,
+            &rig,
+            &RetargetOptions::default(),
+            Path::new("rigify.bvh"),
+        )
+        .unwrap_or_else(|e| panic!("{family}: {e}"));
+        // Frames 1, 3 and 4 hang the forearms; frame 2 bends them forward.
+        for (f, want) in [
+            (1, Vec3::NEG_Y),
+            (2, Vec3::Z),
+            (3, Vec3::NEG_Y),
+            (4, Vec3::NEG_Y),
+        ] {
+            for (elbow, wrist, left) in [
+                (Role::LeftElbow, Role::LeftWrist, true),
+                (Role::RightElbow, Role::RightWrist, false),
+            ] {
+                let source =
+                    source_direction(&motion, f, &side("forearm", left), &side("hand", left));
+                assert!(
+                    degrees(source, want) < 1.0,
+                    "{family} frame {f}: the source points {source}"
+                );
+                let target = target_direction(&rig, &r.frames, f, elbow, wrist);
+                assert!(
+                    degrees(source, target) < 20.0,
+                    "{family} frame {f}: the source's forearm points {source}, the human's {target}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn mixamo_names_get_their_roles() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = mixamo();
+    let side =
+        |w: &str, left: bool| format!("mixamorig:{}{w}", if left { "Left" } else { "Right" });
+    let words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
+    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
+    let frames = poses(&bones, words, side, "mixamorig:Hips", axes);
+    let motion = write_read(dir.path(), "mixamo.bvh", &bvh(&bones, &frames, "ZXY"));
+    let torso = ["Hips", "Spine", "Spine2", "Neck", "Head"].map(|n| format!("mixamorig:{n}"));
+    let roles = expected(
+        torso.each_ref().map(String::as_str),
+        ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
+        side,
+    );
+    let worst = converts(
+        &motion,
+        "mixamo",
+        &roles,
+        &compared(&limb_bones(words, side)),
+    );
+    eprintln!("mixamo: limb bones within {worst:.2}°");
+}
+
+#[test]
+fn unreal_names_get_their_roles_and_the_pelvis_drives_the_body() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = unreal();
+    let side = |w: &str, left: bool| format!("{w}_{}", if left { "l" } else { "r" });
+    let words = ["upperarm", "lowerarm", "hand", "thigh", "calf", "foot"];
+    // Z up, facing +Y, left −X. The pelvis (not the root on the floor) turns the body.
+    let axes = (Vec3::Z, Vec3::Y, Vec3::NEG_X);
+    let frames = poses(&bones, words, side, "pelvis", axes);
+    let motion = write_read(dir.path(), "unreal.bvh", &bvh(&bones, &frames, "XYZ"));
+    let roles = expected(
+        ["pelvis", "spine_01", "spine_03", "neck_01", "head"],
+        [
+            "clavicle", "upperarm", "lowerarm", "hand", "thigh", "calf", "foot",
+        ],
+        side,
+    );
+    let mut limbs = limb_bones(words, side);
+    limbs.push((
+        "thigh_r".into(),
+        "thigh_l".into(),
+        Role::RightHip,
+        Role::LeftHip,
+    ));
+    let worst = converts(&motion, "unreal", &roles, &compared(&limbs));
+    eprintln!("unreal: limb bones within {worst:.2}°");
+}
+
+#[test]
+fn cmu_asf_names_get_their_roles() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = cmu();
+    let side = |w: &str, left: bool| format!("{}{w}", if left { "l" } else { "r" });
+    let words = ["humerus", "radius", "wrist", "femur", "tibia", "foot"];
+    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
+    let frames = poses(&bones, words, side, "root", axes);
+    let motion = write_read(dir.path(), "cmu.bvh", &bvh(&bones, &frames, "ZYX"));
+    let roles = expected(
+        ["root", "lowerback", "thorax", "lowerneck", "head"],
+        [
+            "clavicle", "humerus", "radius", "wrist", "femur", "tibia", "foot",
+        ],
+        side,
+    );
+    let worst = converts(&motion, "cmu", &roles, &compared(&limb_bones(words, side)));
+    eprintln!("cmu: limb bones within {worst:.2}°");
+}
