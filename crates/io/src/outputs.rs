@@ -36,12 +36,12 @@ pub struct OutputDir {
 }
 
 impl OutputDir {
-    /// Opens `root` for `command`'s outputs, creating it when missing.
+    /// Opens `root` for `command`'s outputs; a missing folder is created with the first file
+    /// (a command that fails before writing leaves nothing).
     ///
     /// A folder that holds other files and no manifest of `command` is refused unless
     /// `overwrite`.
     pub fn open(root: &Path, command: &str, overwrite: bool) -> Result<Self, IoError> {
-        std::fs::create_dir_all(root).map_err(|e| IoError::new(root, e))?;
         let manifest = root.join(MANIFEST);
         let previous = match std::fs::read_to_string(&manifest) {
             Ok(text) => match parse_manifest(&text) {
@@ -62,7 +62,7 @@ impl OutputDir {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
             Err(e) => return Err(IoError::new(&manifest, e)),
         };
-        if previous.is_none() && !overwrite {
+        if previous.is_none() && !overwrite && root.exists() {
             let mut entries = std::fs::read_dir(root).map_err(|e| IoError::new(root, e))?;
             if let Some(entry) = entries.next() {
                 let entry = entry.map_err(|e| IoError::new(root, e))?;
@@ -94,6 +94,7 @@ impl OutputDir {
     /// The path to write `relative` (`/`-separated, inside the folder) at; its folders are
     /// created, and none of them may be a symbolic link or a file.
     pub fn file(&mut self, relative: &str) -> Result<PathBuf, IoError> {
+        std::fs::create_dir_all(&self.root).map_err(|e| IoError::new(&self.root, e))?;
         let parts = components(relative).ok_or_else(|| {
             IoError::new(&self.root.join(relative), "not a path inside the folder")
         })?;
@@ -132,6 +133,7 @@ impl OutputDir {
                 }
             }
         }
+        std::fs::create_dir_all(&self.root).map_err(|e| IoError::new(&self.root, e))?;
         let mut text = format!("{HEADER} {}\n", self.command);
         for name in &self.written {
             text.push_str(name);
@@ -322,6 +324,9 @@ mod tests {
     fn a_second_run_removes_only_its_own_files_it_did_not_write_again() {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().join("out");
+        // Opening creates nothing: a command that fails before its first file leaves nothing.
+        drop(OutputDir::open(&root, "animate", false).unwrap());
+        assert!(!root.exists());
         let mut out = OutputDir::open(&root, "animate", false).unwrap();
         for name in [
             "frames/frame_00000.png",
