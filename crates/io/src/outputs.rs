@@ -86,11 +86,6 @@ impl OutputDir {
         })
     }
 
-    /// The folder.
-    pub fn root(&self) -> &Path {
-        &self.root
-    }
-
     /// The path to write `relative` (`/`-separated, inside the folder) at; its folders are
     /// created, and none of them may be a symbolic link or a file.
     pub fn file(&mut self, relative: &str) -> Result<PathBuf, IoError> {
