@@ -10,9 +10,14 @@ README's pictures and BENCHMARKS (no third-party motion data is redistributed):
   `mocap_framerate`, `gender` as a string array), Z up, 120 fps;
 - `walk.smpl`: the same walk in the `smplcodec` layout (`bodyPose` F×22×3, ...), Y up, 30 fps;
 - `amass_10k.npz` (with `--long`): 10 000 frames of the AMASS walk, for `f3g motion convert`'s
-  timing.
+  timing;
+- `kneel.bvh`, `arms_overhead.bvh`, `head_turn.bvh` (with `--unseen`): one-second motions on
+  the Mixamo skeleton far from the synthetic capture's choreography (a lunge down onto the
+  right knee, both arms raised overhead, the head turned left and right and tilted), each
+  easing from standing with the arms down, for `f3g synth --motion` captures that measure how
+  an avatar does on poses it never saw (issue #43).
 
-Usage: python3 tools/make_motions.py OUT_DIR [--long]
+Usage: python3 tools/make_motions.py OUT_DIR [--long] [--unseen]
 (The README's motion pictures: `f3g animate runs/demo/run --motion OUT_DIR/FILE --out DIR
 --size 288x384 --fps 8 --turns 0.25` for each file, one frame of each.)
 """
@@ -116,7 +121,54 @@ def name(key, family):
     return "mixamorig:" + text if family == "mixamo" else text
 
 
-def write_bvh(path, family, frames, fps, order):
+def ease(t, duration=0.8):
+    """0 → 1 over `duration` seconds (smoothstep), then 1."""
+    u = min(max(t / duration, 0.0), 1.0)
+    return u * u * (3 - 2 * u)
+
+
+def arms_down():
+    return {"l_arm": quat_axis(Z, -1.25), "r_arm": quat_axis(Z, 1.25)}
+
+
+def kneel(t):
+    """A lunge down onto the right knee: left thigh forward and shin upright, right thigh
+    down and shin back along the floor; the pelvis drops about 0.48 m."""
+    e = ease(t)
+    rots = arms_down()
+    rots.update({
+        "l_upleg": quat_axis(X, -1.5 * e), "l_leg": quat_axis(X, 1.5 * e),
+        "r_upleg": quat_axis(X, 0.1 * e), "r_leg": quat_axis(X, 1.6 * e),
+        "chest": quat_axis(X, 0.15 * e),
+    })
+    return rots, np.array([0.0, -0.48 * e, 0.05 * e])
+
+
+def arms_overhead(t):
+    """Both arms raised from the sides to overhead, elbows slightly bent."""
+    e = ease(t)
+    return {
+        "l_arm": quat_axis(Z, -1.25 + 2.6 * e), "r_arm": quat_axis(Z, 1.25 - 2.6 * e),
+        "l_forearm": quat_axis(Z, 0.3 * e), "r_forearm": quat_axis(Z, -0.3 * e),
+    }, np.zeros(3)
+
+
+def head_turn(t):
+    """The head turned 70° to the left, then to the right, tilted."""
+    turn = 1.2 * np.sin(np.pi * min(t / 1.0, 1.0) * 1.5)
+    rots = arms_down()
+    rots.update({
+        "neck": quat_axis(Y, 0.4 * turn),
+        "head": quat_mul(quat_axis(Y, 0.6 * turn), quat_axis(Z, 0.25 * turn)),
+    })
+    return rots, np.zeros(3)
+
+
+def walk(t):
+    return walk_rotations(t), walk_root(t)
+
+
+def write_bvh(path, family, frames, fps, order, motion=walk):
     pos = {k: np.array(p, float) for k, _, p in LAYOUT}
     children = {k: [c for c, p, _ in LAYOUT if p == k] for k, _, _ in LAYOUT}
     lines = ["HIERARCHY"]
@@ -145,8 +197,8 @@ def write_bvh(path, family, frames, fps, order):
     lines.extend(["MOTION", f"Frames: {frames}", f"Frame Time: {1 / fps:.7f}"])
     for f in range(frames):
         t = f / fps
-        rots = walk_rotations(t)
-        root = pos["hips"] + 100 * walk_root(t)
+        rots, offset = motion(t)
+        root = pos["hips"] + 100 * offset
         values = [f"{v:.4f}" for v in root]
         for key in sequence:
             q = rots.get(key, np.array([1.0, 0, 0, 0]))
@@ -289,6 +341,9 @@ def main():
     write_smpl(out / "walk.smpl", 60)
     if "--long" in sys.argv:
         write_amass(out / "amass_10k.npz", 10_000)
+    if "--unseen" in sys.argv:
+        for motion in (kneel, arms_overhead, head_turn):
+            write_bvh(out / f"{motion.__name__}.bvh", "mixamo", 31, 30.0, "ZYX", motion)
 
 
 if __name__ == "__main__":

@@ -406,6 +406,11 @@ fn evaluation_numbers_equal_metrics_of_the_saved_images() {
             .try_into_vec::<f32>()
             .unwrap()[0] as f64;
         assert!((d - i.body.lpips.unwrap()).abs() < 1e-6, "{name}");
+        assert_eq!(
+            f3g_avatar::infer::eval::blotched(&render, &gt),
+            i.body.blotched,
+            "{name}"
+        );
         let head = i.head.as_ref().expect("the head is in view");
         let (hr, hg) = (read("_head"), read("_head_gt"));
         assert!((f3g_nets::metrics::psnr(&hr, &hg).unwrap() - head.psnr).abs() < 1e-9);

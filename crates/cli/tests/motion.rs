@@ -305,9 +305,24 @@ fn every_motion_kind_becomes_a_capture_of_that_motion() {
                 assert!((a - b).abs() < 1e-5, "{file}: {a} ≠ {b}");
             }
         }
-        // The first frame's root stands over the ring's centre, the body in view.
-        let root = rig.joint_world(&got[0]).unwrap()[0].translation;
-        assert!(root.x.abs() < 1e-4 && root.z.abs() < 1e-4, "{file}: {root}");
+        // The first frame stands where the human stands at rest: root over the ring's centre,
+        // feet on the rest pose's floor; the body in view.
+        let rest = rig.zero_params();
+        let (root, rest_root) = (
+            rig.joint_world(&got[0]).unwrap()[0].translation,
+            rig.joint_world(&rest).unwrap()[0].translation,
+        );
+        assert!((root.x - rest_root.x).abs() < 1e-4, "{file}: {root}");
+        assert!((root.z - rest_root.z).abs() < 1e-4, "{file}: {root}");
+        let lowest = |p: &f3g_rig::RigParams| {
+            let posed = rig.pose(p).unwrap();
+            posed
+                .vertices
+                .iter()
+                .map(|v| v.y)
+                .fold(f32::INFINITY, f32::min)
+        };
+        assert!((lowest(&got[0]) - lowest(&rest)).abs() < 1e-3, "{file}");
         let mask = f3g_io::read_rgb(&d.join(&out).join("cam00/mask/pha/00000000.jpg")).unwrap();
         assert!(mask.data.iter().any(|&v| v > 0.5), "{file}: nobody in view");
         let meta = std::fs::read_to_string(d.join(&out).join("synth.json")).unwrap();

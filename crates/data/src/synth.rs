@@ -374,15 +374,32 @@ pub fn generate(
     generate_motion(out, options, &params, None, progress)
 }
 
-/// Moves a motion of the built-in human so that its first frame's root stands over the centre
-/// of the camera ring (its height unchanged): a walk recorded elsewhere in its room then starts
-/// in view.
+/// Moves a motion of the built-in human so that its first frame stands where the human stands
+/// in its own captures: the root over the ring's centre as at rest, the lowest point of the
+/// body at the rest pose's (the floor). A walk recorded elsewhere in its room, or a skeleton
+/// whose origin is on the floor rather than at the pelvis, then starts in view.
 pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<(), DataError> {
     let Some(first) = frames.first() else {
         return Ok(());
     };
-    let root = rig.joint_world(first)?[0].translation;
-    let shift = Vec3::new(root.x, 0.0, root.z);
+    let lowest = |params: &RigParams| -> Result<f32, DataError> {
+        Ok(rig
+            .pose(params)?
+            .vertices
+            .iter()
+            .map(|v| v.y)
+            .fold(f32::INFINITY, f32::min))
+    };
+    let rest = rig.zero_params();
+    let (root, rest_root) = (
+        rig.joint_world(first)?[0].translation,
+        rig.joint_world(&rest)?[0].translation,
+    );
+    let shift = Vec3::new(
+        root.x - rest_root.x,
+        lowest(first)? - lowest(&rest)?,
+        root.z - rest_root.z,
+    );
     for f in frames.iter_mut() {
         let t = rig.root_translation(f);
         rig.set_root_translation(f, t - shift)?;

@@ -76,6 +76,39 @@ pub struct Scores {
     /// SSIM as 3DGS computes it (11×11 Gaussian window), for comparison with 3DGS papers.
     pub ssim_3dgs: f64,
     pub lpips: Option<f64>,
+    /// Share of the pixels where both the avatar and the ground truth are drawn whose colour
+    /// is off by more than [`BLOTCH_ERROR`] in a channel: colour blotches (green and magenta
+    /// patches under poses far from training) that a mean hides. The silhouette's misfit is
+    /// left out (PSNR has it); high-contrast texture drawn a few pixels off (the skirt's
+    /// stripes) counts, so it bounds the blotches from above.
+    pub blotched: f64,
+}
+
+/// The colour error (of 1) beyond which a pixel counts as blotched.
+pub const BLOTCH_ERROR: f32 = 0.3;
+
+/// [`Scores::blotched`] of a render against its ground truth (both over white).
+pub fn blotched(render: &Image, gt: &Image) -> f64 {
+    // Drawn: any channel visibly below the white background.
+    let drawn = |p: &[f32]| p.iter().any(|&v| v < 0.98);
+    let (mut shown, mut off) = (0usize, 0usize);
+    for (r, g) in render
+        .data
+        .chunks_exact(render.channels)
+        .zip(gt.data.chunks_exact(gt.channels))
+    {
+        if drawn(r) && drawn(g) {
+            shown += 1;
+            if r.iter().zip(g).any(|(a, b)| (a - b).abs() > BLOTCH_ERROR) {
+                off += 1;
+            }
+        }
+    }
+    if shown == 0 {
+        0.0
+    } else {
+        off as f64 / shown as f64
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -158,6 +191,7 @@ fn mean(scores: &[&Scores]) -> Option<Scores> {
         ssim: scores.iter().map(|s| s.ssim).sum::<f64>() / n,
         ssim_3dgs: scores.iter().map(|s| s.ssim_3dgs).sum::<f64>() / n,
         lpips: lpips.map(|v| v.iter().sum::<f64>() / n),
+        blotched: scores.iter().map(|s| s.blotched).sum::<f64>() / n,
     })
 }
 
@@ -203,6 +237,7 @@ fn scores(
         ssim: ssim_skimage(render, gt)?,
         ssim_3dgs: ssim_images(render, gt)?,
         lpips: lpips_distance(lpips, render, gt, device)?,
+        blotched: blotched(render, gt),
     })
 }
 
@@ -626,10 +661,22 @@ pub fn markdown(r: &EvalReport) -> String {
         r.scale,
         r.face_size
     );
-    s += "| | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n";
+    let header = "| PSNR ↑ | SSIM ↑ | LPIPS ↓ | blotched ↓ ";
+    let columns = format!("|{}|\n", "---|".repeat(9));
+    s += &format!(
+        "| {}{}|\n{columns}",
+        header.replace("| ", "| body "),
+        header.replace("| ", "| head ")
+    );
     let cells = |x: Option<&Scores>| -> String {
-        x.map_or("– | – | –".into(), |x| {
-            format!("{:.3} | {:.4} | {}", x.psnr, x.ssim, fmt_lpips(x.lpips))
+        x.map_or("– | – | – | –".into(), |x| {
+            format!(
+                "{:.3} | {:.4} | {} | {:.2} %",
+                x.psnr,
+                x.ssim,
+                fmt_lpips(x.lpips),
+                100.0 * x.blotched
+            )
         })
     };
     let row = |name: String, b: Option<&Scores>, h: Option<&Scores>| {
@@ -647,8 +694,11 @@ pub fn markdown(r: &EvalReport) -> String {
             Some(&v.head),
         );
     }
-    s += "\n";
-    s += "| image (view, angle) | body PSNR ↑ | body SSIM ↑ | body LPIPS ↓ | head PSNR ↑ | head SSIM ↑ | head LPIPS ↓ |\n|---|---|---|---|---|---|---|\n";
+    s += &format!(
+        "\n| image (view, angle) {}{}|\n{columns}",
+        header.replace("| ", "| body "),
+        header.replace("| ", "| head ")
+    );
     for i in &r.images {
         s += &row(
             format!(
@@ -710,5 +760,36 @@ impl ComparisonRows {
             .map(|(_, _, row)| row)
             .chain(self.bodies)
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blotched_counts_the_drawn_pixels_off_by_more_than_the_bound() {
+        // Five pixels: background in both and drawn in one only (the silhouette: not counted),
+        // two close, one off by 0.5 in green.
+        let gt = Image::from_vec(
+            5,
+            1,
+            3,
+            vec![
+                1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.2, 0.3, 0.4, 0.9, 0.1, 0.1, 1.0, 1.0, 1.0,
+            ],
+        )
+        .unwrap();
+        let render = Image::from_vec(
+            5,
+            1,
+            3,
+            vec![
+                1.0, 1.0, 1.0, 0.6, 0.5, 0.4, 0.2, 0.3, 0.4, 0.9, 0.6, 0.1, 0.1, 0.1, 0.1,
+            ],
+        )
+        .unwrap();
+        assert!((blotched(&render, &gt) - 1.0 / 3.0).abs() < 1e-12);
+        assert_eq!(blotched(&gt, &gt), 0.0);
     }
 }
