@@ -11,6 +11,7 @@
 #   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
 #                                         # the offline driver, e.g. `bench train --device cuda`
 #   tools/cuda-offline.sh features        # every GPU feature of the crates with GPU tests
+#   tools/cuda-offline.sh ci-features     # those and f3g-splat/cuda-source: CI's GPU build
 #
 # The wheels (about 130 MB, pinned): nvidia-cuda-nvrtc (libnvrtc.so.13 and its builtins),
 # nvidia-cuda-runtime and nvidia-cuda-crt (CUDA's headers, which NVRTC includes: the tensor-core
@@ -28,6 +29,8 @@ dir=${2:-target/cuda-offline}
 # Every GPU feature of the crates with GPU tests (`features` prints it): tools/gpu-check.sh
 # builds the GPU machine's f3g and parity tests with it, one build for CUDA and wgpu.
 GPU_TEST_FEATURES=f3g-cli/gpu,f3g-cli/cuda,f3g-nets/gpu,f3g-nets/cuda,f3g-splat/gpu,f3g-splat/cuda
+# CI's one GPU build (`ci-features`): those and the splat kernels' test-only CUDA sources.
+CI_FEATURES=$GPU_TEST_FEATURES,f3g-splat/cuda-source
 
 setup() {
     if [ ! -x "$dir/nvidia/cu13/bin/ptxas" ] || [ ! -f "$dir/nvidia/cu13/include/crt/mma.h" ]; then
@@ -52,6 +55,9 @@ case "$mode" in
 features)
     echo "$GPU_TEST_FEATURES"
     ;;
+ci-features)
+    echo "$CI_FEATURES"
+    ;;
 setup)
     setup
     echo "export CUDA_PATH=$CUDA_PATH"
@@ -71,14 +77,11 @@ test)
     export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
     export F3G_OFFLINE_CUDA_DRIVER=$driver
     # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
-    # it all of Burn) when CUDA_PATH changes. The f3g binary exactly as the README's CUDA build
-    # line builds it (`-p f3g-cli --features cuda`), so what users build is what is checked;
-    # the splat kernels' test adds only f3g-splat's test-only `cuda-source` (Burn's features
-    # are the same, so Burn is not rebuilt for it).
-    tests=$( (env -u CUDA_PATH cargo test --release --locked -p f3g-cli --features cuda \
-        --test cuda_offline --no-run --message-format=json-render-diagnostics &&
-        env -u CUDA_PATH cargo test --release --locked -p f3g-splat --features cuda-source \
-            --test cuda_kernels --no-run --message-format=json-render-diagnostics) | python3 -c '
+    # it all of Burn) when CUDA_PATH changes. The packages and features of CI's GPU build
+    # (`ci-features`), so .ci/run's lavapipe tests and these share one build of Burn.
+    tests=$( (env -u CUDA_PATH cargo test --release --locked -p f3g-cli -p f3g-nets -p f3g-splat \
+        --features "$CI_FEATURES" --test cuda_offline --test cuda_kernels --no-run \
+        --message-format=json-render-diagnostics) | python3 -c '
 import json, sys
 for line in sys.stdin:
     m = json.loads(line)
@@ -90,7 +93,7 @@ for line in sys.stdin:
     done
     ;;
 *)
-    sed -n '2,22p' "$0"
+    sed -n '2,23p' "$0"
     exit 2
     ;;
 esac

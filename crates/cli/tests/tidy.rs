@@ -512,6 +512,46 @@ fn every_gpu_feature_reaches_every_crate_below_that_has_it() {
     assert!(broken.is_empty(), "{broken:#?}");
 }
 
+/// CI builds the GPU code once, with every GPU feature together (`.ci/run`: a build per
+/// feature set costs 20-30 minutes), so the README's own build lines are checked here: each
+/// `cargo build -p CRATE --features F,G` names a crate of the workspace and features of its
+/// manifest, each of them one whose reach the test above checks.
+#[test]
+fn the_readmes_build_lines_name_features_that_reach_every_crate_below() {
+    let readme = std::fs::read_to_string(workspace().join("README.md")).unwrap();
+    let checked = ["gpu", "cuda", "autotune", "fusion"];
+    let mut lines = 0;
+    let mut broken = Vec::new();
+    for line in readme.lines().filter(|l| l.contains("cargo build")) {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let after = |flag: &str| {
+            words
+                .iter()
+                .position(|w| *w == flag)
+                .and_then(|i| words.get(i + 1).copied())
+        };
+        let (Some(package), Some(list)) = (after("-p"), after("--features")) else {
+            continue;
+        };
+        lines += 1;
+        let krate = package.strip_prefix("f3g-").unwrap_or(package);
+        let own = features(krate);
+        for feature in list.split(',') {
+            if !own.contains_key(feature) {
+                broken.push(format!(
+                    "README: `{line}`: {package} has no feature `{feature}`"
+                ));
+            } else if !checked.contains(&feature) {
+                broken.push(format!(
+                    "README: `{line}`: `{feature}`'s reach is not checked"
+                ));
+            }
+        }
+    }
+    assert!(lines >= 2, "the README's GPU build lines were not found");
+    assert!(broken.is_empty(), "{broken:#?}");
+}
+
 /// The offline CUDA source extraction is test code: no crate's feature turns it on, so no
 /// `f3g` build carries it.
 #[test]

@@ -43,10 +43,8 @@ fn toolkit() -> Toolkit {
         root.display()
     );
     // SAFETY: only tries to dlopen cudarc's candidate names for libnvrtc.
-    assert!(
-        unsafe { cudarc::nvrtc::sys::is_culib_present() },
-        "no libnvrtc; {help}"
-    );
+    let nvrtc = unsafe { cudarc::nvrtc::sys::is_culib_present() };
+    assert!(nvrtc, "no libnvrtc; {help}");
     toolkit
 }
 
