@@ -9,8 +9,8 @@ README's pictures and BENCHMARKS (no third-party motion data is redistributed):
 - `walk_amass.npz`: an AMASS SMPL-H layout walk (`poses` F×156, `trans`, `betas`,
   `mocap_framerate`, `gender` as a string array), Z up, 120 fps;
 - `walk.smpl`: the same walk in the `smplcodec` layout (`bodyPose` F×22×3, ...), Y up, 30 fps;
-- `amass_10k.npz` (with `--long`): 10 000 frames of the AMASS walk, for `f3g motion convert`'s
-  timing;
+- `amass_10k.npz` and `walk_mixamo_7k.bvh` (with `--long`): 10 000 frames of the AMASS walk
+  and 7 000 of the Mixamo one, for `f3g motion convert`'s timing;
 - `kneel.bvh`, `arms_overhead.bvh`, `head_turn.bvh` (with `--unseen`): one-second motions on
   the Mixamo skeleton far from the synthetic capture's choreography (a lunge down onto the
   right knee, both arms raised overhead, the head turned left and right and tilted), each
@@ -332,6 +332,9 @@ def write_smpl(path, frames):
 
 
 def main():
+    if len(sys.argv) < 2 or sys.argv[1].startswith("-"):
+        print(__doc__)
+        sys.exit(0 if sys.argv[1:2] in (["-h"], ["--help"]) else 2)
     out = Path(sys.argv[1])
     out.mkdir(parents=True, exist_ok=True)
     write_bvh(out / "walk_mixamo.bvh", "mixamo", 60, 30.0, "ZYX")
@@ -341,6 +344,7 @@ def main():
     write_smpl(out / "walk.smpl", 60)
     if "--long" in sys.argv:
         write_amass(out / "amass_10k.npz", 10_000)
+        write_bvh(out / "walk_mixamo_7k.bvh", "mixamo", 7_000, 30.0, "ZYX")
     if "--unseen" in sys.argv:
         for motion in (kneel, arms_overhead, head_turn):
             write_bvh(out / f"{motion.__name__}.bvh", "mixamo", 31, 30.0, "ZYX", motion)

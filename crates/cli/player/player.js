@@ -27,6 +27,8 @@ import {
 } from "@sparkjsdev/spark";
 
 const C0 = 0.28209479177387814;
+// The floor grid's cell (metres).
+const FLOOR_CELL = 0.5;
 const state = { ready: false, error: null, frame: 0, fps: 0 };
 window.f3g = state;
 
@@ -243,6 +245,7 @@ async function main() {
   const spark = new SparkRenderer({ renderer, covSplats: true, accumExtSplats: true });
   scene.add(spark);
   const camera = new THREE.PerspectiveCamera(30, 1, 0.05, 100);
+  const floor = new THREE.GridHelper(FLOOR_CELL * 60, 60, 0x8a8a8a, 0xd0d0d0);
   const controls = new OrbitControls(camera, canvas);
 
   const mesh = new SplatMesh({
@@ -287,6 +290,38 @@ async function main() {
       controls.target.add(d);
     }
     followed = root;
+    // The floor's lines stay put under a walk: moved by whole cells only.
+    floor.position.x = Math.round(root.x / FLOOR_CELL) * FLOOR_CELL;
+    floor.position.z = Math.round(root.z / FLOOR_CELL) * FLOOR_CELL;
+  }
+
+  // A motion is framed as a whole when it starts: the heights its joints reach over all its
+  // frames (a kneel, a jump, arms overhead), with room for the soles below the ankles and the
+  // skull above the head joint, fill the view's height from the current direction. Not while
+  // a script holds an exact view (`setView`).
+  function frameMotion(data, count) {
+    if (!controls.enabled || count === 0) return;
+    let low = Infinity, high = -Infinity;
+    for (let f = 0; f < count; f++) {
+      for (let j = 0; j < avatar.joints; j++) {
+        const y = data[f * stride + 16 * j + 13];
+        low = Math.min(low, y);
+        high = Math.max(high, y);
+      }
+    }
+    // Room below for the soles, a foot nearer the camera and the control bar; above for the
+    // skull over the head joint.
+    low = Math.min(low, floor.position.y) - 0.3;
+    high += 0.3;
+    const root = new THREE.Vector3(data[12], data[13], data[14]);
+    const target = new THREE.Vector3(root.x, (low + high) / 2, root.z);
+    // From at least 8° above, so that the floor shows as a floor.
+    const along = camera.position.clone().sub(controls.target).normalize();
+    if (along.y < 0.14) along.setY(0.14).normalize();
+    const fit = (1.15 * (high - low)) / 2 / Math.tan(THREE.MathUtils.degToRad(camera.fov / 2));
+    controls.target.copy(target);
+    camera.position.copy(target).addScaledVector(along, Math.max(fit, 1.0));
+    followed = root;
   }
 
   let motion = null, frames = 0, stride = 0;
@@ -300,6 +335,7 @@ async function main() {
     motion = { ...m, data };
     frames = m.frames;
     followed = null;
+    frameMotion(data, frames);
     const slider = document.getElementById("frame");
     slider.max = String(Math.max(frames - 1, 0));
     showFrame(0);
@@ -358,6 +394,12 @@ async function main() {
   // Frame the avatar: the box of its canonical means.
   const box = new THREE.Box3().setFromArray(avatar.means);
   const middle = box.getCenter(new THREE.Vector3());
+  // The floor: a grid at the canonical avatar's lowest point, where retargeting puts the feet
+  // (docs/motions.md, rule 6), so that floating and sinking show. Left out of `?bare`
+  // pictures, which are compared with f3g's renders.
+  floor.position.set(middle.x, box.min.y, middle.z);
+  floor.visible = !document.body.classList.contains("bare");
+  scene.add(floor);
   camera.position.set(middle.x, middle.y, middle.z + 4.0);
   controls.target.copy(middle);
   controls.update();

@@ -16,6 +16,15 @@ pub struct RetargetArgs {
     /// --save-map` writes the inferred one to edit).
     #[arg(long)]
     pub joint_map: Option<PathBuf>,
+    /// The motion's pose its rotations are taken relative to: `auto` (its file's rest pose
+    /// where the body stands in it, else the frame that stands best, with the up axis that
+    /// stands it), `file-rest` or `first-frame`.
+    #[arg(
+        long,
+        default_value = "auto",
+        value_name = "auto|file-rest|first-frame"
+    )]
+    pub rest: f3g_motion::RestChoice,
 }
 
 impl RetargetArgs {
@@ -29,6 +38,7 @@ impl RetargetArgs {
             joint_map,
             fps,
             identity: Vec::new(),
+            rest: self.rest,
         })
     }
 }
@@ -103,6 +113,25 @@ pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
         }
     }
     text += ")";
+    if let Some(reason) = r.reference.as_ref().and_then(|f| f.reason.as_ref()) {
+        text += &format!("\n  reference pose: {reason}");
+    }
+    if let Some(floor) = &r.floor {
+        text += &format!(
+            "\n  floor: the motion's feet stand at {:.3} (its units, up axis); the body put on the \
+             floor in the {} of {} frames where they touch it (root heights shifted by up to \
+             {:+.1} cm); left: {:.1} cm above the floor in those frames, {:.1} cm below it",
+            floor.source_floor,
+            floor.contact_frames,
+            floor.frames,
+            100.0 * floor.largest_shift_m,
+            100.0 * floor.largest_float_m,
+            100.0 * floor.largest_penetration_m
+        );
+    }
+    for warning in r.plausibility.iter().flat_map(|p| &p.warnings) {
+        text += &format!("\n  warning: {warning}");
+    }
     if !r.unmatched_roles.is_empty() {
         let roles: Vec<String> = r
             .unmatched_roles

@@ -5,8 +5,10 @@
 //! `Rz · Rx · Ry`), in degrees; the root's position channels set its position. Position
 //! channels of other joints are read and ignored (the skeleton's offsets are kept). BVH rest
 //! frames are world-aligned. The up axis is the one (Y or Z) along which the rest skeleton is
-//! longest; the unit is metres for a skeleton under 10 units tall, millimetres above 300,
-//! centimetres between; a skeleton of zero length is refused. Sizes are bounded before
+//! longest (retargeting checks it against the frames, [`crate::rest`]); the unit is metres for
+//! a skeleton whose largest extent is under 10 units, millimetres above 300, centimetres
+//! between (the extent along any axis: a rest whose bones all lie along X, as LAFAN1's, is as
+//! large as a standing one); a skeleton of zero length is refused. Sizes are bounded before
 //! allocating: frames by [`crate::MAX_FRAMES`] and by the values the file holds, joints by
 //! [`crate::MAX_JOINTS`]; rotations by [`crate::MAX_ANGLE_DEGREES`]. A UTF-8 byte-order mark
 //! is skipped.
@@ -278,14 +280,11 @@ fn infer_up_and_units(skeleton: &Skeleton) -> (Up, f32) {
         hi = hi.max(s.translation);
     }
     let extent = (hi - lo).max(Vec3::ZERO);
-    let (up, height) = if extent.z > extent.y {
-        (Up::Z, extent.z)
-    } else {
-        (Up::Y, extent.y)
-    };
-    let unit = if height > 300.0 {
+    let up = if extent.z > extent.y { Up::Z } else { Up::Y };
+    let size = extent.max_element();
+    let unit = if size > 300.0 {
         0.001
-    } else if height > 10.0 {
+    } else if size > 10.0 {
         0.01
     } else {
         1.0

@@ -28,7 +28,10 @@ mod bvh;
 mod error;
 mod export;
 mod fbx;
+pub mod floor;
 mod gltf;
+pub mod plausibility;
+pub mod rest;
 pub mod retarget;
 mod smpl;
 
@@ -42,7 +45,10 @@ pub use bvh::{parse_bvh, write_bvh};
 pub use error::MotionError;
 pub use export::from_rig;
 pub use fbx::{parse_fbx, write_fbx};
+pub use floor::FloorReport;
 pub use gltf::{read_gltf, write_gltf};
+pub use plausibility::Plausibility;
+pub use rest::RestChoice;
 pub use retarget::{Correspondence, RetargetOptions, Retargeted, retarget};
 pub use smpl::{SmplFamily, SmplMotion};
 

@@ -28,6 +28,9 @@
 //!    target's at rest, the source's over the whole motion (where a foot is on the ground) —
 //!    so feet stay on the ground and strides fit the legs. The target's own skeleton (every
 //!    joint by name, in place) carries its root over unchanged.
+//! 6. **Floor.** Where the source's feet touch its floor, the target's lowest point is put on
+//!    the target's floor by a vertical shift of the root, interpolated between contacts
+//!    ([`crate::floor`]): proportions differ, so rule 5 alone floats or sinks the feet.
 //!
 //! Channels a body model lacks (a knee that only bends) are left out; the largest angle lost
 //! is reported.
@@ -40,7 +43,10 @@ use serde::Serialize;
 
 use f3g_rig::{Rig, RigParams, Role, RoleMap, Roles};
 
-use crate::{Motion, MotionError, Up};
+use crate::floor::{FloorReport, Sole, SourceFeet, shifts};
+use crate::plausibility::{self, Plausibility, upright};
+use crate::rest::{Reference, RestChoice, StandingJoints, reference_pose, up_to_y};
+use crate::{Motion, MotionError};
 
 /// What retargeting needs beyond the motion and the body model.
 #[derive(Clone, Debug, Default)]
@@ -51,6 +57,8 @@ pub struct RetargetOptions {
     pub fps: Option<f32>,
     /// The target's shape parameters (the avatar's subject); empty for the model's template.
     pub identity: Vec<f32>,
+    /// The source pose its rotations are taken relative to ([`crate::rest`]).
+    pub rest: RestChoice,
 }
 
 /// How a target joint found its source joint.
@@ -89,14 +97,15 @@ pub struct Retargeted {
     pub scale: f32,
     /// Largest rotation (degrees) left out because the body model cannot turn a joint so.
     pub dropped_degrees: f32,
-}
-
-/// The rotation taking +Z-up coordinates to +Y-up ones (`x, y, z → x, z, −y`).
-fn up_to_y(up: Up) -> Quat {
-    match up {
-        Up::Y => Quat::IDENTITY,
-        Up::Z => Quat::from_rotation_x(-std::f32::consts::FRAC_PI_2),
-    }
+    /// How rule 6 put the body on the floor; `None` where it does not apply (the same
+    /// family's parameters, the target's own skeleton, a source without ankles).
+    pub floor: Option<FloorReport>,
+    /// Whether the result looks like the source ([`crate::plausibility`]); `None` for the
+    /// same family's parameters.
+    pub plausibility: Option<Plausibility>,
+    /// The source's reference pose and up axis ([`crate::rest`]); `None` for the same
+    /// family's parameters.
+    pub reference: Option<Reference>,
 }
 
 /// Whether `rig` is an SMPL-X model (its joints and parameterisation).
@@ -201,6 +210,9 @@ fn same_family(
         unmatched_roles: Vec::new(),
         scale: 1.0,
         dropped_degrees: 0.0,
+        floor: None,
+        plausibility: None,
+        reference: None,
     })
 }
 
@@ -407,8 +419,9 @@ fn by_rotations(
 
     // Rule 3: the source's world in the target's.
     let unit = motion.metres_per_unit;
-    let upright = up_to_y(motion.up);
-    let source_rest = source.rest(None);
+    let standing = StandingJoints::new(|r| source_roles.get(r));
+    let (source_rest, reference) = reference_pose(motion, options.rest, standing.as_ref());
+    let up_turn = up_to_y(reference.up);
     let target_rest = rig.joint_world(base)?;
     let horizontal = |v: Vec3| {
         let v = Vec3::new(v.x, 0.0, v.z);
@@ -417,7 +430,7 @@ fn by_rotations(
     let source_left = source_of(Role::LeftHip)
         .zip(source_of(Role::RightHip))
         .and_then(|(l, r)| {
-            horizontal(upright * (source_rest[l].translation - source_rest[r].translation))
+            horizontal(up_turn * (source_rest[l].translation - source_rest[r].translation))
         });
     let target_left = rig
         .roles
@@ -428,7 +441,7 @@ fn by_rotations(
         (Some(s), Some(t)) => Quat::from_rotation_arc(s, t),
         _ => Quat::IDENTITY,
     };
-    let turn = (facing * upright).normalize();
+    let turn = (facing * up_turn).normalize();
     let place = |p: Vec3| turn * (p * unit);
 
     // Rule 4: rest-pose alignment. The whole body first (its up and left axes at rest: a
@@ -495,10 +508,51 @@ fn by_rotations(
             })
             .fold(f32::MAX, f32::min)
     };
-    let scale = leg_length(|r| rig.roles.get(r), &target_positions, target_floor)
-        / leg_length(source_of, &placed_rest, lowest(&placed_rest)).max(1e-6);
+    let source_leg = leg_length(source_of, &placed_rest, lowest(&placed_rest)).max(1e-6);
+    let scale = leg_length(|r| rig.roles.get(r), &target_positions, target_floor) / source_leg;
+    // Rule 6's source side: the ankles and every joint below them, each against its height
+    // above the lowest of them at rest (a foot is down when a joint is that low).
+    let mut foot = vec![false; source.len()];
+    for (j, joint) in source.joints().iter().enumerate() {
+        foot[j] = [Role::LeftAnkle, Role::RightAnkle]
+            .iter()
+            .any(|&r| source_roles.get(r) == Some(j))
+            || joint.parent.is_some_and(|p| foot[p]);
+    }
+    let foot_joints: Vec<usize> = (0..source.len()).filter(|&j| foot[j]).collect();
+    let rest_sole = foot_joints
+        .iter()
+        .map(|&j| placed_rest[j].y)
+        .fold(f32::INFINITY, f32::min);
+    let mut feet = SourceFeet::new(
+        foot_joints
+            .iter()
+            .map(|&j| placed_rest[j].y - rest_sole)
+            .collect(),
+    );
     let target_pelvis = rig.roles.get(Role::Pelvis).unwrap_or(0);
     let source_pelvis = pair[target_pelvis].unwrap_or(0);
+
+    // The plausibility checks' bones (each limb bone with both ends corresponding) and trunks.
+    let mut bones: Vec<(usize, usize, usize, usize, plausibility::Bone)> = Vec::new();
+    for t in 0..target.len() {
+        let Some(s) = pair[t] else { continue };
+        let ends = target_role[t].map_or(&[][..], bone_end);
+        if let Some((c, sc)) = ends
+            .iter()
+            .find_map(|&e| rig.roles.get(e).and_then(|c| Some((c, pair[c]?))))
+        {
+            let name = |names: &f3g_rig::Skeleton, a: usize, b: usize| {
+                format!("{} → {}", names.joints()[a].name, names.joints()[b].name)
+            };
+            let bone = plausibility::Bone::new(name(target, t, c), name(source, s, sc));
+            bones.push((t, c, s, sc, bone));
+        }
+    }
+    let top = [Role::Neck, Role::Head, Role::Chest, Role::Spine];
+    let target_top = top.iter().find_map(|&r| rig.roles.get(r));
+    let source_top = top.iter().find_map(|&r| source_of(r));
+    let (mut upright_target, mut upright_source) = (Vec::new(), Vec::new());
 
     let joints = target.joints();
     let mut dropped = 0.0f32;
@@ -532,16 +586,42 @@ fn by_rotations(
             dropped = dropped.max(missed);
             world[t] = (parent * joints[t].pre_rotation * set).normalize();
         }
+        if let Some(feet) = &mut feet {
+            feet.push(foot_joints.iter().map(|&j| place(posed[j].translation)));
+        }
         let src = place(posed[source_pelvis].translation);
         let want = Vec3::new(
             src.x * scale,
             target_floor + (src.y - source_floor) * scale,
             src.z * scale,
         );
-        let at = rig.joint_world(&p)?[target_pelvis].translation;
+        let target_world = rig.joint_world(&p)?;
+        let at = target_world[target_pelvis].translation;
         rig.set_root_translation(&mut p, want - at)?;
+        let target_at = |j: usize| target_world[j].translation;
+        let source_at = |j: usize| place(posed[j].translation);
+        for (t, c, s, sc, bone) in &mut bones {
+            bone.record(
+                source_at(*sc) - source_at(*s),
+                target_at(*c) - target_at(*t),
+            );
+        }
+        if let (Some(tt), Some(st)) = (target_top, source_top) {
+            upright_target.push(upright(target_at(tt) - at));
+            upright_source.push(upright(source_at(st) - src));
+        }
         frames.push(p);
     }
+    let floor = match feet.and_then(|f| f.contact(motion.fps, source_leg)) {
+        Some((source_floor, contact)) if !own_skeleton => Some(on_the_floor(
+            rig,
+            base,
+            &mut frames,
+            &contact,
+            source_floor / unit,
+        )?),
+        _ => None,
+    };
     Ok(Retargeted {
         frames,
         fps: motion.fps,
@@ -552,7 +632,73 @@ fn by_rotations(
         unmatched_roles,
         scale,
         dropped_degrees: dropped.to_degrees(),
+        plausibility: Some(plausibility_of(
+            &upright_target,
+            &upright_source,
+            bones,
+            floor.as_ref(),
+            !own_skeleton && foot_joints.is_empty(),
+        )),
+        floor,
+        reference: Some(reference),
     })
+}
+
+/// Rule 6's checks ([`crate::plausibility`]), with the floor's finding: `no_ankles` where the
+/// body could not be placed on one.
+fn plausibility_of(
+    upright_target: &[bool],
+    upright_source: &[bool],
+    bones: Vec<(usize, usize, usize, usize, plausibility::Bone)>,
+    floor: Option<&FloorReport>,
+    no_ankles: bool,
+) -> Plausibility {
+    let bones: Vec<plausibility::Bone> = bones.into_iter().map(|b| b.4).collect();
+    let mut report = plausibility::check(upright_target, upright_source, &bones, floor);
+    if no_ankles {
+        report
+            .warnings
+            .push("the motion has no ankle joints: the body is not placed on the floor".into());
+    }
+    report
+}
+
+/// Rule 6 (crate::floor): shifts each frame's root vertically so that the target's lowest
+/// point is on its floor where the source's feet are down (`contact`), and measures what is
+/// left. `source_floor` is reported as given (the motion's units).
+fn on_the_floor(
+    rig: &Rig,
+    base: &RigParams,
+    frames: &mut [RigParams],
+    contact: &[bool],
+    source_floor: f32,
+) -> Result<FloorReport, MotionError> {
+    let sole = Sole::new(rig, base)?;
+    let lowest = frames
+        .iter()
+        .map(|p| sole.lowest(rig, p))
+        .collect::<Result<Vec<f32>, _>>()?;
+    let shift = shifts(&lowest, contact, sole.floor);
+    let mut report = FloorReport {
+        source_floor,
+        contact_frames: contact.iter().filter(|c| **c).count(),
+        frames: frames.len(),
+        ..FloorReport::default()
+    };
+    for (((p, s), &down), low) in frames.iter_mut().zip(&shift).zip(contact).zip(&lowest) {
+        let root = rig.root_translation(p);
+        rig.set_root_translation(p, root + Vec3::Y * *s)?;
+        // The root's translation moves every point alike.
+        let above = low + s - sole.floor;
+        if s.abs() > report.largest_shift_m.abs() {
+            report.largest_shift_m = *s;
+        }
+        report.largest_penetration_m = report.largest_penetration_m.max(-above);
+        if down {
+            report.largest_float_m = report.largest_float_m.max(above);
+        }
+    }
+    Ok(report)
 }
 
 #[cfg(test)]

@@ -15,7 +15,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 use f3g_motion::retarget::complete_by_topology;
-use f3g_motion::{Motion, RetargetOptions, read, retarget};
+use f3g_motion::{Motion, RestChoice, RetargetOptions, read, retarget};
 use f3g_rig::{Rig, Role, Roles};
 use glam::{EulerRot, Quat, Vec3};
 
@@ -73,6 +73,27 @@ fn depth_first(bones: &[Bone]) -> Vec<usize> {
 /// world-aligned: a bone's channels hold `parent_world⁻¹ · world`), rotation channels in
 /// `order` (e.g. "ZXY": `Zrotation Xrotation Yrotation`).
 fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
+    bvh_turned(
+        bones,
+        frames,
+        order,
+        &vec![Quat::IDENTITY; bones.len()],
+        &[],
+    )
+}
+
+/// [`bvh`] with each bone's rest frame turned by `turned[bone]` against the world: its
+/// children's offsets are written in the turned frame and its rotations carry the turn, so
+/// the frames pose the same positions while the file's rest (every rotation zero) lies as the
+/// turns make it (LAFAN1: every bone along +X). `moved[f]`, where given, moves the root from
+/// its rest position in frame `f`.
+fn bvh_turned(
+    bones: &[Bone],
+    frames: &[Vec<(String, Quat)>],
+    order: &str,
+    turned: &[Quat],
+    moved: &[Vec3],
+) -> String {
     let order_rot = match order {
         "ZXY" => EulerRot::ZXY,
         "XYZ" => EulerRot::XYZ,
@@ -86,11 +107,21 @@ fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
     let index = |name: &str| bones.iter().position(|b| b.0 == name).unwrap();
     let mut out = String::from("HIERARCHY\n");
     // Written recursively for the braces.
-    fn write(bones: &[Bone], at: usize, depth: usize, channels: &str, out: &mut String) {
+    fn write(
+        bones: &[Bone],
+        turned: &[Quat],
+        at: usize,
+        depth: usize,
+        channels: &str,
+        out: &mut String,
+    ) {
         let pad = "  ".repeat(depth);
         let (name, parent, head) = &bones[at];
         let offset = match parent {
-            Some(p) => *head - bones.iter().find(|b| &b.0 == p).unwrap().2,
+            Some(p) => {
+                let p = bones.iter().position(|b| &b.0 == p).unwrap();
+                turned[p].inverse() * (*head - bones[p].2)
+            }
             None => *head,
         };
         let kind = if parent.is_some() { "JOINT" } else { "ROOT" };
@@ -108,7 +139,7 @@ fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
             .filter(|&c| bones[c].1.as_deref() == Some(name.as_str()))
             .collect();
         for &c in &children {
-            write(bones, c, depth + 1, channels, out);
+            write(bones, turned, c, depth + 1, channels, out);
         }
         if children.is_empty() {
             let tip = offset.normalize_or_zero() * 0.3 * offset.length();
@@ -120,13 +151,13 @@ fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
         }
         let _ = writeln!(out, "{pad}}}");
     }
-    write(bones, seq[0], 0, &channels, &mut out);
+    write(bones, turned, seq[0], 0, &channels, &mut out);
     let _ = writeln!(
         out,
         "MOTION\nFrames: {}\nFrame Time: 0.033333",
         frames.len()
     );
-    for frame in frames {
+    for (f, frame) in frames.iter().enumerate() {
         let world = |j: usize| {
             frame
                 .iter()
@@ -144,10 +175,12 @@ fn bvh(bones: &[Bone], frames: &[Vec<(String, Quat)>], order: &str) -> String {
         for &j in &seq {
             let parent = bones[j].1.as_deref().map(index);
             if parent.is_none() {
-                // The root stands where it stands at rest (position channels are absolute).
-                values.extend(bones[j].2.to_array().map(|v| v.to_string()));
+                // Position channels are absolute.
+                let at = bones[j].2 + moved.get(f).copied().unwrap_or_default();
+                values.extend(at.to_array().map(|v| v.to_string()));
             }
-            let local = parent.map_or(Quat::IDENTITY, |p| worlds[p]).inverse() * worlds[j];
+            let world = |j: usize| worlds[j] * turned[j];
+            let local = parent.map_or(Quat::IDENTITY, world).inverse() * world(j);
             let (a, b, c) = local.as_dquat().to_euler(order_rot);
             values.extend([a, b, c].map(|v| format!("{:.6}", v.to_degrees())));
         }
@@ -543,7 +576,45 @@ fn converts(motion: &Motion, family: &str, roles: &[(Role, String)], bones: &Com
             "{family}: saved map, {role:?}"
         );
     }
+    on_the_floor(&rig, &r, family);
+    let warnings = &r.plausibility.as_ref().unwrap().warnings;
+    assert!(warnings.is_empty(), "{family}: {warnings:?}");
     worst_angle(motion, &rig, &r.frames, bones)
+}
+
+/// The human's mesh's lowest height at `p`.
+fn lowest_vertex(rig: &Rig, p: &f3g_rig::RigParams) -> f32 {
+    let posed = rig.pose(p).unwrap();
+    posed
+        .vertices
+        .iter()
+        .map(|v| v.y)
+        .fold(f32::INFINITY, f32::min)
+}
+
+/// The frames of [`poses`] whose legs stand as at rest (0, 1 and 4) have the human's soles on
+/// its floor (its lowest point at rest) within 1 cm, whatever the source's proportions; those
+/// with a thigh swung forward (2 and 3, the feet lifted) are not pushed through it.
+fn on_the_floor(rig: &Rig, r: &f3g_motion::Retargeted, family: &str) {
+    let floor = lowest_vertex(rig, &rig.zero_params());
+    let report = r.floor.as_ref().expect("a floor report");
+    assert_eq!(report.contact_frames, 3, "{family}: {report:?}");
+    for (f, p) in r.frames.iter().enumerate() {
+        let above = lowest_vertex(rig, p) - floor;
+        if [0, 1, 4].contains(&f) {
+            assert!(
+                above.abs() < 0.01,
+                "{family} frame {f}: the feet {:.1} cm above the floor",
+                100.0 * above
+            );
+        } else {
+            assert!(
+                above > -0.005,
+                "{family} frame {f}: {:.1} cm below the floor",
+                -100.0 * above
+            );
+        }
+    }
 }
 
 /// The arm and leg bones of both sides, compared source against target, for joint names made
@@ -835,4 +906,166 @@ fn cmu_asf_names_get_their_roles() {
     );
     let worst = converts(&motion, "cmu", &roles, &compared(&limb_bones(words, side)));
     eprintln!("cmu: limb bones within {worst:.2}°");
+}
+
+/// LAFAN1's layout (Ubisoft's animation dataset, from its BVH files): Y up, facing +Z,
+/// centimetres, the CMU/HumanIK names without a namespace, and a rest pose whose bones all lie
+/// along +X — each joint's frame turned so that its first child's offset is along its X, the
+/// frames' rotations standing the body up. Taken as the reference (the file's rest), it
+/// turned the human into a contorted body lying on its side; the first frame stands and is
+/// the reference instead.
+#[test]
+fn lafan1_rest_along_x_takes_a_standing_frame_as_its_reference() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones: Vec<Bone> = mixamo()
+        .into_iter()
+        .map(|(n, p, h)| {
+            let plain = |n: &str| n.trim_start_matches("mixamorig:").to_string();
+            (plain(&n), p.as_deref().map(plain), h)
+        })
+        .collect();
+    // Each joint's frame: X along its first child's bone, Z toward the body's left (+X here;
+    // forward, +Z, for bones along it), as LAFAN1's offsets lie: its hips' leg offsets are
+    // mostly along Z, so its rest is wider along Z than tall along Y.
+    let turned: Vec<Quat> = bones
+        .iter()
+        .map(|(name, _, head)| {
+            bones
+                .iter()
+                .find(|b| b.1.as_deref() == Some(name.as_str()))
+                .map_or(Quat::IDENTITY, |child| {
+                    let x = (child.2 - *head).normalize();
+                    let side = if x.x.abs() > 0.9 { Vec3::Z } else { Vec3::X };
+                    let z = (side - x * side.dot(x)).normalize();
+                    Quat::from_mat3(&glam::Mat3::from_cols(x, z.cross(x), z))
+                })
+        })
+        .collect();
+    let side = |w: &str, left: bool| format!("{}{w}", if left { "Left" } else { "Right" });
+    let words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
+    let frames = poses(&bones, words, side, "Hips", (Vec3::Y, Vec3::Z, Vec3::X));
+    let text = bvh_turned(&bones, &frames, "ZYX", &turned, &[]);
+    let mut motion = write_read(dir.path(), "lafan1.bvh", &text);
+    // The file's rest lies along X: its bones' offsets say nothing of up.
+    let rest = motion.skeleton.rest(None);
+    let hips = motion.skeleton.index_of("Hips").unwrap();
+    let head = motion.skeleton.index_of("Head").unwrap();
+    let trunk = (rest[head].translation - rest[hips].translation).normalize();
+    assert!(
+        trunk.x > 0.9,
+        "the fixture's rest trunk lies along X: {trunk}"
+    );
+    assert_eq!(
+        motion.up,
+        f3g_motion::Up::Z,
+        "read as LAFAN1's was: Z up by its rest"
+    );
+
+    let rig = builtin();
+    let on_file_rest = retarget(
+        &motion,
+        &rig,
+        &RetargetOptions {
+            rest: RestChoice::FileRest,
+            ..Default::default()
+        },
+        Path::new("lafan1.bvh"),
+    )
+    .unwrap();
+    let warnings = &on_file_rest.plausibility.as_ref().unwrap().warnings;
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("upright") || w.contains("points")),
+        "the file's rest as the reference is reported: {warnings:?}"
+    );
+
+    let r = retarget(
+        &motion,
+        &rig,
+        &RetargetOptions::default(),
+        Path::new("lafan1.bvh"),
+    )
+    .unwrap();
+    let reference = r.reference.clone().unwrap();
+    assert_eq!(
+        (reference.frame, reference.up),
+        (Some(0), f3g_motion::Up::Y)
+    );
+    // The test's own comparison reads the motion with the up axis found.
+    motion.up = reference.up;
+    let torso = ["Hips", "Spine", "Spine2", "Neck", "Head"];
+    let roles = expected(
+        torso,
+        ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
+        side,
+    );
+    let worst = converts(
+        &motion,
+        "lafan1",
+        &roles,
+        &compared(&limb_bones(words, side)),
+    );
+    eprintln!("lafan1: limb bones within {worst:.2}°");
+}
+
+/// A kneel (Mixamo's skeleton, centimetres): standing, then on both knees — thighs down, shins
+/// and feet back along the floor, the hips 49 cm lower. Rule 5 alone sank the human's knees
+/// into the floor (its shins are shorter for its legs than Mixamo's); with the floor rule the
+/// lowest point is on the floor in both frames, and no check complains.
+#[test]
+fn a_kneel_keeps_the_knees_on_the_floor() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = mixamo();
+    let n = |w: &str, left: bool| format!("mixamorig:{}{w}", if left { "Left" } else { "Right" });
+    let mut kneel = Vec::new();
+    for left in [true, false] {
+        kneel.push(aim(&bones, &n("Leg", left), &n("Foot", left), Vec3::NEG_Z));
+        kneel.push(aim(
+            &bones,
+            &n("Foot", left),
+            &n("ToeBase", left),
+            Vec3::NEG_Z,
+        ));
+    }
+    let frames = vec![Vec::new(), kneel];
+    let moved = [Vec3::ZERO, Vec3::new(0.0, -49.0, 0.0)];
+    let text = bvh_turned(
+        &bones,
+        &frames,
+        "ZXY",
+        &vec![Quat::IDENTITY; bones.len()],
+        &moved,
+    );
+    let motion = write_read(dir.path(), "kneel.bvh", &text);
+    let rig = builtin();
+    let r = retarget(
+        &motion,
+        &rig,
+        &RetargetOptions::default(),
+        Path::new("kneel.bvh"),
+    )
+    .unwrap();
+    let floor = lowest_vertex(&rig, &rig.zero_params());
+    for (f, p) in r.frames.iter().enumerate() {
+        let above = lowest_vertex(&rig, p) - floor;
+        assert!(
+            above.abs() < 0.01,
+            "frame {f}: {:.1} cm above the floor",
+            100.0 * above
+        );
+    }
+    let knee = rig.roles.get(Role::LeftKnee).unwrap();
+    let pelvis = rig.roles.get(Role::Pelvis).unwrap();
+    let kneeling = rig.joint_world(&r.frames[1]).unwrap();
+    assert!(
+        kneeling[knee].translation.y - floor < 0.12
+            && kneeling[pelvis].translation.y > kneeling[knee].translation.y + 0.3,
+        "the human kneels upright: knee {} pelvis {}",
+        kneeling[knee].translation,
+        kneeling[pelvis].translation
+    );
+    let report = r.plausibility.unwrap();
+    assert!(report.warnings.is_empty(), "{report:?}");
+    assert_eq!(r.floor.unwrap().contact_frames, 2);
 }
