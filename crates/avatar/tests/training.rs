@@ -623,6 +623,20 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
         .unwrap()
         .to_string();
     assert!(e.contains("already holds a run"), "{e}");
+    // So is a folder holding someone else's files, which stay as they were.
+    let theirs = dir.path().join("theirs");
+    std::fs::create_dir(&theirs).unwrap();
+    std::fs::write(theirs.join("log.jsonl"), "mine\n").unwrap();
+    let e = create(&theirs, &cap, tiny([1, 1, 0, 0, 0]))
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains("holds files and no run"), "{e}");
+    assert_eq!(std::fs::read_dir(&theirs).unwrap().count(), 1);
+    assert_eq!(
+        std::fs::read_to_string(theirs.join("log.jsonl")).unwrap(),
+        "mine\n"
+    );
     // A corrupted checkpoint names the file; the files stay as they were.
     let ckpt = run.join("checkpoints").join(
         std::fs::read_to_string(run.join("checkpoints/latest"))

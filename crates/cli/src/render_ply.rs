@@ -46,14 +46,15 @@ pub fn parse_rgb(text: &str) -> Result<[f32; 3], String> {
     let parts: Vec<&str> = text.split(',').map(str::trim).collect();
     let [r, g, b] = parts.as_slice() else {
         return Err(format!(
-            "expected three comma-separated numbers r,g,b, got `{text}`"
+            "expected three comma-separated numbers r,g,b, got {}",
+            f3g_io::quoted(text)
         ));
     };
     let mut out = [0.0; 3];
     for (o, p) in out.iter_mut().zip([r, g, b]) {
         *o = p
             .parse::<f32>()
-            .map_err(|_| format!("`{p}` is not a number"))?;
+            .map_err(|_| format!("{} is not a number", f3g_io::quoted(p)))?;
         if !(0.0..=1.0).contains(o) {
             return Err(format!("{o} is outside [0, 1]"));
         }

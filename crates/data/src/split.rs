@@ -33,7 +33,8 @@ impl std::str::FromStr for SplitKind {
             "novel-view" => Ok(Self::NovelView),
             "novel-pose" => Ok(Self::NovelPose),
             _ => Err(format!(
-                "unknown split `{s}`: expected train, novel-view or novel-pose"
+                "unknown split {}: expected train, novel-view or novel-pose",
+                f3g_io::quoted(s)
             )),
         }
     }
@@ -156,7 +157,7 @@ pub fn preset(
 
 /// Parses `A..B` (end exclusive) or a comma-separated list.
 pub fn parse_indices(text: &str, limit: usize, what: &str) -> Result<Vec<usize>, DataError> {
-    let bad = |m: String| DataError::Invalid(format!("{what} `{text}`: {m}"));
+    let bad = |m: String| DataError::Invalid(format!("{what} {}: {m}", f3g_io::quoted(text)));
     let out: Vec<usize> = if let Some((a, b)) = text.split_once("..") {
         let a: usize = if a.is_empty() {
             0
@@ -180,7 +181,7 @@ pub fn parse_indices(text: &str, limit: usize, what: &str) -> Result<Vec<usize>,
             .map(|s| {
                 s.trim()
                     .parse::<usize>()
-                    .map_err(|_| bad(format!("`{s}` is not an index")))
+                    .map_err(|_| bad(format!("{} is not an index", f3g_io::quoted(s))))
             })
             .collect::<Result<_, _>>()?
     };
@@ -282,5 +283,13 @@ mod tests {
         // Refused before the range is collected (this one would need 800 GB).
         let e = parse_indices("0..99999999999", 10, "frames").unwrap_err();
         assert!(e.to_string().contains("99999999999"), "{e}");
+        // A huge input is quoted briefly, with its length.
+        let long = "x".repeat(5_000_000);
+        let e = parse_indices(&long, 10, "frames").unwrap_err().to_string();
+        assert!(
+            e.len() < 600 && e.contains("5000000 bytes"),
+            "{}",
+            &e[..e.len().min(600)]
+        );
     }
 }

@@ -48,7 +48,7 @@ pub fn parse_obj(text: &str, path: &Path) -> Result<Mesh, RigError> {
                     .take(3)
                     .map(|w| {
                         w.parse::<f32>()
-                            .map_err(|_| err(n, format!("`{w}` is not a number")))
+                            .map_err(|_| err(n, format!("{} is not a number", f3g_io::quoted(w))))
                     })
                     .collect::<Result<_, _>>()?;
                 if xyz.len() != 3 || xyz.iter().any(|v| !v.is_finite()) {
@@ -63,7 +63,7 @@ pub fn parse_obj(text: &str, path: &Path) -> Result<Mesh, RigError> {
                             .next()
                             .unwrap_or("")
                             .parse::<i64>()
-                            .map_err(|_| err(n, format!("bad face index `{w}`")))
+                            .map_err(|_| err(n, format!("bad face index {}", f3g_io::quoted(w))))
                     })
                     .collect::<Result<_, _>>()?;
                 if idx.len() < 3 {

@@ -143,7 +143,10 @@ pub fn parse_model(
         Some((n, other)) => {
             return Err(err(
                 n,
-                format!("expected `Momentum Model Definition V1.0`, found `{other}`"),
+                format!(
+                    "expected `Momentum Model Definition V1.0`, found {}",
+                    f3g_io::quoted(other)
+                ),
             ));
         }
         None => {
@@ -176,7 +179,8 @@ pub fn parse_model(
                 let Some((lhs, rhs)) = line.split_once('=').filter(|(_, r)| !r.contains('='))
                 else {
                     warnings.push(format!(
-                        "line {n}: skipped, expected `joint.channel = expression`: {line}"
+                        "line {n}: skipped, expected `joint.channel = expression`: {}",
+                        f3g_io::quoted(line)
                     ));
                     continue;
                 };
@@ -224,10 +228,10 @@ pub fn parse_model(
 fn channel_row(text: &str, skeleton: &Skeleton) -> Result<usize, String> {
     let (joint, channel) = text
         .split_once('.')
-        .ok_or_else(|| format!("`{text}` is not `joint.channel`"))?;
+        .ok_or_else(|| format!("{} is not `joint.channel`", f3g_io::quoted(text)))?;
     let j = skeleton
         .index_of(joint.trim())
-        .ok_or_else(|| format!("unknown joint `{}`", joint.trim()))?;
+        .ok_or_else(|| format!("unknown joint {}", f3g_io::quoted(joint.trim())))?;
     let c = CHANNELS
         .iter()
         .position(|c| *c == channel.trim())
@@ -250,8 +254,13 @@ fn parse_expression(
     for term in rhs.split('+').map(str::trim).filter(|s| !s.is_empty()) {
         let factors: Vec<&str> = term.split('*').map(str::trim).collect();
         let number = |s: &str| {
-            s.parse::<f32>()
-                .map_err(|_| format!("`{s}` is not a number in term `{term}`"))
+            s.parse::<f32>().map_err(|_| {
+                format!(
+                    "{} is not a number in term {}",
+                    f3g_io::quoted(s),
+                    f3g_io::quoted(term)
+                )
+            })
         };
         match factors.as_slice() {
             [constant] => t.offsets[row] = number(constant)?,
@@ -274,7 +283,8 @@ fn parse_expression(
             }
             _ => {
                 return Err(format!(
-                    "malformed term `{term}`: expected `weight*parameter` or a number"
+                    "malformed term {}: expected `weight*parameter` or a number",
+                    f3g_io::quoted(term)
                 ));
             }
         }

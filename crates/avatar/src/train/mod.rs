@@ -143,7 +143,8 @@ pub struct Trainer {
 }
 
 impl Trainer {
-    /// Starts a new run in `run_dir` (which must not hold one) on the capture `data`, training
+    /// Starts a new run in `run_dir` (new or empty: a run's files have fixed names, which would
+    /// replace a user's `config.json` or `log.jsonl`) on the capture `data`, training
     /// on `devices` (with or without their autodiff flag: the trainer sets it); more than one
     /// device trains data-parallel (module docs).
     pub fn create(
@@ -161,6 +162,14 @@ impl Trainer {
             return Err(AvatarError::file(
                 run_dir,
                 "already holds a run: resume it with --resume, or choose another --out",
+            ));
+        }
+        if std::fs::read_dir(run_dir).is_ok_and(|mut entries| entries.next().is_some()) {
+            return Err(AvatarError::file(
+                run_dir,
+                "holds files and no run: a run is written into a new or empty folder (its \
+                 files would replace a config.json, log.jsonl or checkpoints/ there); choose \
+                 another --out",
             ));
         }
         let dataset = Arc::new(Dataset::open(data, model)?);
