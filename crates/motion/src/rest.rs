@@ -8,9 +8,10 @@
 //! **stands** when, with the up axis turned to +Y, the trunk (pelvis to neck) is within
 //! [`STANDING_DEGREES`] of +Y and each thigh and shin within it of −Y. Where it does not
 //! (`--rest auto`, the default), the reference is the motion's frame that stands best (the
-//! earliest within a degree of it), under whichever up axis (Y or Z) makes one stand; where none stands, the file's rest is kept and
-//! the plausibility checks report the result. `--rest file-rest` and `--rest first-frame`
-//! choose without checking (the first frame under the up axis that stands it better).
+//! earliest within a degree of it), under whichever up axis (Y or Z) makes one stand; where
+//! none stands, the file's rest is kept and the plausibility checks report the result.
+//! `--rest file-rest` and `--rest first-frame` choose without checking (the first frame under
+//! the up axis that stands it better).
 
 use std::str::FromStr;
 
@@ -191,15 +192,16 @@ pub fn reference_pose(
                         frame: Some(f),
                         up,
                         reason: Some(format!(
-                            "the file's rest pose does not stand (a trunk or leg bone {at_rest:.0}° \
-                             from vertical): frame {f} stands best ({w:.0}°), with {up:?} up"
+                            "the file's rest pose does not stand (a trunk or leg bone \
+                             {at_rest:.0}° from vertical): frame {f} stands best ({w:.0}°), \
+                             with {up:?} up"
                         )),
                     };
                     (motion.world(f), reference)
                 }
                 _ => file(Some(format!(
-                    "the file's rest pose does not stand ({at_rest:.0}° from vertical) and no frame \
-                     does: kept"
+                    "the file's rest pose does not stand ({at_rest:.0}° from vertical) and no \
+                     frame does: kept"
                 ))),
             }
         }

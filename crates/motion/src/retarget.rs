@@ -14,7 +14,9 @@
 //!    the built-in human's `root`, its pelvis: the motion's `pelvis` is), or the other way
 //!    round. The pelvis and both hips must correspond.
 //! 3. **Axes and units.** The source is scaled to metres, turned from its up axis to +Y and
-//!    turned about +Y so that its rest pose faces the target's (left hip to right hip).
+//!    turned about +Y so that its rest pose faces the target's (left hip to right hip). Its
+//!    "rest" here and below is its reference pose ([`crate::rest`]): the file's rest where the
+//!    body stands in it, else the motion's best standing frame, whose up axis is used.
 //! 4. **Rest-pose alignment.** Each corresponding joint's rotation is taken relative to its own
 //!    skeleton's rest pose: the target joint turns by the source joint's world rotation since
 //!    rest, after first turning its rest frame onto the source's — the whole body by its up
@@ -26,7 +28,7 @@
 //! 5. **Root.** The target's pelvis follows the source's, scaled by the ratio of leg lengths
 //!    (hip to knee to ankle at rest), its height measured from the lowest joint — the
 //!    target's at rest, the source's over the whole motion (where a foot is on the ground) —
-//!    so feet stay on the ground and strides fit the legs. The target's own skeleton (every
+//!    so strides fit the legs (rule 6 puts the feet on the floor). The target's own skeleton (every
 //!    joint by name, in place) carries its root over unchanged.
 //! 6. **Floor.** Where the source's feet touch its floor, the target's lowest point is put on
 //!    the target's floor by a vertical shift of the root, interpolated between contacts
@@ -644,8 +646,8 @@ fn by_rotations(
     })
 }
 
-/// Rule 6's checks ([`crate::plausibility`]), with the floor's finding: `no_ankles` where the
-/// body could not be placed on one.
+/// The plausibility checks ([`crate::plausibility`]), with one more finding: `no_ankles` where
+/// the body could not be placed on a floor.
 fn plausibility_of(
     upright_target: &[bool],
     upright_source: &[bool],
