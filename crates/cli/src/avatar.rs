@@ -466,6 +466,10 @@ pub struct AnimateArgs {
     /// Feed poses as they are, without the pose-PCA projection.
     #[arg(long)]
     pub no_pca: bool,
+    /// Leave out the floor (a chequered plane at the body's lowest point over the motion,
+    /// hiding what goes below it).
+    #[arg(long)]
+    pub no_floor: bool,
     #[command(flatten)]
     pub device: DeviceArg,
 }
@@ -516,6 +520,7 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
         fps: a.fps,
         use_pca: !a.no_pca,
         background: [1.0; 3],
+        floor: !a.no_floor,
     };
     let bar = ProgressBar::new(motion.len() as u64).with_style(ProgressStyle::with_template(
         "{bar:30} {pos}/{len} frames [{elapsed} < {eta}]",

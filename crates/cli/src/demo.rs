@@ -191,6 +191,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         elevation: 5.0,
         fps: 8.0,
         no_pca: false,
+        no_floor: false,
         device,
     })?;
     println!("5/5 avatar file and browser player");

@@ -140,6 +140,10 @@ fn train_resume_evaluate_animate_and_export() {
     assert!(d.join("anim/animation.gif").exists());
     let frame = f3g_io::read_rgb(&d.join("anim/frames/frame_00004.png")).unwrap();
     assert_eq!((frame.width, frame.height), (48, 64));
+    // The bottom corners see the floor (a grey of its chequer), or the white background
+    // without it.
+    let corner = |img: &f3g_io::Image| img.data[3 * (63 * 48)];
+    assert!(corner(&frame) < 0.95, "no floor: {}", corner(&frame));
     let cloud = f3g_splat::ply::read_ply(&d.join("anim/ply/frame_00004.ply")).unwrap();
 
     // The run folder works from anywhere: moved, it animates and exports as before. Into the
@@ -169,6 +173,9 @@ fn train_resume_evaluate_animate_and_export() {
         args.extend_from_slice(extra);
         f3g(d, &args)
     };
+    ok(&animate_moved("bare", &["--no-floor"]));
+    let bare = f3g_io::read_rgb(&d.join("bare/frames/frame_00004.png")).unwrap();
+    assert_eq!(corner(&bare), 1.0);
     ok(&animate_moved("anim", &[]));
     assert!(!d.join("anim/ply").exists());
     assert!(d.join("anim/frames/frame_00004.png").exists());

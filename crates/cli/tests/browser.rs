@@ -224,6 +224,8 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
                 "cam.json",
                 "--out",
                 k,
+                // The player's `?bare` picture has no floor.
+                "--no-floor",
             ],
         ));
         let (psnr, pixels) = avatar_psnr(&shot, &d.join(format!("{k}/frames/frame_00003.png")));

@@ -38,6 +38,9 @@ pub struct AnimateOptions {
     /// Project poses onto the training poses' principal components (unseen poses).
     pub use_pca: bool,
     pub background: [f32; 3],
+    /// Draw a floor (a chequered plane at the body's lowest point over the motion), hiding
+    /// what goes below it: feet that float or sink show.
+    pub floor: bool,
 }
 
 /// What was written.
@@ -168,6 +171,10 @@ pub fn animate(
     let start = std::time::Instant::now();
     let mut images = Vec::new();
     let mut plys = Vec::new();
+    let floor = match options.floor {
+        true => Some(lowest_point(avatar.rig(), motion)?),
+        false => None,
+    };
     for (i, params) in motion.iter().enumerate() {
         let camera = match &options.camera {
             CameraPath::Fixed(c) => c.clone(),
@@ -191,7 +198,15 @@ pub fn animate(
                 )
             }
         };
-        let img = avatar.render(params, &camera, options.background, options.use_pca)?;
+        let img = match floor {
+            Some(height) => over_floor(
+                &avatar.render_layers(params, &camera, options.use_pca)?,
+                &camera,
+                height,
+                options.background,
+            ),
+            None => avatar.render(params, &camera, options.background, options.use_pca)?,
+        };
         f3g_io::write_png(&out.file(&format!("frames/frame_{i:05}.png"))?, &img)?;
         if options.export_ply {
             let cloud = avatar.posed_cloud(params, &camera, options.use_pca)?;
@@ -211,6 +226,98 @@ pub fn animate(
         plys,
         seconds_per_frame: start.elapsed().as_secs_f64() / motion.len().max(1) as f64,
     })
+}
+
+/// The body's lowest point over `motion`: where its feet stand (retargeted motions put the
+/// lowest point on the floor where the source's feet touch its own, docs/motions.md).
+fn lowest_point(rig: &Rig, motion: &[RigParams]) -> Result<f32, AvatarError> {
+    let mut lowest = f32::INFINITY;
+    for p in motion {
+        let posed = rig.pose(p)?;
+        lowest = posed.vertices.iter().map(|v| v.y).fold(lowest, f32::min);
+    }
+    Ok(lowest)
+}
+
+/// The floor's chequer (metres per square) and its two greys.
+const FLOOR_SQUARE: f64 = 0.5;
+const FLOOR_GREYS: [f32; 2] = [0.90, 0.82];
+/// Distance (metres) over which the floor fades into the background, so its far edge does
+/// not alias.
+const FLOOR_FADE: f64 = 12.0;
+
+/// `layers` composited over a chequered floor at height `floor` (+Y up), seen by `camera`,
+/// and `background` above its horizon: the floor hides what lies behind it (below it, seen
+/// from above), so a sinking foot is cut and a floating one shows its gap. Each pixel's floor
+/// colour averages 2×2 samples (the chequer's edges).
+pub fn over_floor(
+    layers: &super::eval::Layers,
+    camera: &Camera,
+    floor: f32,
+    background: [f32; 3],
+) -> Image {
+    let (w, h) = (layers.color.width, layers.color.height);
+    let r = camera.r;
+    // Camera centre and world direction of a camera-space ray (x, y, 1).
+    let centre: [f64; 3] =
+        std::array::from_fn(|i| -(0..3).map(|k| r[k][i] * camera.t[k]).sum::<f64>());
+    let to_world = |d: [f64; 3]| -> [f64; 3] {
+        std::array::from_fn(|i| (0..3).map(|k| r[k][i] * d[k]).sum::<f64>())
+    };
+    let (fx, fy, cx, cy) = (
+        camera.k[0][0],
+        camera.k[1][1],
+        camera.k[0][2],
+        camera.k[1][2],
+    );
+    let mut out = layers.color.clone();
+    for y in 0..h {
+        for x in 0..w {
+            // The floor along this pixel: its depth at the centre and its mean colour.
+            let mut depth = f64::INFINITY;
+            let mut colour = [0.0f32; 3];
+            for (sx, sy) in [
+                (0.25, 0.25),
+                (0.75, 0.25),
+                (0.25, 0.75),
+                (0.75, 0.75),
+                (0.5, 0.5),
+            ] {
+                let d = [(x as f64 + sx - cx) / fx, (y as f64 + sy - cy) / fy, 1.0];
+                let dw = to_world(d);
+                let s = (floor as f64 - centre[1]) / dw[1];
+                let sample = if s > 0.0 && dw[1].abs() > 1e-9 {
+                    let (px, pz) = (centre[0] + s * dw[0], centre[2] + s * dw[2]);
+                    let square = ((px / FLOOR_SQUARE).floor() + (pz / FLOOR_SQUARE).floor()) as i64;
+                    let grey = FLOOR_GREYS[square.rem_euclid(2) as usize];
+                    let distance = ((px - centre[0]).powi(2) + (pz - centre[2]).powi(2)).sqrt();
+                    let fade = (-distance / FLOOR_FADE).exp() as f32;
+                    if (sx, sy) == (0.5, 0.5) {
+                        depth = s;
+                    }
+                    background.map(|b| b + (grey - b) * fade)
+                } else {
+                    background
+                };
+                if (sx, sy) != (0.5, 0.5) {
+                    for c in 0..3 {
+                        colour[c] += 0.25 * sample[c];
+                    }
+                }
+            }
+            let i = y * w + x;
+            let pixel = &mut out.data[3 * i..3 * i + 3];
+            if (depth as f32) < layers.depth[i] {
+                pixel.copy_from_slice(&colour);
+            } else {
+                let a = layers.alpha[i];
+                for c in 0..3 {
+                    pixel[c] += (1.0 - a) * colour[c];
+                }
+            }
+        }
+    }
+    out
 }
 
 /// Writes frames as a looping animated GIF, atomically.
@@ -241,4 +348,49 @@ pub fn write_gif(path: &Path, frames: &[Image], fps: f32) -> Result<(), AvatarEr
         }
     }
     Ok(f3g_io::write_atomic(path, &bytes)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::infer::eval::Layers;
+
+    /// 32² layers of one grey `value` at `depth` and `alpha` everywhere.
+    fn layers(value: f32, alpha: f32, depth: f32) -> Layers {
+        Layers {
+            color: Image::from_vec(32, 32, 3, vec![value * alpha; 32 * 32 * 3]).unwrap(),
+            alpha: vec![alpha; 32 * 32],
+            depth: vec![depth; 32 * 32],
+        }
+    }
+
+    #[test]
+    fn the_floor_hides_what_lies_behind_it_and_shows_under_what_is_transparent() {
+        // 1 m above the floor (y = 0), looking down at it 3 m ahead: the bottom rows see the
+        // floor about 3 m away, the top rows the sky.
+        let camera = Camera::look_at(
+            [0.0, 1.0, 3.0],
+            [0.0, 0.5, 0.0],
+            [0.0, 1.0, 0.0],
+            32.0,
+            32,
+            32,
+        );
+        let pixel = |img: &Image, x: usize, y: usize| img.data[3 * (y * 32 + x)];
+        let sky = [1.0; 3];
+        // Nothing drawn: the floor below, the background above.
+        let bare = over_floor(&layers(0.0, 0.0, f32::INFINITY), &camera, 0.0, sky);
+        let floor = pixel(&bare, 16, 31);
+        assert!((0.8..0.95).contains(&floor), "floor grey {floor}");
+        assert_eq!(pixel(&bare, 16, 0), 1.0);
+        // An opaque body 100 m away is behind the floor where the floor is, in the sky else.
+        let far = over_floor(&layers(0.2, 1.0, 100.0), &camera, 0.0, sky);
+        assert_eq!(pixel(&far, 16, 31), floor);
+        assert_eq!(pixel(&far, 16, 0), 0.2);
+        // One 0.5 m away is in front of it everywhere; a half-transparent one lets it through.
+        let near = over_floor(&layers(0.2, 1.0, 0.5), &camera, 0.0, sky);
+        assert_eq!(pixel(&near, 16, 31), 0.2);
+        let half = over_floor(&layers(0.2, 0.5, 0.5), &camera, 0.0, sky);
+        assert!((pixel(&half, 16, 31) - (0.1 + 0.5 * floor)).abs() < 1e-6);
+    }
 }

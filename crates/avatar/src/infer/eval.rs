@@ -287,6 +287,31 @@ fn ensure_memory(
     )?)
 }
 
+/// A render's layers, for compositing over a scene (animate's floor): the colour over black
+/// (so premultiplied by coverage), the coverage `1 − T` and the mean camera-space depth along
+/// each pixel's ray (`Σ zᵢαᵢTᵢ / α`; infinite where nothing is drawn), row-major.
+pub struct Layers {
+    pub color: Image,
+    pub alpha: Vec<f32>,
+    pub depth: Vec<f32>,
+}
+
+impl Layers {
+    /// From a renderer's outputs: the depth it accumulates weighted by coverage, divided out.
+    pub fn new(color: Image, alpha: Vec<f32>, weighted_depth: Vec<f32>) -> Self {
+        let depth = weighted_depth
+            .iter()
+            .zip(&alpha)
+            .map(|(d, a)| if *a > 1e-4 { d / a } else { f32::INFINITY })
+            .collect();
+        Self {
+            color,
+            alpha,
+            depth,
+        }
+    }
+}
+
 /// What evaluation needs of an avatar: the trained networks ([`TrainedAvatar`]) or a baked
 /// avatar file ([`super::bake::BakedAvatar`]).
 pub trait EvalAvatar {
@@ -299,6 +324,13 @@ pub trait EvalAvatar {
         background: [f32; 3],
         unseen: bool,
     ) -> Result<Image, AvatarError>;
+    /// [`Self::render`]'s layers instead of a picture over a background.
+    fn render_layers(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        unseen: bool,
+    ) -> Result<Layers, AvatarError>;
     fn gaussian_count(&self) -> usize;
     /// Rig vertices of the head (head crops) and the crops' padding.
     fn head_vertices(&self) -> &[usize];
@@ -340,6 +372,14 @@ impl EvalAvatar for TrainedAvatar {
     ) -> Result<Image, AvatarError> {
         TrainedAvatar::render(self, params, camera, background, unseen)
     }
+    fn render_layers(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        unseen: bool,
+    ) -> Result<Layers, AvatarError> {
+        TrainedAvatar::render_layers(self, params, camera, unseen)
+    }
     fn gaussian_count(&self) -> usize {
         TrainedAvatar::gaussian_count(self)
     }
@@ -380,6 +420,14 @@ impl EvalAvatar for super::bake::BakedAvatar {
         _unseen: bool,
     ) -> Result<Image, AvatarError> {
         super::bake::BakedAvatar::render(self, params, camera, background)
+    }
+    fn render_layers(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        _unseen: bool,
+    ) -> Result<Layers, AvatarError> {
+        super::bake::BakedAvatar::render_layers(self, params, camera)
     }
     fn gaussian_count(&self) -> usize {
         self.len()

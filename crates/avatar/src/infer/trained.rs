@@ -182,6 +182,22 @@ impl TrainedAvatar {
         Ok(tensor_to_image(out.color))
     }
 
+    /// [`Self::render`]'s layers (colour over black, coverage, depth) for compositing.
+    pub fn render_layers(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+        use_pca: bool,
+    ) -> Result<super::eval::Layers, AvatarError> {
+        let (c, skinning) = self.canonical_for(params, camera, use_pca)?;
+        let out = render_posed(&c, &skinning, camera, [0.0; 3], &self.device)?;
+        Ok(super::eval::Layers::new(
+            tensor_to_image(out.color),
+            host_values(out.alpha),
+            host_values(out.depth),
+        ))
+    }
+
     /// The posed Gaussians of a frame with their colour as seen from `camera` (SH degree 0,
     /// zero-padded to the degree-3 layout that every 3DGS tool reads), for the per-frame `.ply`
     /// files of an animation; [`super::export::export_cloud`] keeps the view dependence.

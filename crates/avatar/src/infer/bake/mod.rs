@@ -315,6 +315,25 @@ impl BakedAvatar {
             .map_err(AvatarError::Invalid)
     }
 
+    /// [`Self::render`]'s layers (colour over black, coverage, depth) for compositing.
+    pub fn render_layers(
+        &self,
+        params: &RigParams,
+        camera: &Camera,
+    ) -> Result<super::eval::Layers, AvatarError> {
+        let cloud = self.posed(params)?;
+        let out = f3g_splat::cpu::render(
+            &cloud.slices(),
+            camera,
+            [0.0; 3],
+            &f3g_splat::RenderOptions::default(),
+        )?;
+        let color =
+            f3g_io::Image::from_vec(camera.width as usize, camera.height as usize, 3, out.color)
+                .map_err(AvatarError::Invalid)?;
+        Ok(super::eval::Layers::new(color, out.alpha, out.depth))
+    }
+
     /// Bakes `avatar` over the pose samples drawn from `poses` (module docs): samples the
     /// poses, takes the networks' outputs at each, their PCA, the ridge map from the pose
     /// features to the corrective weights, the expressions and four skin influences.
