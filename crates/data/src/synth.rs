@@ -382,14 +382,8 @@ pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<()
     let Some(first) = frames.first() else {
         return Ok(());
     };
-    let lowest = |params: &RigParams| -> Result<f32, DataError> {
-        Ok(rig
-            .pose(params)?
-            .vertices
-            .iter()
-            .map(|v| v.y)
-            .fold(f32::INFINITY, f32::min))
-    };
+    let lowest =
+        |params: &RigParams| -> Result<f32, DataError> { Ok(rig.pose(params)?.bounds().0.y) };
     let rest = rig.zero_params();
     let (root, rest_root) = (
         rig.joint_world(first)?[0].translation,

@@ -26,6 +26,10 @@ use crate::{Motion, Up};
 /// forward lean of a capture's rest).
 pub const STANDING_DEGREES: f32 = 35.0;
 
+/// The trunk's top joint, the first of these roles a skeleton has: the trunk (pelvis to it)
+/// gives a body's up.
+pub const TRUNK_TOP: [Role; 4] = [Role::Neck, Role::Head, Role::Chest, Role::Spine];
+
 /// At most this many frames are tried for the best standing one (evenly spaced).
 const FRAMES_TRIED: usize = 2000;
 
@@ -79,9 +83,7 @@ pub struct StandingJoints {
 impl StandingJoints {
     /// From the source's joint of each role; `None` without a pelvis and a trunk top.
     pub fn new(joint: impl Fn(Role) -> Option<usize>) -> Option<Self> {
-        let top = [Role::Neck, Role::Head, Role::Chest, Role::Spine]
-            .into_iter()
-            .find_map(&joint)?;
+        let top = TRUNK_TOP.into_iter().find_map(&joint)?;
         let legs = [
             [Role::LeftHip, Role::LeftKnee, Role::LeftAnkle],
             [Role::RightHip, Role::RightKnee, Role::RightAnkle],

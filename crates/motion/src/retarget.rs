@@ -47,7 +47,7 @@ use f3g_rig::{Rig, RigParams, Role, RoleMap, Roles};
 
 use crate::floor::{FloorReport, Sole, SourceFeet, shifts};
 use crate::plausibility::{self, Plausibility, upright};
-use crate::rest::{Reference, RestChoice, StandingJoints, reference_pose, up_to_y};
+use crate::rest::{Reference, RestChoice, StandingJoints, TRUNK_TOP, reference_pose, up_to_y};
 use crate::{Motion, MotionError};
 
 /// What retargeting needs beyond the motion and the body model.
@@ -454,9 +454,7 @@ fn by_rotations(
     let target_positions: Vec<Vec3> = target_rest.iter().map(|s| s.translation).collect();
     let body = |joint: &dyn Fn(Role) -> Option<usize>, at: &[Vec3]| -> Option<Quat> {
         let pelvis = at[joint(Role::Pelvis)?];
-        let top = [Role::Neck, Role::Head, Role::Chest, Role::Spine]
-            .into_iter()
-            .find_map(joint)?;
+        let top = TRUNK_TOP.into_iter().find_map(joint)?;
         let up = (at[top] - pelvis).normalize_or_zero();
         let left = at[joint(Role::LeftHip)?] - at[joint(Role::RightHip)?];
         let left = (left - up * left.dot(up)).normalize_or_zero();
@@ -536,7 +534,9 @@ fn by_rotations(
     let source_pelvis = pair[target_pelvis].unwrap_or(0);
 
     // The plausibility checks' bones (each limb bone with both ends corresponding) and trunks.
-    let mut bones: Vec<(usize, usize, usize, usize, plausibility::Bone)> = Vec::new();
+    // Each bone's joints: target from, target to, source from, source to.
+    let mut bone_ends: Vec<[usize; 4]> = Vec::new();
+    let mut bones: Vec<plausibility::Bone> = Vec::new();
     for t in 0..target.len() {
         let Some(s) = pair[t] else { continue };
         let ends = target_role[t].map_or(&[][..], bone_end);
@@ -548,12 +548,12 @@ fn by_rotations(
                 format!("{} → {}", names.joints()[a].name, names.joints()[b].name)
             };
             let bone = plausibility::Bone::new(name(target, t, c), name(source, s, sc));
-            bones.push((t, c, s, sc, bone));
+            bone_ends.push([t, c, s, sc]);
+            bones.push(bone);
         }
     }
-    let top = [Role::Neck, Role::Head, Role::Chest, Role::Spine];
-    let target_top = top.iter().find_map(|&r| rig.roles.get(r));
-    let source_top = top.iter().find_map(|&r| source_of(r));
+    let target_top = TRUNK_TOP.iter().find_map(|&r| rig.roles.get(r));
+    let source_top = TRUNK_TOP.iter().find_map(|&r| source_of(r));
     let (mut upright_target, mut upright_source) = (Vec::new(), Vec::new());
 
     let joints = target.joints();
@@ -602,7 +602,7 @@ fn by_rotations(
         rig.set_root_translation(&mut p, want - at)?;
         let target_at = |j: usize| target_world[j].translation;
         let source_at = |j: usize| place(posed[j].translation);
-        for (t, c, s, sc, bone) in &mut bones {
+        for ([t, c, s, sc], bone) in bone_ends.iter().zip(&mut bones) {
             bone.record(
                 source_at(*sc) - source_at(*s),
                 target_at(*c) - target_at(*t),
@@ -637,7 +637,7 @@ fn by_rotations(
         plausibility: Some(plausibility_of(
             &upright_target,
             &upright_source,
-            bones,
+            &bones,
             floor.as_ref(),
             !own_skeleton && foot_joints.is_empty(),
         )),
@@ -651,12 +651,11 @@ fn by_rotations(
 fn plausibility_of(
     upright_target: &[bool],
     upright_source: &[bool],
-    bones: Vec<(usize, usize, usize, usize, plausibility::Bone)>,
+    bones: &[plausibility::Bone],
     floor: Option<&FloorReport>,
     no_ankles: bool,
 ) -> Plausibility {
-    let bones: Vec<plausibility::Bone> = bones.into_iter().map(|b| b.4).collect();
-    let mut report = plausibility::check(upright_target, upright_source, &bones, floor);
+    let mut report = plausibility::check(upright_target, upright_source, bones, floor);
     if no_ankles {
         report
             .warnings

@@ -584,12 +584,7 @@ fn converts(motion: &Motion, family: &str, roles: &[(Role, String)], bones: &Com
 
 /// The human's mesh's lowest height at `p`.
 fn lowest_vertex(rig: &Rig, p: &f3g_rig::RigParams) -> f32 {
-    let posed = rig.pose(p).unwrap();
-    posed
-        .vertices
-        .iter()
-        .map(|v| v.y)
-        .fold(f32::INFINITY, f32::min)
+    rig.pose(p).unwrap().bounds().0.y
 }
 
 /// The frames of [`poses`] whose legs stand as at rest (0, 1 and 4) have the human's soles on

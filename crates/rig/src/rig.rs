@@ -87,6 +87,18 @@ pub struct Posed {
     pub skinning: Vec<Affine3A>,
 }
 
+impl Posed {
+    /// The posed mesh's axis-aligned bounds, `(min, max)`: its lowest point (`min.y`) is where
+    /// it stands.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.vertices
+            .iter()
+            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), v| {
+                (lo.min(*v), hi.max(*v))
+            })
+    }
+}
+
 impl Rig {
     /// Number of pose parameters.
     pub fn num_pose_params(&self) -> usize {

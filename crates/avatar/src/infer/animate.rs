@@ -171,10 +171,20 @@ pub fn animate(
     let start = std::time::Instant::now();
     let mut images = Vec::new();
     let mut plys = Vec::new();
-    let floor = match options.floor {
-        true => Some(lowest_point(avatar.rig(), motion)?),
-        false => None,
+    // The posed mesh's bounds of every frame, posed once for what needs them: the orbit
+    // camera's centre, the floor (the lowest point over the motion: where the feet stand,
+    // retargeted motions putting it on the floor where the source's feet touch theirs).
+    let orbit = matches!(options.camera, CameraPath::Orbit { .. });
+    let bounds = match orbit || options.floor {
+        true => motion
+            .iter()
+            .map(|p| Ok(avatar.rig().pose(p)?.bounds()))
+            .collect::<Result<Vec<_>, AvatarError>>()?,
+        false => Vec::new(),
     };
+    let floor = options
+        .floor
+        .then(|| bounds.iter().map(|b| b.0.y).fold(f32::INFINITY, f32::min));
     for (i, params) in motion.iter().enumerate() {
         let camera = match &options.camera {
             CameraPath::Fixed(c) => c.clone(),
@@ -182,11 +192,7 @@ pub fn animate(
                 turns,
                 elevation_deg,
             } => {
-                let posed = avatar.rig().pose(params)?;
-                let (lo, hi) = posed
-                    .vertices
-                    .iter()
-                    .fold((Vec3::MAX, Vec3::MIN), |(l, h), v| (l.min(*v), h.max(*v)));
+                let (lo, hi) = bounds[i];
                 orbit_camera(
                     0.5 * (lo + hi),
                     i,
@@ -228,17 +234,6 @@ pub fn animate(
     })
 }
 
-/// The body's lowest point over `motion`: where its feet stand (retargeted motions put the
-/// lowest point on the floor where the source's feet touch its own, docs/motions.md).
-fn lowest_point(rig: &Rig, motion: &[RigParams]) -> Result<f32, AvatarError> {
-    let mut lowest = f32::INFINITY;
-    for p in motion {
-        let posed = rig.pose(p)?;
-        lowest = posed.vertices.iter().map(|v| v.y).fold(lowest, f32::min);
-    }
-    Ok(lowest)
-}
-
 /// The floor's chequer (metres per square) and its two greys.
 const FLOOR_SQUARE: f64 = 0.5;
 const FLOOR_GREYS: [f32; 2] = [0.90, 0.82];
@@ -270,39 +265,32 @@ pub fn over_floor(
         camera.k[0][2],
         camera.k[1][2],
     );
+    // The floor along the ray through image point (u, v): its depth and colour.
+    let floor_at = |u: f64, v: f64| -> Option<(f64, [f32; 3])> {
+        let dw = to_world([(u - cx) / fx, (v - cy) / fy, 1.0]);
+        let s = (floor as f64 - centre[1]) / dw[1];
+        if !(s > 0.0 && dw[1].abs() > 1e-9) {
+            return None;
+        }
+        let (px, pz) = (centre[0] + s * dw[0], centre[2] + s * dw[2]);
+        let square = ((px / FLOOR_SQUARE).floor() + (pz / FLOOR_SQUARE).floor()) as i64;
+        let grey = FLOOR_GREYS[square.rem_euclid(2) as usize];
+        let distance = ((px - centre[0]).powi(2) + (pz - centre[2]).powi(2)).sqrt();
+        let fade = (-distance / FLOOR_FADE).exp() as f32;
+        Some((s, background.map(|b| b + (grey - b) * fade)))
+    };
     let mut out = layers.color.clone();
     for y in 0..h {
         for x in 0..w {
-            // The floor along this pixel: its depth at the centre and its mean colour.
-            let mut depth = f64::INFINITY;
+            let (u, v) = (x as f64, y as f64);
+            // Depth at the pixel's centre, colour the mean of 2×2 samples (the background
+            // where a sample misses the floor).
+            let depth = floor_at(u + 0.5, v + 0.5).map_or(f64::INFINITY, |(d, _)| d);
             let mut colour = [0.0f32; 3];
-            for (sx, sy) in [
-                (0.25, 0.25),
-                (0.75, 0.25),
-                (0.25, 0.75),
-                (0.75, 0.75),
-                (0.5, 0.5),
-            ] {
-                let d = [(x as f64 + sx - cx) / fx, (y as f64 + sy - cy) / fy, 1.0];
-                let dw = to_world(d);
-                let s = (floor as f64 - centre[1]) / dw[1];
-                let sample = if s > 0.0 && dw[1].abs() > 1e-9 {
-                    let (px, pz) = (centre[0] + s * dw[0], centre[2] + s * dw[2]);
-                    let square = ((px / FLOOR_SQUARE).floor() + (pz / FLOOR_SQUARE).floor()) as i64;
-                    let grey = FLOOR_GREYS[square.rem_euclid(2) as usize];
-                    let distance = ((px - centre[0]).powi(2) + (pz - centre[2]).powi(2)).sqrt();
-                    let fade = (-distance / FLOOR_FADE).exp() as f32;
-                    if (sx, sy) == (0.5, 0.5) {
-                        depth = s;
-                    }
-                    background.map(|b| b + (grey - b) * fade)
-                } else {
-                    background
-                };
-                if (sx, sy) != (0.5, 0.5) {
-                    for c in 0..3 {
-                        colour[c] += 0.25 * sample[c];
-                    }
+            for (su, sv) in [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)] {
+                let sample = floor_at(u + su, v + sv).map_or(background, |(_, c)| c);
+                for c in 0..3 {
+                    colour[c] += 0.25 * sample[c];
                 }
             }
             let i = y * w + x;
