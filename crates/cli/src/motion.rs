@@ -113,6 +113,10 @@ pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
         }
     }
     text += ")";
+    if r.roles_from == f3g_motion::retarget::RolesFrom::Shape {
+        text += "\n  roles: from the skeleton's shape (its joint names give no hip; check the \
+                 contact sheet, or name them with --joint-map)";
+    }
     if let Some(reason) = r.reference.as_ref().and_then(|f| f.reason.as_ref()) {
         text += &format!("\n  reference pose: {reason}");
     }

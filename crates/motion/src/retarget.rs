@@ -79,6 +79,16 @@ pub struct Correspondence {
     pub by: Matched,
 }
 
+/// Where the source's roles came from (rule 2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RolesFrom {
+    /// The joint names (completed from the skeleton's shape), or the same family.
+    Names,
+    /// The skeleton's shape alone ([`Roles::from_shape`]): the names give no hip.
+    Shape,
+}
+
 /// A retargeted motion and how it was made.
 #[derive(Clone, Debug, Serialize)]
 pub struct Retargeted {
@@ -90,6 +100,8 @@ pub struct Retargeted {
     pub correspondence: Vec<Correspondence>,
     /// The source's roles, as a `--joint-map` file holds them.
     pub source_roles: RoleMap,
+    /// Where the source's roles came from.
+    pub roles_from: RolesFrom,
     /// Source joints that drive nothing.
     pub unmatched_source: Vec<String>,
     /// Roles of the target with no source joint, each with the motion's unmatched joints
@@ -208,6 +220,7 @@ fn same_family(
             })
             .collect(),
         source_roles: RoleMap::default(),
+        roles_from: RolesFrom::Names,
         unmatched_source: Vec::new(),
         unmatched_roles: Vec::new(),
         scale: 1.0,
@@ -254,6 +267,33 @@ fn leg_length(joint: impl Fn(Role) -> Option<usize>, rest: &[Vec3], floor: f32) 
 /// `spine.004` to `spine.006`).
 pub fn complete_by_topology(skeleton: &f3g_rig::Skeleton, roles: Roles) -> Roles {
     roles.completed(skeleton)
+}
+
+/// The source's roles (rule 2): from its names, completed from its shape; where the names
+/// give neither hip, from its shape alone ([`Roles::from_shape`], in the motion's first
+/// frame), with what the names do give put over them. The third value says why the shape gave
+/// none, when it was tried and failed.
+fn source_roles(motion: &Motion) -> (Roles, RolesFrom, Option<String>) {
+    let source = &motion.skeleton;
+    let named = Roles::infer(source);
+    if named.get(Role::LeftHip).is_some() || named.get(Role::RightHip).is_some() {
+        return (complete_by_topology(source, named), RolesFrom::Names, None);
+    }
+    match Roles::from_shape(source, &motion.positions(0)) {
+        Ok(shape) => {
+            let taken: Vec<usize> = shape.iter().map(|(_, j)| j).collect();
+            let extra = named
+                .iter()
+                .filter(|(r, j)| shape.get(*r).is_none() && !taken.contains(j));
+            let roles = Roles::from_pairs(shape.iter().chain(extra));
+            (complete_by_topology(source, roles), RolesFrom::Shape, None)
+        }
+        Err(e) => (
+            complete_by_topology(source, named),
+            RolesFrom::Names,
+            Some(e),
+        ),
+    }
 }
 
 /// Up to three of `names` closest to `role`'s name: edit distance between the lowercase
@@ -313,7 +353,7 @@ fn by_rotations(
 ) -> Result<Retargeted, MotionError> {
     let source = &motion.skeleton;
     let target = &rig.skeleton;
-    let mut source_roles = complete_by_topology(source, Roles::infer(source));
+    let (mut source_roles, roles_from, shape_failure) = source_roles(motion);
     if let Some(map) = &options.joint_map {
         source_roles = source_roles
             .with_map(source, map)
@@ -398,7 +438,7 @@ fn by_rotations(
                 path,
                 format!(
                     "no joint of the motion's skeleton takes the role `{}` (closest names: \
-                     {}): name it in a --joint-map file (JSON, role → joint, e.g. \
+                     {}){}: name it in a --joint-map file (JSON, role → joint, e.g. \
                      {{\"{}\": \"{guess}\"}}); the joints without a role are: {}",
                     needed.name(),
                     if closest.is_empty() {
@@ -406,6 +446,9 @@ fn by_rotations(
                     } else {
                         closest.join(", ")
                     },
+                    shape_failure
+                        .as_ref()
+                        .map_or(String::new(), |e| format!(", nor from its shape: {e}")),
                     needed.name(),
                     without_role.join(", ")
                 ),
@@ -630,6 +673,7 @@ fn by_rotations(
         method: "rotations",
         correspondence,
         source_roles: source_role_map,
+        roles_from,
         unmatched_source,
         unmatched_roles,
         scale,

@@ -14,7 +14,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use f3g_motion::retarget::complete_by_topology;
+use f3g_motion::retarget::{RolesFrom, complete_by_topology};
 use f3g_motion::{Motion, RestChoice, RetargetOptions, read, retarget};
 use f3g_rig::{Rig, Role, Roles};
 use glam::{EulerRot, Quat, Vec3};
@@ -476,11 +476,11 @@ type Compared<'a> = [(&'a str, &'a str, Role, Role)];
 /// The largest angle (degrees) between each compared source bone (in the target's axes: its
 /// up axis to +Y, turned about +Y so that its rest hips face the target's) and the target's
 /// bone, over the frames.
-fn worst_angle(motion: &Motion, rig: &Rig, frames: &[f3g_rig::RigParams], bones: &Compared) -> f32 {
+fn worst_angle(motion: &Motion, rig: &Rig, r: &f3g_motion::Retargeted, bones: &Compared) -> f32 {
+    let frames = &r.frames;
     let rest = rig.joint_world(&rig.zero_params()).unwrap();
     let at = |r: Role| rest[rig.roles.get(r).unwrap()].translation;
-    let names: std::collections::BTreeMap<Role, String> =
-        roles_by_name(motion).into_iter().collect();
+    let names = &r.source_roles.0;
     let source_rest = motion.positions(0);
     let s = |r: Role| source_rest[motion.skeleton.index_of(&names[&r]).unwrap()];
     let flat = |v: Vec3| Vec3::new(v.x, 0.0, v.z).normalize();
@@ -579,7 +579,7 @@ fn converts(motion: &Motion, family: &str, roles: &[(Role, String)], bones: &Com
     on_the_floor(&rig, &r, family);
     let warnings = &r.plausibility.as_ref().unwrap().warnings;
     assert!(warnings.is_empty(), "{family}: {warnings:?}");
-    worst_angle(motion, &rig, &r.frames, bones)
+    worst_angle(motion, &rig, &r, bones)
 }
 
 /// The human's mesh's lowest height at `p`.
@@ -828,6 +828,106 @@ fn rigify_forearms_that_hang_down_hang_down_on_the_human() {
             }
         }
     }
+}
+
+/// Joints whose names say nothing (`Joint0`, …, in Mixamo's layout, Y up, and Unreal's, Z up
+/// with its IK bones beside the pelvis): the roles come from the skeleton's shape, the same as
+/// the names give, and the motion converts as well.
+#[test]
+fn anonymous_skeletons_get_their_roles_from_their_shape() {
+    let mixamo_side =
+        |w: &str, left: bool| format!("mixamorig:{}{w}", if left { "Left" } else { "Right" });
+    let mixamo_words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
+    let mixamo_axes = (Vec3::Y, Vec3::Z, Vec3::X);
+    converts_anonymous(
+        "mixamo",
+        mixamo(),
+        mixamo_words,
+        mixamo_side,
+        mixamo_axes,
+        "mixamorig:Hips",
+    );
+    let unreal_side = |w: &str, left: bool| format!("{w}_{}", if left { "l" } else { "r" });
+    let unreal_words = ["upperarm", "lowerarm", "hand", "thigh", "calf", "foot"];
+    let unreal_axes = (Vec3::Z, Vec3::Y, Vec3::NEG_X);
+    converts_anonymous(
+        "unreal",
+        unreal(),
+        unreal_words,
+        unreal_side,
+        unreal_axes,
+        "pelvis",
+    );
+}
+
+/// [`poses`] of `bones` written with every joint renamed `Joint<i>` convert with the roles the
+/// names give, found from the shape.
+fn converts_anonymous(
+    family: &str,
+    bones: Vec<Bone>,
+    words: [&str; 6],
+    side: impl Fn(&str, bool) -> String + Copy,
+    axes: (Vec3, Vec3, Vec3),
+    torso: &str,
+) {
+    let dir = tempfile::tempdir().unwrap();
+    let frames = poses(&bones, words, side, torso, axes);
+    let anonymous = |n: &str| format!("Joint{}", bones.iter().position(|b| b.0 == n).unwrap());
+    let renamed: Vec<Bone> = bones
+        .iter()
+        .map(|(n, p, h)| (anonymous(n), p.as_deref().map(anonymous), *h))
+        .collect();
+    let by_name = roles_by_name(&write_read(
+        dir.path(),
+        &format!("{family}-named.bvh"),
+        &bvh(&bones, &frames, "ZXY"),
+    ));
+    let frames: Vec<Vec<(String, Quat)>> = frames
+        .iter()
+        .map(|f| f.iter().map(|(n, q)| (anonymous(n), *q)).collect())
+        .collect();
+    let motion = write_read(
+        dir.path(),
+        &format!("{family}.bvh"),
+        &bvh(&renamed, &frames, "ZXY"),
+    );
+    let rig = builtin();
+    let r = retarget(
+        &motion,
+        &rig,
+        &RetargetOptions::default(),
+        Path::new(family),
+    )
+    .unwrap_or_else(|e| panic!("{family}: {e}"));
+    assert_eq!(r.roles_from, RolesFrom::Shape, "{family}");
+    for role in [
+        Role::Pelvis,
+        Role::LeftHip,
+        Role::RightKnee,
+        Role::LeftAnkle,
+        Role::RightShoulder,
+        Role::LeftElbow,
+        Role::RightWrist,
+        Role::Neck,
+    ] {
+        // (The head is the neck chain's last joint, Mixamo's `HeadTop_End`: it turns as the
+        // head does, which is what retargeting takes from it.)
+        let named = by_name.iter().find(|(r, _)| *r == role).map(|(_, n)| n);
+        assert_eq!(
+            r.source_roles.0.get(&role),
+            named.map(|n| anonymous(n)).as_ref(),
+            "{family}: {role:?}"
+        );
+    }
+    on_the_floor(&rig, &r, family);
+    let warnings = &r.plausibility.as_ref().unwrap().warnings;
+    assert!(warnings.is_empty(), "{family}: {warnings:?}");
+    let limbs: Vec<(String, String, Role, Role)> = limb_bones(words, side)
+        .into_iter()
+        .map(|(a, b, r, s)| (anonymous(&a), anonymous(&b), r, s))
+        .collect();
+    let worst = worst_angle(&motion, &rig, &r, &compared(&limbs));
+    eprintln!("{family}, anonymous: limb bones within {worst:.2}°");
 }
 
 #[test]

@@ -26,6 +26,7 @@ pub mod params;
 pub mod rig;
 pub mod roles;
 pub mod sequence;
+mod shape_roles;
 pub mod skeleton;
 pub mod skin;
 pub mod smplx;

@@ -1,0 +1,408 @@
+//! Joint roles from a skeleton's shape, for skeletons whose names say nothing (`Joint12`,
+//! `Bone.003`, names in another language): what [`Roles::infer`] cannot read.
+//!
+//! A humanoid's tree has two branch points that every convention shares: the pelvis, where two
+//! legs and the spine leave, and the chest, where two arms and the neck leave. From the root,
+//! the first joint with three or more children of at least three joints' depth is the pelvis
+//! (passing down the largest such child until then): its child with the largest subtree is the
+//! spine, the next two the legs. Up the spine (the
+//! child with the largest subtree each time), the first joint with at least two such children
+//! besides the one that goes furthest up is the chest: those are the arms. Along a leg (the
+//! deepest child each time) hip, knee and ankle are the three joints around the two longest
+//! consecutive bones (a zero-length or short pelvis-side bone before the thigh is passed
+//! over); along an arm, up to the hand (the first joint where fingers branch), shoulder, elbow
+//! and wrist the same way, the joint before the shoulder being the clavicle. Leaf helpers
+//! (twist bones, end sites) never lengthen a chain past a deeper child.
+//!
+//! Sides need a pose: up is the pelvis toward the spine's joints, forward the direction the
+//! feet point (ankle to toe, across both legs), and the body's left is up × forward (a
+//! right-handed frame: +Y up and +Z forward put the left on +X). A skeleton without toes has
+//! no forward and is refused with that reason. Positions may come in any axes and units (a
+//! motion's first frame, whatever its up axis), so a rest laid along one axis is no obstacle.
+
+use glam::Vec3;
+
+use crate::roles::{Role, Roles};
+use crate::skeleton::Skeleton;
+
+/// Fewest joints below and including a limb's first joint (hip, knee, ankle).
+const LIMB_DEPTH: usize = 3;
+
+impl Roles {
+    /// Roles from the skeleton's shape (module docs). `positions`: each joint's world position
+    /// in one pose of the body, any axes and units. An error says what was not found.
+    pub fn from_shape(skeleton: &Skeleton, positions: &[Vec3]) -> Result<Self, String> {
+        Shape::new(skeleton, positions)?.roles()
+    }
+}
+
+/// The tree and one pose of a skeleton.
+struct Shape<'a> {
+    positions: &'a [Vec3],
+    children: Vec<Vec<usize>>,
+    /// Joints in the subtree of each joint, itself included.
+    size: Vec<usize>,
+    /// Joints on the longest path down from each joint, itself included.
+    depth: Vec<usize>,
+}
+
+impl<'a> Shape<'a> {
+    fn new(skeleton: &Skeleton, positions: &'a [Vec3]) -> Result<Self, String> {
+        let joints = skeleton.joints();
+        if positions.len() != joints.len() {
+            return Err(format!(
+                "{} positions for {} joints",
+                positions.len(),
+                joints.len()
+            ));
+        }
+        let n = joints.len();
+        let mut children = vec![Vec::new(); n];
+        for (j, joint) in joints.iter().enumerate() {
+            if let Some(p) = joint.parent {
+                children[p].push(j);
+            }
+        }
+        let (mut size, mut depth) = (vec![1; n], vec![1; n]);
+        // Parents precede children, so a reverse sweep sees every subtree before its root.
+        for j in (0..n).rev() {
+            if let Some(p) = joints[j].parent {
+                size[p] += size[j];
+                depth[p] = depth[p].max(depth[j] + 1);
+            }
+        }
+        Ok(Self {
+            positions,
+            children,
+            size,
+            depth,
+        })
+    }
+
+    /// Children of `j` deep enough to be a limb, largest subtree first.
+    fn limbs(&self, j: usize) -> Vec<usize> {
+        let mut v: Vec<usize> = self.children[j]
+            .iter()
+            .copied()
+            .filter(|&c| self.depth[c] >= LIMB_DEPTH)
+            .collect();
+        v.sort_by_key(|&c| (std::cmp::Reverse(self.size[c]), c));
+        v
+    }
+
+    /// Every joint of `j`'s subtree.
+    fn subtree(&self, j: usize) -> Vec<usize> {
+        let mut out = vec![j];
+        let mut i = 0;
+        while i < out.len() {
+            out.extend(&self.children[out[i]]);
+            i += 1;
+        }
+        out
+    }
+
+    fn mean(&self, joints: &[usize]) -> Vec3 {
+        joints.iter().map(|&j| self.positions[j]).sum::<Vec3>() / joints.len() as f32
+    }
+
+    /// From `j`, the deepest child each time, until a joint with none or, with `to_hand`,
+    /// with several of two joints' depth or more (the hand, where fingers branch; a twist
+    /// bone beside the forearm is a leaf).
+    fn chain(&self, mut j: usize, to_hand: bool) -> Vec<usize> {
+        let branches = |j: usize| self.children[j].iter().filter(|&&c| self.depth[c] >= 2);
+        let mut out = vec![j];
+        while !(to_hand && branches(j).count() > 1)
+            && let Some(&next) = self.children[j]
+                .iter()
+                .max_by_key(|&&c| (self.depth[c], std::cmp::Reverse(c)))
+        {
+            out.push(next);
+            j = next;
+        }
+        out
+    }
+
+    /// The index `i` in `chain` of the first of three joints around its two longest
+    /// consecutive bones (hip–knee–ankle, shoulder–elbow–wrist).
+    fn long_pair(&self, chain: &[usize]) -> Option<usize> {
+        let bone = |i: usize| self.positions[chain[i]].distance(self.positions[chain[i + 1]]);
+        (0..chain.len().checked_sub(2)?)
+            .map(|i| (i, bone(i) + bone(i + 1)))
+            .fold(None, |best: Option<(usize, f32)>, (i, l)| match best {
+                Some((_, b)) if b >= l => best,
+                _ => Some((i, l)),
+            })
+            .filter(|(_, l)| *l > 0.0)
+            .map(|(i, _)| i)
+    }
+
+    fn roles(&self) -> Result<Roles, String> {
+        // The pelvis: from the root down the one limb-deep child until three leave together.
+        let root = (0..self.children.len())
+            .find(|&j| self.subtree(j).len() == self.children.len())
+            .ok_or("the skeleton has several roots")?;
+        let mut pelvis = root;
+        let (spine, legs) = loop {
+            match self.limbs(pelvis)[..] {
+                [spine, a, b, ..] => break (spine, [a, b]),
+                // Down the largest (past Unreal's `root` with its IK bones beside the pelvis).
+                [largest, ..] => pelvis = largest,
+                [] => {
+                    return Err(
+                        "no joint where two legs and a spine leave together (a pelvis)".into(),
+                    );
+                }
+            }
+        };
+        let up = (self.mean(&self.subtree(spine)) - self.positions[pelvis]).normalize_or_zero();
+        // The chest: up the spine until two limbs leave besides the one going furthest up.
+        let mut chest = spine;
+        let arms = loop {
+            let mut limbs = self.limbs(chest);
+            let rise = |c: usize| (self.mean(&self.subtree(c)) - self.positions[chest]).dot(up);
+            let neck = self.children[chest]
+                .iter()
+                .copied()
+                .max_by(|&a, &b| rise(a).total_cmp(&rise(b)));
+            limbs.retain(|&c| Some(c) != neck);
+            if let [a, b, ..] = limbs[..] {
+                break [a, b];
+            }
+            match self.children[chest]
+                .iter()
+                .copied()
+                .max_by_key(|&c| (self.size[c], std::cmp::Reverse(c)))
+            {
+                Some(next) => chest = next,
+                None => return Err("no joint where two arms leave the spine (a chest)".into()),
+            }
+        };
+        let leg = |first: usize| -> Result<([usize; 3], Option<usize>), String> {
+            let chain = self.chain(first, false);
+            let i = self
+                .long_pair(&chain)
+                .ok_or("a leg whose bones have no length")?;
+            Ok((
+                [chain[i], chain[i + 1], chain[i + 2]],
+                chain.get(i + 3).copied(),
+            ))
+        };
+        let arm = |first: usize| -> Result<([usize; 3], Option<usize>), String> {
+            let chain = self.chain(first, true);
+            let i = self
+                .long_pair(&chain)
+                .ok_or("an arm whose bones have no length")?;
+            let clavicle = i.checked_sub(1).map(|k| chain[k]);
+            Ok(([chain[i], chain[i + 1], chain[i + 2]], clavicle))
+        };
+        let (mut left_leg, mut right_leg) = (leg(legs[0])?, leg(legs[1])?);
+        let (mut left_arm, mut right_arm) = (arm(arms[0])?, arm(arms[1])?);
+        // Forward: where the feet point, across the up axis.
+        let toes: Vec<Vec3> = [left_leg, right_leg]
+            .iter()
+            .filter_map(|([_, _, ankle], toe)| {
+                let d = self.positions[(*toe)?] - self.positions[*ankle];
+                Some(d - up * d.dot(up))
+            })
+            .collect();
+        let forward = toes.iter().sum::<Vec3>().normalize_or_zero();
+        if toes.len() < 2 || forward == Vec3::ZERO || up == Vec3::ZERO {
+            return Err(
+                "the legs end at the ankles (no toe joints), so which side is left cannot be \
+                 told from the shape"
+                    .into(),
+            );
+        }
+        let left = up.cross(forward);
+        let side = |a: usize, b: usize| (self.positions[a] - self.positions[b]).dot(left);
+        if side(left_leg.0[0], right_leg.0[0]) < 0.0 {
+            std::mem::swap(&mut left_leg, &mut right_leg);
+        }
+        if side(left_arm.0[0], right_arm.0[0]) < 0.0 {
+            std::mem::swap(&mut left_arm, &mut right_arm);
+        }
+        use Role::*;
+        // The chest (and spine, neck, head) follow from these in `Roles::completed`.
+        let mut pairs = vec![(Pelvis, pelvis)];
+        for (roles, (joints, _)) in [
+            ([LeftHip, LeftKnee, LeftAnkle], left_leg),
+            ([RightHip, RightKnee, RightAnkle], right_leg),
+            ([LeftShoulder, LeftElbow, LeftWrist], left_arm),
+            ([RightShoulder, RightElbow, RightWrist], right_arm),
+        ] {
+            pairs.extend(roles.into_iter().zip(joints));
+        }
+        for (role, (_, clavicle)) in [(LeftClavicle, left_arm), (RightClavicle, right_arm)] {
+            if let Some(c) = clavicle.filter(|&c| c != chest) {
+                pairs.push((role, c));
+            }
+        }
+        Ok(Roles::from_pairs(pairs))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::skeleton::Joint;
+    use glam::Quat;
+
+    /// A humanoid standing (Y up, facing +Z, its left at +X), in metres: name, parent, world
+    /// position. The left side; [`skeleton`] mirrors it.
+    const LEFT: [(&str, &str, [f32; 3]); 14] = [
+        ("pelvis_l", "hips", [0.05, 0.95, 0.0]),
+        ("thigh_l", "pelvis_l", [0.09, 0.92, 0.0]),
+        ("thigh_twist_l", "thigh_l", [0.09, 0.7, 0.0]),
+        ("shin_l", "thigh_l", [0.09, 0.5, 0.01]),
+        ("foot_l", "shin_l", [0.09, 0.08, -0.02]),
+        ("toe_l", "foot_l", [0.09, 0.01, 0.12]),
+        ("collar_l", "chest", [0.04, 1.42, 0.0]),
+        ("arm_l", "collar_l", [0.18, 1.42, -0.02]),
+        ("arm_twist_l", "arm_l", [0.3, 1.42, -0.02]),
+        ("elbow_l", "arm_l", [0.45, 1.42, -0.03]),
+        ("hand_l", "elbow_l", [0.7, 1.42, -0.02]),
+        ("thumb_l", "hand_l", [0.74, 1.41, 0.02]),
+        ("thumb_tip_l", "thumb_l", [0.77, 1.40, 0.05]),
+        ("index_l", "hand_l", [0.8, 1.42, 0.0]),
+    ];
+
+    /// Joints named `j0…` in a shuffled order (parents first), their positions turned by
+    /// `turn` and scaled by `scale`; also the joint of each name.
+    fn skeleton(turn: Quat, scale: f32, toes: bool) -> (Skeleton, Vec<Vec3>, Vec<String>) {
+        let mut bones: Vec<(String, String, Vec3)> = [
+            ("root", "", [0.0, 0.0, 0.0]),
+            ("ik_hand_root", "root", [0.0, 0.0, 0.0]),
+            ("ik_hand_gun", "ik_hand_root", [0.3, 1.0, 0.2]),
+            ("ik_hand_l", "ik_hand_gun", [0.6, 1.0, 0.2]),
+            ("hips", "root", [0.0, 0.95, 0.0]),
+            ("spine", "hips", [0.0, 1.1, 0.0]),
+            ("chest", "spine", [0.0, 1.3, 0.0]),
+            ("neck", "chest", [0.0, 1.5, 0.0]),
+            ("head", "neck", [0.0, 1.6, 0.02]),
+        ]
+        .iter()
+        .map(|(n, p, x)| (n.to_string(), p.to_string(), Vec3::from_array(*x)))
+        .collect();
+        for (n, p, x) in LEFT {
+            if !toes && n.starts_with("toe") {
+                continue;
+            }
+            let x = Vec3::from_array(x);
+            bones.push((n.into(), p.into(), x));
+            let mirror = |s: &str| s.replace("_l", "_r");
+            bones.push((mirror(n), mirror(p), Vec3::new(-x.x, x.y, x.z)));
+        }
+        // The right leg first (the arms left first), so that the order says nothing of the side.
+        bones.swap(9, 10);
+        let names: Vec<String> = bones.iter().map(|b| b.0.clone()).collect();
+        let joints = bones
+            .iter()
+            .enumerate()
+            .map(|(i, (_, p, x))| {
+                let parent = names.iter().position(|n| n == p);
+                assert!(parent.is_none_or(|p| p < i), "{i}");
+                let at = parent.map_or(Vec3::ZERO, |p| bones[p].2);
+                Joint {
+                    name: format!("j{i}"),
+                    parent,
+                    offset: *x - at,
+                    pre_rotation: Quat::IDENTITY,
+                }
+            })
+            .collect();
+        let positions = bones.iter().map(|b| turn * b.2 * scale).collect();
+        (Skeleton::new(joints).unwrap(), positions, names)
+    }
+
+    fn expected() -> Vec<(Role, &'static str)> {
+        use Role::*;
+        vec![
+            (Pelvis, "hips"),
+            (LeftHip, "thigh_l"),
+            (LeftKnee, "shin_l"),
+            (LeftAnkle, "foot_l"),
+            (RightHip, "thigh_r"),
+            (RightKnee, "shin_r"),
+            (RightAnkle, "foot_r"),
+            (LeftClavicle, "collar_l"),
+            (LeftShoulder, "arm_l"),
+            (LeftElbow, "elbow_l"),
+            (LeftWrist, "hand_l"),
+            (RightClavicle, "collar_r"),
+            (RightShoulder, "arm_r"),
+            (RightElbow, "elbow_r"),
+            (RightWrist, "hand_r"),
+        ]
+    }
+
+    #[test]
+    fn an_anonymous_humanoid_gets_its_roles_in_any_axes_and_units() {
+        for (turn, scale) in [
+            (Quat::IDENTITY, 1.0),
+            // Z up and facing −Y (Blender), in centimetres.
+            (Quat::from_rotation_x(std::f32::consts::FRAC_PI_2), 100.0),
+            // Lying along +X, turned about it, in inches.
+            (
+                Quat::from_rotation_z(-1.3) * Quat::from_rotation_x(2.0),
+                39.37,
+            ),
+        ] {
+            let (s, positions, names) = skeleton(turn, scale, true);
+            let roles = Roles::from_shape(&s, &positions).unwrap();
+            for (role, name) in expected() {
+                let got = roles.get(role).map(|j| names[j].as_str());
+                assert_eq!(got, Some(name), "{role:?} with {turn:?} × {scale}");
+            }
+            // The rest follows from the tree: chest, spine, neck and head.
+            let completed = roles.completed(&s);
+            for (role, name) in [
+                (Role::Chest, "chest"),
+                (Role::Spine, "spine"),
+                (Role::Neck, "neck"),
+                (Role::Head, "head"),
+            ] {
+                assert_eq!(completed.get(role).map(|j| names[j].as_str()), Some(name));
+            }
+        }
+    }
+
+    #[test]
+    fn a_mirrored_pose_swaps_the_sides() {
+        let (s, positions, names) = skeleton(Quat::IDENTITY, 1.0, true);
+        let mirrored: Vec<Vec3> = positions
+            .iter()
+            .map(|p| Vec3::new(-p.x, p.y, p.z))
+            .collect();
+        let roles = Roles::from_shape(&s, &mirrored).unwrap();
+        assert_eq!(
+            roles.get(Role::LeftHip).map(|j| names[j].as_str()),
+            Some("thigh_r")
+        );
+        assert_eq!(
+            roles.get(Role::RightWrist).map(|j| names[j].as_str()),
+            Some("hand_l")
+        );
+    }
+
+    #[test]
+    fn what_the_shape_cannot_tell_is_an_error_naming_it() {
+        let (s, positions, _) = skeleton(Quat::IDENTITY, 1.0, false);
+        let e = Roles::from_shape(&s, &positions).unwrap_err();
+        assert!(e.contains("no toe joints"), "{e}");
+        let chain = Skeleton::new(
+            (0..6usize)
+                .map(|i| Joint {
+                    name: format!("b{i}"),
+                    parent: i.checked_sub(1),
+                    offset: Vec3::Y,
+                    pre_rotation: Quat::IDENTITY,
+                })
+                .collect(),
+        )
+        .unwrap();
+        let e = Roles::from_shape(&chain, &[Vec3::ZERO; 6]).unwrap_err();
+        assert!(e.contains("pelvis"), "{e}");
+        let e = Roles::from_shape(&chain, &[Vec3::ZERO; 2]).unwrap_err();
+        assert!(e.contains("2 positions for 6 joints"), "{e}");
+    }
+}
