@@ -1,6 +1,7 @@
 //! BVH (Biovision hierarchy): the motion-capture libraries' text format.
 //!
-//! Reading: every `ROOT`/`JOINT` is a joint (`End Site`s are not); a joint's rotation is the
+//! Reading: every `ROOT`/`JOINT` is a joint (`End Site`s are not), named by the rest of its
+//! line (names with spaces, as 3ds Max's `Bip01 L Thigh`); a joint's rotation is the
 //! product of its rotation channels in the order listed (`Zrotation Xrotation Yrotation` is
 //! `Rz · Rx · Ry`), in degrees; the root's position channels set its position. Position
 //! channels of other joints are read and ignored (the skeleton's offsets are kept). BVH rest
@@ -33,7 +34,7 @@ enum Channel {
 
 /// Whitespace-separated tokens with their line numbers.
 struct Tokens<'a> {
-    words: Box<dyn Iterator<Item = (usize, &'a str)> + 'a>,
+    words: std::iter::Peekable<Box<dyn Iterator<Item = (usize, &'a str)> + 'a>>,
     path: &'a Path,
     last_line: usize,
 }
@@ -51,6 +52,21 @@ impl<'a> Tokens<'a> {
                 format!("the file ends where {expected} was expected"),
             )),
         }
+    }
+
+    /// A joint's name: the words up to the end of its line, or to a `{` on it, joined by single
+    /// spaces (3ds Max's `Bip01 L Thigh`; Blender reads names so too).
+    fn name(&mut self) -> Result<String, MotionError> {
+        let mut name = self.next("a joint name")?.to_string();
+        while let Some(&(line, w)) = self.words.peek()
+            && line == self.last_line
+            && w != "{"
+        {
+            name.push(' ');
+            name.push_str(w);
+            self.words.next();
+        }
+        Ok(name)
     }
 
     fn expect(&mut self, word: &str) -> Result<(), MotionError> {
@@ -95,7 +111,7 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
             .flat_map(|(i, l)| l.split_whitespace().map(move |w| (i + 1, w))),
     );
     let mut t = Tokens {
-        words,
+        words: words.peekable(),
         path,
         last_line: 1,
     };
@@ -118,7 +134,7 @@ pub fn parse_bvh(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
                 if joints.len() >= MAX_JOINTS {
                     return Err(t.error(format!("more than {MAX_JOINTS} joints")));
                 }
-                let name = t.next("a joint name")?.to_string();
+                let name = t.name()?;
                 let parent = match stack.last() {
                     Some(Some(p)) => Some(*p),
                     Some(None) => return Err(t.error("a joint inside an End Site")),
@@ -302,13 +318,15 @@ pub fn write_bvh(motion: &Motion) -> Result<String, String> {
             j.name
         ));
     }
-    if let Some(j) = joints
-        .iter()
-        .find(|j| j.name.chars().any(char::is_whitespace) || j.name.is_empty())
-    {
+    // A name is read back as the rest of its line with single spaces, up to a `{`.
+    let readable = |n: &str| {
+        !n.is_empty() && !n.contains('{') && n.split_whitespace().collect::<Vec<_>>().join(" ") == n
+    };
+    if let Some(j) = joints.iter().find(|j| !readable(&j.name)) {
         return Err(format!(
-            "joint name `{}` cannot be written to BVH (it holds whitespace)",
-            j.name
+            "joint name {} cannot be written to BVH (empty, a `{{`, or whitespace other than \
+             single spaces between words)",
+            f3g_io::quoted(&j.name)
         ));
     }
     let mut out = String::from("HIERARCHY\n");

@@ -414,6 +414,38 @@ fn a_bvh_with_a_byte_order_mark_reads() {
     assert_eq!(m.frames(), 3);
 }
 
+/// 3ds Max's Biped names hold spaces (`Bip01 L Thigh`): the name is the rest of the line, also
+/// with the brace on it.
+#[test]
+fn bvh_joint_names_may_hold_spaces() {
+    let text = "HIERARCHY\nROOT Bip01  Pelvis\n{\n OFFSET 0 0 0\n CHANNELS 3 Zrotation Xrotation \
+                Yrotation\n JOINT Bip01 L Thigh {\n  OFFSET 0 -10 0\n  CHANNELS 3 Zrotation \
+                Xrotation Yrotation\n  End Site\n  {\n   OFFSET 0 -40 0\n  }\n }\n}\nMOTION\n\
+                Frames: 1\nFrame Time: 0.1\n0 0 0 0 0 0\n";
+    let m = parse_bvh(text.as_bytes(), Path::new("m.bvh")).unwrap();
+    let names: Vec<&str> = m
+        .skeleton
+        .joints()
+        .iter()
+        .map(|j| j.name.as_str())
+        .collect();
+    assert_eq!(names, ["Bip01 Pelvis", "Bip01 L Thigh"]);
+    let again = f3g_motion::write_bvh(&m).unwrap();
+    let m2 = parse_bvh(again.as_bytes(), Path::new("m.bvh")).unwrap();
+    assert_eq!(m2.skeleton.joints()[1].name, "Bip01 L Thigh");
+    // What would not read back so is refused by the writer.
+    for bad in ["Bip01\tL Thigh", "Bip01  L", " Thigh", "Thigh {"] {
+        let mut joints = m.skeleton.joints().to_vec();
+        joints[1].name = bad.into();
+        let odd = f3g_motion::Motion {
+            skeleton: f3g_rig::Skeleton::new(joints).unwrap(),
+            ..m.clone()
+        };
+        let e = f3g_motion::write_bvh(&odd).unwrap_err();
+        assert!(e.contains("cannot be written to BVH"), "{bad:?}: {e}");
+    }
+}
+
 #[test]
 fn a_bvh_whose_offsets_are_all_zero_is_an_error() {
     let text: String = bvh()

@@ -2,7 +2,9 @@
 //! bones, units, up axis), get their joint roles without a `--joint-map`, and drive the
 //! built-in human the way they move: Blender's Rigify (metarig names, the generated rig's
 //! `DEF-` deform bones with their twist segments, and the plain `neck`/`head` variant),
-//! Mixamo, Unreal's mannequin and CMU's ASF names.
+//! Mixamo, Unreal's mannequin, CMU's ASF names, 3ds Max's Biped (Truebones' packs: names with
+//! spaces, legs from the spine, arms from the neck), MotionBuilder's HumanIK (a `Reference`
+//! root, roll leaves), LAFAN1's rest along +X, and skeletons whose names say nothing.
 //!
 //! Each layout is written here from the tool's conventions (the fixtures' provenance): Rigify's
 //! from the human metarig's bone heads (Blender, Z up, facing −Y, metres), Mixamo's T-pose in
@@ -422,6 +424,74 @@ fn unreal() -> Vec<Bone> {
         bone("ik_hand_l", "ik_hand_gun", wrist),
     ];
     mirrored(left, "_l", "_r")
+}
+
+/// 3ds Max's Biped as Truebones' BVH packs name it (`Bip01 …`): Z up, facing −Y (the body's
+/// left at +X), inches; the legs hang from `Bip01 Spine` (not the pelvis) and the clavicles and
+/// head from `Bip01 Neck`, with `Nub` end joints.
+fn biped() -> Vec<Bone> {
+    // `(" L Thigh", " Spine")` is `Bip01 L Thigh` under `Bip01 Spine`; `None` for the root.
+    let b = |name: &str, parent: Option<&str>, at: [f32; 3]| {
+        let parent = parent.map_or(String::new(), |p| format!("Bip01{p}"));
+        bone(&format!("Bip01{name}"), &parent, at)
+    };
+    let left = vec![
+        b("", None, [0.0, 0.0, 40.0]),
+        b(" Pelvis", Some(""), [0.0, 0.0, 40.0]),
+        b(" Spine", Some(" Pelvis"), [0.0, 0.3, 42.0]),
+        b(" L Thigh", Some(" Spine"), [3.6, 0.0, 37.5]),
+        b(" L Calf", Some(" L Thigh"), [3.6, -0.3, 20.5]),
+        b(" L Foot", Some(" L Calf"), [3.6, 0.7, 3.3]),
+        b(" L Toe0", Some(" L Foot"), [3.6, -3.5, 0.6]),
+        b(" L Toe0Nub", Some(" L Toe0"), [3.6, -6.5, 0.6]),
+        b(" Spine1", Some(" Spine"), [0.0, 0.4, 47.0]),
+        b(" Spine2", Some(" Spine1"), [0.0, 0.5, 52.0]),
+        b(" Neck", Some(" Spine2"), [0.0, 0.4, 58.5]),
+        b(" Head", Some(" Neck"), [0.0, -0.2, 62.0]),
+        b(" HeadNub", Some(" Head"), [0.0, -0.2, 70.0]),
+        b(" L Clavicle", Some(" Neck"), [0.8, 0.2, 58.0]),
+        b(" L UpperArm", Some(" L Clavicle"), [6.5, 0.6, 57.8]),
+        b(" L Forearm", Some(" L UpperArm"), [17.5, 0.9, 57.8]),
+        b(" L Hand", Some(" L Forearm"), [27.5, 0.6, 57.8]),
+        b(" L Finger0", Some(" L Hand"), [28.3, -1.0, 57.4]),
+        b(" L Finger0Nub", Some(" L Finger0"), [29.5, -2.3, 57.2]),
+        b(" L Finger1", Some(" L Hand"), [30.5, -0.6, 57.8]),
+        b(" L Finger1Nub", Some(" L Finger1"), [33.0, -0.6, 57.8]),
+    ];
+    mirrored(left, " L ", " R ")
+}
+
+/// MotionBuilder's HumanIK character as its BVH exports name it: Y up, facing +Z, left +X,
+/// centimetres, T-pose, a `Reference` root on the floor above `Hips`, roll bones as leaves
+/// (`LeafLeftUpLegRoll1` …) and `Spine1` to `Spine3`.
+fn humanik() -> Vec<Bone> {
+    let left = vec![
+        bone("Reference", "", [0.0, 0.0, 0.0]),
+        bone("Hips", "Reference", [0.0, 100.0, 0.0]),
+        bone("LeftUpLeg", "Hips", [9.0, 93.0, 0.0]),
+        bone("LeafLeftUpLegRoll1", "LeftUpLeg", [9.0, 72.0, 0.0]),
+        bone("LeftLeg", "LeftUpLeg", [9.0, 51.0, 1.0]),
+        bone("LeafLeftLegRoll1", "LeftLeg", [9.0, 30.0, 0.0]),
+        bone("LeftFoot", "LeftLeg", [9.0, 8.0, -2.0]),
+        bone("LeftToeBase", "LeftFoot", [9.0, 1.0, 10.0]),
+        bone("Spine", "Hips", [0.0, 110.0, 0.0]),
+        bone("Spine1", "Spine", [0.0, 120.0, -1.0]),
+        bone("Spine2", "Spine1", [0.0, 130.0, -1.0]),
+        bone("Spine3", "Spine2", [0.0, 140.0, -1.0]),
+        bone("Neck", "Spine3", [0.0, 153.0, -1.0]),
+        bone("Head", "Neck", [0.0, 162.0, 1.0]),
+        bone("LeftShoulder", "Spine3", [4.0, 147.0, -1.0]),
+        bone("LeftArm", "LeftShoulder", [17.0, 147.0, -2.0]),
+        bone("LeafLeftArmRoll1", "LeftArm", [31.0, 147.0, -2.0]),
+        bone("LeftForeArm", "LeftArm", [45.0, 147.0, -3.0]),
+        bone("LeafLeftForeArmRoll1", "LeftForeArm", [58.0, 147.0, -3.0]),
+        bone("LeftHand", "LeftForeArm", [70.0, 147.0, -2.0]),
+        bone("LeftHandThumb1", "LeftHand", [73.0, 145.0, 2.0]),
+        bone("LeftHandThumb2", "LeftHandThumb1", [75.0, 144.0, 5.0]),
+        bone("LeftHandIndex1", "LeftHand", [79.0, 147.0, 1.0]),
+        bone("LeftHandIndex2", "LeftHandIndex1", [83.0, 147.0, 1.0]),
+    ];
+    mirrored(left, "Left", "Right")
 }
 
 /// CMU's motion-capture skeleton under its ASF bone names (as `amc2bvh` writes them): Y up,
@@ -981,6 +1051,64 @@ fn unreal_names_get_their_roles_and_the_pelvis_drives_the_body() {
     ));
     let worst = converts(&motion, "unreal", &roles, &compared(&limbs));
     eprintln!("unreal: limb bones within {worst:.2}°");
+}
+
+/// Truebones-style Biped names (`Bip01 L Thigh`), legs from the spine, arms from the neck, Z up
+/// and inches (read as centimetres: a 70-unit body; retargeting scales by the legs' lengths, so
+/// the result is the same).
+#[test]
+fn biped_names_get_their_roles() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = biped();
+    let side = |w: &str, left: bool| format!("Bip01 {} {w}", if left { "L" } else { "R" });
+    let words = ["UpperArm", "Forearm", "Hand", "Thigh", "Calf", "Foot"];
+    let axes = (Vec3::Z, Vec3::NEG_Y, Vec3::X);
+    let frames = poses(&bones, words, side, "Bip01 Pelvis", axes);
+    let motion = write_read(dir.path(), "biped.bvh", &bvh(&bones, &frames, "ZXY"));
+    let roles = expected(
+        [
+            "Bip01 Pelvis",
+            "Bip01 Spine",
+            "Bip01 Spine2",
+            "Bip01 Neck",
+            "Bip01 Head",
+        ],
+        [
+            "Clavicle", "UpperArm", "Forearm", "Hand", "Thigh", "Calf", "Foot",
+        ],
+        side,
+    );
+    let worst = converts(
+        &motion,
+        "biped",
+        &roles,
+        &compared(&limb_bones(words, side)),
+    );
+    eprintln!("biped: limb bones within {worst:.2}°");
+}
+
+/// MotionBuilder / HumanIK names with their `Reference` root and roll leaves.
+#[test]
+fn humanik_names_get_their_roles() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones = humanik();
+    let side = |w: &str, left: bool| format!("{}{w}", if left { "Left" } else { "Right" });
+    let words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
+    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
+    let frames = poses(&bones, words, side, "Hips", axes);
+    let motion = write_read(dir.path(), "humanik.bvh", &bvh(&bones, &frames, "ZXY"));
+    let roles = expected(
+        ["Hips", "Spine", "Spine3", "Neck", "Head"],
+        ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
+        side,
+    );
+    let worst = converts(
+        &motion,
+        "humanik",
+        &roles,
+        &compared(&limb_bones(words, side)),
+    );
+    eprintln!("humanik: limb bones within {worst:.2}°");
 }
 
 #[test]

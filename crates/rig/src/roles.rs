@@ -227,7 +227,7 @@ impl Roles {
 
     /// These roles completed from the skeleton's shape, for the roles the names left out:
     /// the pelvis is where the two legs meet, the chest where the two arms meet (when it is
-    /// not the spine's joint); the spine is the joint after the pelvis on the way to the chest
+    /// not the spine's joint; the joint below it when that is the neck, as in Biped); the spine is the joint after the pelvis on the way to the chest
     /// when no name gave it, or gave the pelvis's own joint (Blender's root `spine`); the
     /// chain that leaves the chest toward neither arm runs neck to head. That chain follows
     /// the child named like the spine, neck or head, else the one with the most joints below
@@ -272,8 +272,17 @@ impl Roles {
                 }
             }
         }
-        if !map.contains_key(&Role::Chest) && map.get(&Role::Spine) != Some(&chest) {
-            map.insert(Role::Chest, chest);
+        // Where the arms leave the neck itself (3ds Max's Biped hangs its clavicles from
+        // `Bip01 Neck`), the chest is the joint below the neck.
+        let chest_role = match joints[chest].parent {
+            Some(below) if map.get(&Role::Neck) == Some(&chest) => below,
+            _ => chest,
+        };
+        if !map.contains_key(&Role::Chest)
+            && map.get(&Role::Spine) != Some(&chest_role)
+            && map.get(&Role::Pelvis) != Some(&chest_role)
+        {
+            map.insert(Role::Chest, chest_role);
         }
         // The chain that leaves the chest toward neither arm: neck … head.
         let toward_arm =
