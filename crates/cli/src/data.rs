@@ -91,6 +91,14 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
     options.elevation_deg = a.elevation.unwrap_or(options.elevation_deg);
     options.supersample = a.supersample.unwrap_or(options.supersample);
     options.seed = a.seed;
+    // Refused before the motion is read; an old capture is cleared only once it has been.
+    let replaces = f3g_data::synth::holds_capture(&a.out);
+    if replaces && !a.overwrite {
+        bail!(
+            "{} already holds a capture: pass --overwrite to replace it, or choose another --out",
+            a.out.display()
+        );
+    }
     let motion = match &a.motion {
         Some(path) => {
             let frames = synth_motion(path, a)?;
@@ -99,13 +107,7 @@ pub fn synth(a: &SynthArgs) -> Result<()> {
         }
         None => None,
     };
-    if f3g_data::synth::holds_capture(&a.out) {
-        if !a.overwrite {
-            bail!(
-                "{} already holds a capture: pass --overwrite to replace it, or choose another --out",
-                a.out.display()
-            );
-        }
+    if replaces {
         f3g_data::synth::clear(&a.out)?;
     }
     let bar = ProgressBar::new(options.frames as u64).with_style(ProgressStyle::with_template(
