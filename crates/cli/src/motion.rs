@@ -5,6 +5,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand, ValueEnum};
+use f3g_motion::rest::up_to_y;
 use f3g_motion::{RetargetOptions, Retargeted};
 use f3g_rig::{ModelSpec, RoleMap};
 
@@ -431,7 +432,14 @@ fn show(a: &ShowArgs) -> Result<()> {
     let parents = |s: &f3g_rig::Skeleton| -> Vec<Option<usize>> {
         s.joints().iter().map(|j| j.parent).collect()
     };
-    let source: Vec<Vec<glam::Vec3>> = picked.iter().map(|&f| motion.positions(f)).collect();
+    // The source stood up by the up axis retargeting used (its reference pose's: LAFAN1's
+    // rest lies along +X and its file's axes say Z), not the one read from the rest alone.
+    let up = r.reference.as_ref().map_or(motion.up, |f| f.up);
+    let turn = up_to_y(up) * up_to_y(motion.up).inverse();
+    let source: Vec<Vec<glam::Vec3>> = picked
+        .iter()
+        .map(|&f| motion.positions(f).into_iter().map(|p| turn * p).collect())
+        .collect();
     let target: Vec<Vec<glam::Vec3>> = picked
         .iter()
         .map(|&f| {

@@ -319,9 +319,15 @@ fn roles_by_name(motion: &Motion) -> Vec<(Role, String)> {
         .collect()
 }
 
+/// Writes a fixture and reads it back; with `F3G_CORPUS_DIR` set, also keeps a copy there
+/// (the README's contact sheet of the corpus is drawn from those files: docs/motions.md).
 fn write_read(dir: &Path, name: &str, text: &str) -> Motion {
     let path = dir.join(name);
     std::fs::write(&path, text).unwrap();
+    if let Some(keep) = std::env::var_os("F3G_CORPUS_DIR") {
+        std::fs::create_dir_all(&keep).unwrap();
+        std::fs::write(Path::new(&keep).join(name), text).unwrap();
+    }
     read(&path).unwrap()
 }
 
@@ -958,7 +964,7 @@ fn converts_anonymous(
         .collect();
     let motion = write_read(
         dir.path(),
-        &format!("{family}.bvh"),
+        &format!("{family}-anonymous.bvh"),
         &bvh(&renamed, &frames, "ZXY"),
     );
     let rig = builtin();
