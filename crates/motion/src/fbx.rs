@@ -1,9 +1,11 @@
 //! FBX animation stacks (`.fbx`, binary or ASCII: Mixamo, Blender, MotionBuilder), read with
 //! ufbx.
 //!
-//! The skeleton is every bone node (LimbNode/Root), parents first; rest frames are the
-//! nodes' transforms as the file stores them (pre- and post-rotations folded in by ufbx), the
-//! root's including its non-bone ancestors' (an `Armature` node). The first animation stack
+//! The skeleton is every bone node (LimbNode/Root), parents first; rest frames are the bind
+//! pose's where the file has one for the bone (a skinned character's rest: a bone's own
+//! transform is whatever pose the exporter stood at — Blender writes its current frame's),
+//! else the nodes' transforms as the file stores them (pre- and post-rotations folded in by
+//! ufbx), the root's including its non-bone ancestors' (an `Armature` node). The first animation stack
 //! drives it, evaluated at the file's frame rate (`frames_per_second`, 30 when unset) from the
 //! stack's start to its end. Units and up axis are the file's (`UnitScaleFactor`, `UpAxis`);
 //! only uniform scales are read. Every key of a bone's rotation and translation curves must be
@@ -88,6 +90,18 @@ pub fn parse_fbx(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
         scale,
         &format!("the parent of the root bone `{}`", root.element.name),
     )?;
+    // The rest: a skinned character's bind pose where the file has one for the bone, since a
+    // bone's own transform is whatever pose the exporter stood at (Blender writes the current
+    // frame's); else the bone's own transform.
+    let bind = |b: &ufbx::Node| {
+        scene
+            .poses
+            .iter()
+            .filter(|p| p.is_bind_pose)
+            .flat_map(|p| p.bone_poses.iter())
+            .find(|bp| bp.bone_node.element.element_id == b.element.element_id)
+            .map(|bp| (affine(&bp.bone_to_parent), affine(&bp.bone_to_world)))
+    };
     let mut joints = Vec::with_capacity(bones.len());
     for b in &bones {
         let name = b.element.name.to_string();
@@ -100,9 +114,17 @@ pub fn parse_fbx(bytes: &[u8], path: &Path) -> Result<Motion, MotionError> {
                 format!("bone `{name}` is a second root: f3g reads one skeleton"),
             ));
         }
-        let (offset, pre_rotation) = match parent {
-            Some(_) => (vec3(t.translation) * scale, quat(t.rotation)),
-            None => (
+        let (offset, pre_rotation) = match (parent, bind(b)) {
+            (Some(_), Some((local, _))) => {
+                let (_, rotation, translation) = local.to_scale_rotation_translation();
+                (translation * scale, rotation)
+            }
+            (None, Some((_, world))) => {
+                let (_, rotation, translation) = world.to_scale_rotation_translation();
+                (translation, rotation)
+            }
+            (Some(_), None) => (vec3(t.translation) * scale, quat(t.rotation)),
+            (None, None) => (
                 ancestors.transform_point3(vec3(t.translation)),
                 ancestors_rotation * quat(t.rotation),
             ),

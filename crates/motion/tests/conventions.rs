@@ -1298,3 +1298,96 @@ fn a_kneel_keeps_the_knees_on_the_floor() {
     assert!(report.warnings.is_empty(), "{report:?}");
     assert_eq!(r.floor.unwrap().contact_frames, 2);
 }
+
+/// Files Blender itself exported (`tools/blender_corpus.py`: Rigify's basic human metarig
+/// posed in four frames, written by Blender 4.5's FBX, glTF and BVH exporters) convert as
+/// Blender poses them: every limb bone of the human within 20° of the metarig's in every
+/// frame (Blender's directions in `expected.json`, Z up and facing −Y), the soles on the floor
+/// in the standing frames, no warning. The FBX was written with the scene at its last frame,
+/// so its bones' own transforms hold that pose and only its bind pose holds the rest.
+#[test]
+fn blender_exports_convert_as_blender_poses_them() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/blender");
+    let expected: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("expected.json")).unwrap()).unwrap();
+    let rig = builtin();
+    let floor = lowest_vertex(&rig, &rig.zero_params());
+    let mut bodies: Vec<(&str, Vec<Vec<f3g_rig::skeleton::Similarity>>)> = Vec::new();
+    for file in ["metarig.fbx", "metarig.glb", "metarig.bvh"] {
+        let motion = read(&dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        let r = retarget(&motion, &rig, &RetargetOptions::default(), Path::new(file))
+            .unwrap_or_else(|e| panic!("{file}: {e}"));
+        let warnings = &r.plausibility.as_ref().unwrap().warnings;
+        assert!(warnings.is_empty(), "{file}: {warnings:?}");
+        assert_eq!(r.frames.len(), 4, "{file}");
+        let mut worst = 0.0f32;
+        for (f, frame) in expected["directions"].as_object().unwrap() {
+            let f: usize = f.parse().unwrap();
+            for (bones, d) in frame.as_object().unwrap() {
+                let d: Vec<f32> = d
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap() as f32)
+                    .collect();
+                // Blender's Z up, −Y forward → +Y up, +Z forward.
+                let source = Vec3::new(d[0], d[2], -d[1]);
+                let (from, to) = bones.split_once('>').unwrap();
+                let role = |bone: &str| {
+                    let left = bone.ends_with(".L");
+                    match bone.split('.').next().unwrap() {
+                        "upper_arm" if left => Role::LeftShoulder,
+                        "upper_arm" => Role::RightShoulder,
+                        "forearm" if left => Role::LeftElbow,
+                        "forearm" => Role::RightElbow,
+                        "hand" if left => Role::LeftWrist,
+                        "hand" => Role::RightWrist,
+                        "thigh" if left => Role::LeftHip,
+                        "thigh" => Role::RightHip,
+                        "shin" if left => Role::LeftKnee,
+                        "shin" => Role::RightKnee,
+                        "foot" if left => Role::LeftAnkle,
+                        _ => Role::RightAnkle,
+                    }
+                };
+                let target = target_direction(&rig, &r.frames, f, role(from), role(to));
+                let angle = degrees(source, target);
+                assert!(
+                    angle < 20.0,
+                    "{file} frame {f}: Blender's {bones} points {source}, the human's {target} ({angle:.1}°)"
+                );
+                worst = worst.max(angle);
+            }
+        }
+        // Frames 0, 1 and 3 stand (2 swings both thighs forward).
+        for f in [0, 1, 3] {
+            let above = lowest_vertex(&rig, &r.frames[f]) - floor;
+            assert!(
+                above.abs() < 0.01,
+                "{file} frame {f}: the soles {:.1} cm above the floor",
+                100.0 * above
+            );
+        }
+        eprintln!("blender {file}: limb bones within {worst:.2}°");
+        let joints = r.frames.iter().map(|p| rig.joint_world(p).unwrap());
+        bodies.push((file, joints.collect()));
+    }
+    // The three exporters' files are one motion: every joint of the human (head, hands and
+    // spine too, which the limb directions do not see) turns and sits alike.
+    let (reference, first) = &bodies[1];
+    for (file, body) in &bodies {
+        for (f, (a, b)) in body.iter().zip(first).enumerate() {
+            for (j, (a, b)) in a.iter().zip(b).enumerate() {
+                let angle = a.rotation.angle_between(b.rotation).to_degrees();
+                let gap = a.translation.distance(b.translation);
+                assert!(
+                    angle < 1.0 && gap < 0.01,
+                    "frame {f}, joint `{}`: {file} turns it {angle:.1}° and moves it {:.1} cm \
+                     from {reference}'s",
+                    rig.skeleton.joints()[j].name,
+                    100.0 * gap
+                );
+            }
+        }
+    }
+}

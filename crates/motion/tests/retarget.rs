@@ -429,11 +429,35 @@ fn smpl_codec_files_read() {
     retarget(&motion, &builtin(), &RetargetOptions::default(), &path).unwrap();
 }
 
+/// `motion` without the joints named in `gone` (leaves), their rotations dropped.
+fn without(motion: &Motion, gone: &[&str]) -> Motion {
+    let old = motion.skeleton.joints();
+    let kept: Vec<usize> = (0..old.len())
+        .filter(|&j| !gone.contains(&old[j].name.as_str()))
+        .collect();
+    let joints = kept
+        .iter()
+        .map(|&j| f3g_rig::Joint {
+            parent: old[j]
+                .parent
+                .map(|p| kept.iter().position(|&k| k == p).unwrap()),
+            ..old[j].clone()
+        })
+        .collect();
+    let rotations = (0..motion.frames())
+        .flat_map(|f| kept.iter().map(move |&j| motion.frame(f)[j]))
+        .collect();
+    Motion {
+        skeleton: f3g_rig::Skeleton::new(joints).unwrap(),
+        rotations,
+        ..motion.clone()
+    }
+}
+
 #[test]
 fn a_joint_map_names_what_the_names_do_not() {
     let rig = builtin();
-    // Hips named so that nothing can read them: without a map the error lists the joints
-    // that took no role and says how to name them.
+    // Hips named so that nothing can read them: the roles come from the skeleton's shape.
     let walk = common::walk(0, 3);
     let joints = walk
         .skeleton
@@ -451,8 +475,21 @@ fn a_joint_map_names_what_the_names_do_not() {
         skeleton: f3g_rig::Skeleton::new(joints).unwrap(),
         ..walk
     };
-    let e = retarget(
+    let r = retarget(
         &odd,
+        &rig,
+        &RetargetOptions::default(),
+        Path::new("odd.bvh"),
+    )
+    .unwrap();
+    assert_eq!(r.roles_from, f3g_motion::retarget::RolesFrom::Shape);
+    assert_eq!(r.source_roles.0[&Role::Pelvis], "Bone_007");
+    assert_eq!(r.source_roles.0[&Role::LeftHip], "mixamorig:LeftStrut");
+    // Without toes the shape cannot tell left from right either: the error lists the joints
+    // that took no role, says why the shape did not help and how to name them.
+    let toeless = without(&odd, &["mixamorig:LeftToeBase", "mixamorig:RightToeBase"]);
+    let e = retarget(
+        &toeless,
         &rig,
         &RetargetOptions::default(),
         Path::new("odd.bvh"),
@@ -460,7 +497,10 @@ fn a_joint_map_names_what_the_names_do_not() {
     .unwrap_err()
     .to_string();
     assert!(
-        e.contains("odd.bvh") && e.contains("--joint-map") && e.contains("Bone_007"),
+        e.contains("odd.bvh")
+            && e.contains("--joint-map")
+            && e.contains("Bone_007")
+            && e.contains("no toe joints"),
         "{e}"
     );
     let map: RoleMap = serde_json::from_str(
