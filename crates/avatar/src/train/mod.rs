@@ -30,7 +30,8 @@
 //!    grey colour, opacity 0.1, the initial scales, identity rotations); Adam's state is reset
 //!    afterwards.
 //! 2. **body** — body-only rendering: L1 on the full (down-scaled) image, LPIPS on the
-//!    mask-bounding-box square, offset regulariser.
+//!    mask-bounding-box square, offset regulariser. Not in the paper (pretraining, then joint
+//!    steps): the `paper` preset has none, the `cpu` presets a few or more.
 //! 3. *(face branch)* the canonical face model is averaged from the body branch over training
 //!    frames; **face_pretrain** — the face networks learn zero residuals on it.
 //! 4. **joint** — body losses plus, on the head crop rendered with its own intrinsics, L1,

@@ -107,7 +107,8 @@ mod tests {
         let path = dir.path().join("c.json");
         std::fs::write(&path, r#"{"steps": {"joint": 7}, "lr": 0.002}"#).unwrap();
         let c = TrainConfig::from_file(&path).unwrap();
-        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, 250));
+        let preset = TrainConfig::cpu().steps.body;
+        assert_eq!((c.steps.joint, c.lr, c.steps.body), (7, 0.002, preset));
         std::fs::write(&path, r#"{"map_resolution": 1073741824}"#).unwrap();
         let e = TrainConfig::from_file(&path).unwrap_err().to_string();
         assert!(e.contains("c.json") && e.contains("map_resolution"), "{e}");
