@@ -7,7 +7,8 @@
 //! 2. **Correspondence.** Otherwise joints correspond by role: the target's roles are the body
 //!    model's ([`f3g_rig::Rig::roles`]); the source's are inferred from its joint names
 //!    ([`f3g_rig::Roles::infer`]: prefixes, side markers and synonyms; completed from the
-//!    skeleton's shape, [`f3g_rig::Roles::completed`]), overridden by a `--joint-map`
+//!    skeleton's shape, [`f3g_rig::Roles::completed`]) or, where the names give neither hip,
+//!    from the shape alone ([`f3g_rig::Roles::from_shape`]), overridden by a `--joint-map`
 //!    ([`f3g_rig::RoleMap`], role → source joint name). Joints whose names are equal
 //!    correspond first, unless the pair contradicts the roles: where the target joint's role
 //!    belongs to another source joint that no name pairs (Unreal's `root` on the floor is not
