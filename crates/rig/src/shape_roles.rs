@@ -138,10 +138,11 @@ impl<'a> Shape<'a> {
 
     fn roles(&self) -> Result<Roles, String> {
         // The pelvis: from the root down the one limb-deep child until three leave together.
-        let root = (0..self.children.len())
-            .find(|&j| self.subtree(j).len() == self.children.len())
-            .ok_or("the skeleton has several roots")?;
-        let mut pelvis = root;
+        // Parents precede children: joint 0 is a root, and the only one if it holds them all.
+        if self.children.is_empty() || self.subtree(0).len() != self.children.len() {
+            return Err("the skeleton is empty or has several roots".into());
+        }
+        let mut pelvis = 0;
         let (spine, legs) = loop {
             match self.limbs(pelvis)[..] {
                 [spine, a, b, ..] => break (spine, [a, b]),
@@ -404,5 +405,18 @@ mod tests {
         assert!(e.contains("pelvis"), "{e}");
         let e = Roles::from_shape(&chain, &[Vec3::ZERO; 2]).unwrap_err();
         assert!(e.contains("2 positions for 6 joints"), "{e}");
+        let two_roots = Skeleton::new(
+            ["a", "b"]
+                .map(|name| Joint {
+                    name: name.into(),
+                    parent: None,
+                    offset: Vec3::Y,
+                    pre_rotation: Quat::IDENTITY,
+                })
+                .to_vec(),
+        )
+        .unwrap();
+        let e = Roles::from_shape(&two_roots, &[Vec3::ZERO; 2]).unwrap_err();
+        assert!(e.contains("several roots"), "{e}");
     }
 }
