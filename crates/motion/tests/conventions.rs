@@ -1006,57 +1006,74 @@ fn converts_anonymous(
     eprintln!("{family}, anonymous: limb bones within {worst:.2}°");
 }
 
+/// A skeleton layout as its tool writes BVH, and the joints its roles must find.
+struct Layout<'a, S: Fn(&str, bool) -> String + Copy> {
+    family: &'a str,
+    bones: Vec<Bone>,
+    /// A sided joint's name from its word and side.
+    side: S,
+    /// `[clavicle, upper arm, forearm, hand, thigh, shin, foot]` words for `side`.
+    limbs: [&'a str; 7],
+    /// The pelvis (which [`poses`] turns), spine, chest, neck and head joints.
+    torso: [&'a str; 5],
+    /// The file's (up, forward, left).
+    axes: (Vec3, Vec3, Vec3),
+    /// Rotation channel order written.
+    order: &'a str,
+}
+
+impl<S: Fn(&str, bool) -> String + Copy> Layout<'_, S> {
+    /// Writes [`poses`] of the layout as `<family>.bvh`, reads it back and checks it converts
+    /// with its roles ([`converts`]), comparing its limb bones and `extra` ones; prints the
+    /// worst angle.
+    fn converts(&self, extra: &[(&str, &str, Role, Role)]) {
+        let dir = tempfile::tempdir().unwrap();
+        let [_, words @ ..] = self.limbs;
+        let frames = poses(&self.bones, words, self.side, self.torso[0], self.axes);
+        let motion = write_read(
+            dir.path(),
+            &format!("{}.bvh", self.family),
+            &bvh(&self.bones, &frames, self.order),
+        );
+        let roles = expected(self.torso, self.limbs, self.side);
+        let limbs = limb_bones(words, self.side);
+        let mut bones = compared(&limbs);
+        bones.extend_from_slice(extra);
+        let worst = converts(&motion, self.family, &roles, &bones);
+        eprintln!("{}: limb bones within {worst:.2}°", self.family);
+    }
+}
+
 #[test]
 fn mixamo_names_get_their_roles() {
-    let dir = tempfile::tempdir().unwrap();
-    let bones = mixamo();
-    let side =
-        |w: &str, left: bool| format!("mixamorig:{}{w}", if left { "Left" } else { "Right" });
-    let words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
-    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
-    let frames = poses(&bones, words, side, "mixamorig:Hips", axes);
-    let motion = write_read(dir.path(), "mixamo.bvh", &bvh(&bones, &frames, "ZXY"));
     let torso = ["Hips", "Spine", "Spine2", "Neck", "Head"].map(|n| format!("mixamorig:{n}"));
-    let roles = expected(
-        torso.each_ref().map(String::as_str),
-        ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
-        side,
-    );
-    let worst = converts(
-        &motion,
-        "mixamo",
-        &roles,
-        &compared(&limb_bones(words, side)),
-    );
-    eprintln!("mixamo: limb bones within {worst:.2}°");
+    Layout {
+        family: "mixamo",
+        bones: mixamo(),
+        side: |w: &str, left: bool| format!("mixamorig:{}{w}", if left { "Left" } else { "Right" }),
+        limbs: ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
+        torso: torso.each_ref().map(String::as_str),
+        axes: (Vec3::Y, Vec3::Z, Vec3::X),
+        order: "ZXY",
+    }
+    .converts(&[]);
 }
 
 #[test]
 fn unreal_names_get_their_roles_and_the_pelvis_drives_the_body() {
-    let dir = tempfile::tempdir().unwrap();
-    let bones = unreal();
-    let side = |w: &str, left: bool| format!("{w}_{}", if left { "l" } else { "r" });
-    let words = ["upperarm", "lowerarm", "hand", "thigh", "calf", "foot"];
     // Z up, facing +Y, left −X. The pelvis (not the root on the floor) turns the body.
-    let axes = (Vec3::Z, Vec3::Y, Vec3::NEG_X);
-    let frames = poses(&bones, words, side, "pelvis", axes);
-    let motion = write_read(dir.path(), "unreal.bvh", &bvh(&bones, &frames, "XYZ"));
-    let roles = expected(
-        ["pelvis", "spine_01", "spine_03", "neck_01", "head"],
-        [
+    Layout {
+        family: "unreal",
+        bones: unreal(),
+        side: |w: &str, left: bool| format!("{w}_{}", if left { "l" } else { "r" }),
+        limbs: [
             "clavicle", "upperarm", "lowerarm", "hand", "thigh", "calf", "foot",
         ],
-        side,
-    );
-    let mut limbs = limb_bones(words, side);
-    limbs.push((
-        "thigh_r".into(),
-        "thigh_l".into(),
-        Role::RightHip,
-        Role::LeftHip,
-    ));
-    let worst = converts(&motion, "unreal", &roles, &compared(&limbs));
-    eprintln!("unreal: limb bones within {worst:.2}°");
+        torso: ["pelvis", "spine_01", "spine_03", "neck_01", "head"],
+        axes: (Vec3::Z, Vec3::Y, Vec3::NEG_X),
+        order: "XYZ",
+    }
+    .converts(&[("thigh_r", "thigh_l", Role::RightHip, Role::LeftHip)]);
 }
 
 /// Truebones-style Biped names (`Bip01 L Thigh`), legs from the spine, arms from the neck, Z up
@@ -1064,77 +1081,55 @@ fn unreal_names_get_their_roles_and_the_pelvis_drives_the_body() {
 /// the result is the same).
 #[test]
 fn biped_names_get_their_roles() {
-    let dir = tempfile::tempdir().unwrap();
-    let bones = biped();
-    let side = |w: &str, left: bool| format!("Bip01 {} {w}", if left { "L" } else { "R" });
-    let words = ["UpperArm", "Forearm", "Hand", "Thigh", "Calf", "Foot"];
-    let axes = (Vec3::Z, Vec3::NEG_Y, Vec3::X);
-    let frames = poses(&bones, words, side, "Bip01 Pelvis", axes);
-    let motion = write_read(dir.path(), "biped.bvh", &bvh(&bones, &frames, "ZXY"));
-    let roles = expected(
-        [
+    Layout {
+        family: "biped",
+        bones: biped(),
+        side: |w: &str, left: bool| format!("Bip01 {} {w}", if left { "L" } else { "R" }),
+        limbs: [
+            "Clavicle", "UpperArm", "Forearm", "Hand", "Thigh", "Calf", "Foot",
+        ],
+        torso: [
             "Bip01 Pelvis",
             "Bip01 Spine",
             "Bip01 Spine2",
             "Bip01 Neck",
             "Bip01 Head",
         ],
-        [
-            "Clavicle", "UpperArm", "Forearm", "Hand", "Thigh", "Calf", "Foot",
-        ],
-        side,
-    );
-    let worst = converts(
-        &motion,
-        "biped",
-        &roles,
-        &compared(&limb_bones(words, side)),
-    );
-    eprintln!("biped: limb bones within {worst:.2}°");
+        axes: (Vec3::Z, Vec3::NEG_Y, Vec3::X),
+        order: "ZXY",
+    }
+    .converts(&[]);
 }
 
 /// MotionBuilder / HumanIK names with their `Reference` root and roll leaves.
 #[test]
 fn humanik_names_get_their_roles() {
-    let dir = tempfile::tempdir().unwrap();
-    let bones = humanik();
-    let side = |w: &str, left: bool| format!("{}{w}", if left { "Left" } else { "Right" });
-    let words = ["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"];
-    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
-    let frames = poses(&bones, words, side, "Hips", axes);
-    let motion = write_read(dir.path(), "humanik.bvh", &bvh(&bones, &frames, "ZXY"));
-    let roles = expected(
-        ["Hips", "Spine", "Spine3", "Neck", "Head"],
-        ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
-        side,
-    );
-    let worst = converts(
-        &motion,
-        "humanik",
-        &roles,
-        &compared(&limb_bones(words, side)),
-    );
-    eprintln!("humanik: limb bones within {worst:.2}°");
+    Layout {
+        family: "humanik",
+        bones: humanik(),
+        side: |w: &str, left: bool| format!("{}{w}", if left { "Left" } else { "Right" }),
+        limbs: ["Shoulder", "Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"],
+        torso: ["Hips", "Spine", "Spine3", "Neck", "Head"],
+        axes: (Vec3::Y, Vec3::Z, Vec3::X),
+        order: "ZXY",
+    }
+    .converts(&[]);
 }
 
 #[test]
 fn cmu_asf_names_get_their_roles() {
-    let dir = tempfile::tempdir().unwrap();
-    let bones = cmu();
-    let side = |w: &str, left: bool| format!("{}{w}", if left { "l" } else { "r" });
-    let words = ["humerus", "radius", "wrist", "femur", "tibia", "foot"];
-    let axes = (Vec3::Y, Vec3::Z, Vec3::X);
-    let frames = poses(&bones, words, side, "root", axes);
-    let motion = write_read(dir.path(), "cmu.bvh", &bvh(&bones, &frames, "ZYX"));
-    let roles = expected(
-        ["root", "lowerback", "thorax", "lowerneck", "head"],
-        [
+    Layout {
+        family: "cmu",
+        bones: cmu(),
+        side: |w: &str, left: bool| format!("{}{w}", if left { "l" } else { "r" }),
+        limbs: [
             "clavicle", "humerus", "radius", "wrist", "femur", "tibia", "foot",
         ],
-        side,
-    );
-    let worst = converts(&motion, "cmu", &roles, &compared(&limb_bones(words, side)));
-    eprintln!("cmu: limb bones within {worst:.2}°");
+        torso: ["root", "lowerback", "thorax", "lowerneck", "head"],
+        axes: (Vec3::Y, Vec3::Z, Vec3::X),
+        order: "ZYX",
+    }
+    .converts(&[]);
 }
 
 /// LAFAN1's layout (Ubisoft's animation dataset, from its BVH files): Y up, facing +Z,
