@@ -36,6 +36,16 @@ impl Roles {
     }
 }
 
+/// A leg (hip, knee, ankle) or an arm (shoulder, elbow, wrist) along its chain.
+#[derive(Clone, Copy)]
+struct Limb {
+    joints: [usize; 3],
+    /// The chain's joint before the first: an arm's clavicle.
+    before: Option<usize>,
+    /// The chain's joint after the last: a leg's toe.
+    after: Option<usize>,
+}
+
 /// The tree and one pose of a skeleton.
 struct Shape<'a> {
     positions: &'a [Vec3],
@@ -122,6 +132,18 @@ impl<'a> Shape<'a> {
         out
     }
 
+    /// The limb from `first` ([`Self::chain`]): the three joints around its two longest
+    /// consecutive bones, `None` if its bones have no length.
+    fn limb(&self, first: usize, to_hand: bool) -> Option<Limb> {
+        let chain = self.chain(first, to_hand);
+        let i = self.long_pair(&chain)?;
+        Some(Limb {
+            joints: [chain[i], chain[i + 1], chain[i + 2]],
+            before: i.checked_sub(1).map(|k| chain[k]),
+            after: chain.get(i + 3).copied(),
+        })
+    }
+
     /// The index `i` in `chain` of the first of three joints around its two longest
     /// consecutive bones (hip–knee–ankle, shoulder–elbow–wrist).
     fn long_pair(&self, chain: &[usize]) -> Option<usize> {
@@ -178,31 +200,20 @@ impl<'a> Shape<'a> {
                 None => return Err("no joint where two arms leave the spine (a chest)".into()),
             }
         };
-        let leg = |first: usize| -> Result<([usize; 3], Option<usize>), String> {
-            let chain = self.chain(first, false);
-            let i = self
-                .long_pair(&chain)
-                .ok_or("a leg whose bones have no length")?;
-            Ok((
-                [chain[i], chain[i + 1], chain[i + 2]],
-                chain.get(i + 3).copied(),
-            ))
+        let limb = |first: usize, to_hand: bool| {
+            self.limb(first, to_hand).ok_or(if to_hand {
+                "an arm whose bones have no length"
+            } else {
+                "a leg whose bones have no length"
+            })
         };
-        let arm = |first: usize| -> Result<([usize; 3], Option<usize>), String> {
-            let chain = self.chain(first, true);
-            let i = self
-                .long_pair(&chain)
-                .ok_or("an arm whose bones have no length")?;
-            let clavicle = i.checked_sub(1).map(|k| chain[k]);
-            Ok(([chain[i], chain[i + 1], chain[i + 2]], clavicle))
-        };
-        let (mut left_leg, mut right_leg) = (leg(legs[0])?, leg(legs[1])?);
-        let (mut left_arm, mut right_arm) = (arm(arms[0])?, arm(arms[1])?);
-        // Forward: where the feet point, across the up axis.
+        let (mut left_leg, mut right_leg) = (limb(legs[0], false)?, limb(legs[1], false)?);
+        let (mut left_arm, mut right_arm) = (limb(arms[0], true)?, limb(arms[1], true)?);
+        // Forward: where the feet point (ankle to toe), across the up axis.
         let toes: Vec<Vec3> = [left_leg, right_leg]
             .iter()
-            .filter_map(|([_, _, ankle], toe)| {
-                let d = self.positions[(*toe)?] - self.positions[*ankle];
+            .filter_map(|leg| {
+                let d = self.positions[leg.after?] - self.positions[leg.joints[2]];
                 Some(d - up * d.dot(up))
             })
             .collect();
@@ -216,25 +227,26 @@ impl<'a> Shape<'a> {
         }
         let left = up.cross(forward);
         let side = |a: usize, b: usize| (self.positions[a] - self.positions[b]).dot(left);
-        if side(left_leg.0[0], right_leg.0[0]) < 0.0 {
+        if side(left_leg.joints[0], right_leg.joints[0]) < 0.0 {
             std::mem::swap(&mut left_leg, &mut right_leg);
         }
-        if side(left_arm.0[0], right_arm.0[0]) < 0.0 {
+        if side(left_arm.joints[0], right_arm.joints[0]) < 0.0 {
             std::mem::swap(&mut left_arm, &mut right_arm);
         }
         use Role::*;
         // The chest (and spine, neck, head) follow from these in `Roles::completed`.
         let mut pairs = vec![(Pelvis, pelvis)];
-        for (roles, (joints, _)) in [
+        for (roles, limb) in [
             ([LeftHip, LeftKnee, LeftAnkle], left_leg),
             ([RightHip, RightKnee, RightAnkle], right_leg),
             ([LeftShoulder, LeftElbow, LeftWrist], left_arm),
             ([RightShoulder, RightElbow, RightWrist], right_arm),
         ] {
-            pairs.extend(roles.into_iter().zip(joints));
+            pairs.extend(roles.into_iter().zip(limb.joints));
         }
-        for (role, (_, clavicle)) in [(LeftClavicle, left_arm), (RightClavicle, right_arm)] {
-            if let Some(c) = clavicle.filter(|&c| c != chest) {
+        // The joint before an arm's shoulder is its clavicle (unless that is the chest).
+        for (role, arm) in [(LeftClavicle, left_arm), (RightClavicle, right_arm)] {
+            if let Some(c) = arm.before.filter(|&c| c != chest) {
                 pairs.push((role, c));
             }
         }
@@ -390,32 +402,22 @@ mod tests {
         let (s, positions, _) = skeleton(Quat::IDENTITY, 1.0, false);
         let e = Roles::from_shape(&s, &positions).unwrap_err();
         assert!(e.contains("no toe joints"), "{e}");
-        let chain = Skeleton::new(
-            (0..6usize)
-                .map(|i| Joint {
-                    name: format!("b{i}"),
-                    parent: i.checked_sub(1),
-                    offset: Vec3::Y,
-                    pre_rotation: Quat::IDENTITY,
-                })
-                .collect(),
-        )
-        .unwrap();
+        // Joints named `b<i>` with these parents.
+        let bare = |parents: &[Option<usize>]| {
+            let joints = parents.iter().enumerate().map(|(i, &parent)| Joint {
+                name: format!("b{i}"),
+                parent,
+                offset: Vec3::Y,
+                pre_rotation: Quat::IDENTITY,
+            });
+            Skeleton::new(joints.collect()).unwrap()
+        };
+        let chain = bare(&[None, Some(0), Some(1), Some(2), Some(3), Some(4)]);
         let e = Roles::from_shape(&chain, &[Vec3::ZERO; 6]).unwrap_err();
         assert!(e.contains("pelvis"), "{e}");
         let e = Roles::from_shape(&chain, &[Vec3::ZERO; 2]).unwrap_err();
         assert!(e.contains("2 positions for 6 joints"), "{e}");
-        let two_roots = Skeleton::new(
-            ["a", "b"]
-                .map(|name| Joint {
-                    name: name.into(),
-                    parent: None,
-                    offset: Vec3::Y,
-                    pre_rotation: Quat::IDENTITY,
-                })
-                .to_vec(),
-        )
-        .unwrap();
+        let two_roots = bare(&[None, None]);
         let e = Roles::from_shape(&two_roots, &[Vec3::ZERO; 2]).unwrap_err();
         assert!(e.contains("several roots"), "{e}");
     }
