@@ -32,6 +32,9 @@
 #      profiler at its `profile-full` level, F3G_KERNEL_PROFILE), summed by kernel family
 #      and by variant (a convolution's pass, the grid): profile.json, the top ones in
 #      profile.md
+#   on request (F3G_GPU_CHECK_ONLY="gemm-sweep"): the convolutions' implicit-GEMM routines one
+#      at a time (F3G_CONV_GEMM), `bench nets --paper` under each, then a `paper` step and the
+#      network parity tests with the fastest
 #   9. `f3g bench nets` with autotune         the paper body network, in what is left (only
 #      when the package has the autotune binary: F3G_GPU_CHECK_AUTOTUNE=0 at pack leaves it
 #      out, and 12 minutes of building)
@@ -209,6 +212,55 @@ PY
         --paper --image 512 --json "$out/nets-warm.json"
     step bench-nets-torch 60 "$out/nets-torch.json" python3 "$dir/tools/bench_nets_torch.py" \
         --paper --image 512 --json "$out/nets-torch.json"
+    # The convolutions' implicit-GEMM routines one at a time (`F3G_CONV_GEMM`, see
+    # crates/nets/src/conv/cube.rs): the paper StyleUNets' forward and forward+backward under
+    # each (F3G_GPU_CHECK_GEMMS, `default` = Burn's synchronous cyclic CMMA routine), then a
+    # `paper` step and the network parity tests with the fastest forward and backward found
+    # (gemm-choice.txt): the StyleUNets alone can mislead, the step (its LPIPS VGG and
+    # discriminator shapes too) is the judge. Only on request: `gemm-sweep` in
+    # F3G_GPU_CHECK_ONLY runs all of these.
+    if [[ " $only " == *" gemm-sweep "* ]]; then
+        local g gemms=${F3G_GPU_CHECK_GEMMS:-default simple_async_tma_cmma specialized_tma_cmma \
+            simple_async_cyclic_cmma specialized_async_cyclic_cmma simple_sync_cyclic_mma \
+            simple_async_cyclic_mma specialized_async_cyclic_mma simple_sync_strided_cmma \
+            simple_sync_tilewise_cmma}
+        local only_before=$only
+        only=""
+        for g in $gemms; do
+            # The first process compiles every kernel (a cold cache: about a minute on an
+            # H200), later ones only their routine's: 45 s each timed out on 2026-11-27.
+            step "gemm-$g" "$([ "$g" = "${gemms%% *}" ] && echo 120 || echo 75)" \
+                "$out/gemm-$g.json" sh -c "[ '$g' = default ] \
+                || export F3G_CONV_GEMM='$g'; '$bin/f3g-cuda' bench nets --device cuda --paper \
+                --image 512 --only paper --repeats 3 --json '$out/gemm-$g.json'"
+        done
+        python3 - "$out" $gemms >"$out/gemm-choice.txt" <<'PY'
+import json, os, sys
+out, names = sys.argv[1], sys.argv[2:]
+fwd, bwd = {}, {}
+for name in names:
+    path = f"{out}/gemm-{name}.json"
+    if not os.path.exists(path):
+        continue
+    rows = json.load(open(path))
+    fwd[name] = sum(r["forward_ms"] for r in rows)
+    bwd[name] = sum(r["forward_backward_ms"] - r["forward_ms"] for r in rows)
+    print(f"{name}: forward {fwd[name]:.1f} ms, backward {bwd[name]:.1f} ms", file=sys.stderr)
+best = lambda times: min(times, key=times.get) if times else "default"
+f, b = best(fwd), best(bwd)
+parts = [f"{p}:{n}" for p, n in (("forward", f), ("input", b), ("weight", b)) if n != "default"]
+print(",".join(parts))
+PY
+        local choice
+        choice=$(cat "$out/gemm-choice.txt")
+        echo "== the fastest routines: F3G_CONV_GEMM=$choice"
+        step bench-train-paper-gemm 150 "$out/train-paper-gemm.json" sh -c \
+            "F3G_CONV_GEMM='$choice' '$bin/f3g-cuda' bench train --preset paper --device cuda \
+            --steps 5 --warmup 1 --json '$out/train-paper-gemm.json'"
+        step nets-parity-gemm 120 - env F3G_CONV_GEMM="$choice" "$bin/f3g-nets-gpu" \
+            --test-threads 1
+        only=$only_before
+    fi
     # 5 timed steps after 1 warm-up: making the 1536×2048 capture, the run's setup and the
     # cold compilation come first (with 20 steps it did not end within 150 s on the H200).
     step bench-train-paper 150 "$out/train-paper.json" "$bin/f3g-cuda" bench train \

@@ -19,11 +19,12 @@ pub struct RetargetArgs {
     pub joint_map: Option<PathBuf>,
     /// The motion's pose its rotations are taken relative to: `auto` (its file's rest pose
     /// where the body stands in it, else the frame that stands best, with the up axis that
-    /// stands it), `file-rest` or `first-frame`.
+    /// stands it), `file-rest`, `first-frame`, or `t-pose` (the file's rest with the trunk
+    /// up, legs down and arms out sideways: for a rest in a crouch and frames that never stand).
     #[arg(
         long,
         default_value = "auto",
-        value_name = "auto|file-rest|first-frame"
+        value_name = "auto|file-rest|first-frame|t-pose"
     )]
     pub rest: f3g_motion::RestChoice,
 }

@@ -21,9 +21,10 @@ use burn::backend::tensor::FloatTensor;
 use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::conv::{
-    ConvStrategy, ConvTranspose2dStrategy, conv_data_backward, conv_forward, conv_transpose2d,
-    conv_weight_backward,
+    AcceleratedTileKind, ConvAlgorithm, ConvStrategy, ConvTranspose2dStrategy, conv_data_backward,
+    conv_forward, conv_transpose2d, conv_weight_backward,
 };
+use std::sync::{Mutex, OnceLock};
 
 use super::ConvBackend;
 use super::bands::weight_grad_split;
@@ -41,6 +42,96 @@ fn has_matrix_units(t: &FloatTensor<CubeBackend>) -> bool {
     !t.client.properties().features.matmul.cmma.is_empty()
 }
 
+/// Which pass of a convolution an implicit GEMM computes.
+#[derive(Clone, Copy)]
+enum Pass {
+    Forward = 0,
+    InputGrad = 1,
+    WeightGrad = 2,
+}
+
+const PASS_NAMES: [&str; 3] = ["forward", "input", "weight"];
+
+/// The implicit GEMM's routine for `pass`: Burn's `ImplicitGemm` (CubeK's synchronous cyclic
+/// routine on CMMA) unless `F3G_CONV_GEMM` names another as `<routine>_<cmma|mma>` (e.g.
+/// `simple_async_tma_cmma`) for every pass, or per pass as
+/// `forward:<name>,input:<name>,weight:<name>`: the variants Burn's autotuner chooses among,
+/// to measure one at a time. A variant that declines a problem leaves it to the default.
+fn gemm_strategy(pass: Pass) -> Option<ConvStrategy> {
+    type Choice = Option<(ConvAlgorithm, AcceleratedTileKind)>;
+    static CHOICES: OnceLock<[Choice; 3]> = OnceLock::new();
+    let choices = CHOICES.get_or_init(|| {
+        let mut choices = [None; 3];
+        let Ok(value) = std::env::var("F3G_CONV_GEMM") else {
+            return choices;
+        };
+        for part in value.split(',') {
+            let (passes, name) = match part.split_once(':') {
+                Some((pass, name)) => match PASS_NAMES.iter().position(|&p| p == pass) {
+                    Some(i) => (i..i + 1, name),
+                    None => {
+                        eprintln!("F3G_CONV_GEMM: no pass {pass:?} (forward, input, weight)");
+                        continue;
+                    }
+                },
+                None => (0..3, part),
+            };
+            let found = ALGORITHMS.iter().find_map(|&algorithm| {
+                [AcceleratedTileKind::Cmma, AcceleratedTileKind::Mma]
+                    .into_iter()
+                    .find(|tile| format!("{algorithm}_{tile}") == name)
+                    .map(|tile| (algorithm, tile))
+            });
+            if found.is_none() {
+                eprintln!("F3G_CONV_GEMM: {name:?} is not a routine; the default runs");
+            }
+            for i in passes {
+                choices[i] = found;
+            }
+        }
+        choices
+    });
+    choices[pass as usize].map(|(algorithm, tile_kind)| ConvStrategy::ImplicitGemmWith {
+        algorithm,
+        tile_kind,
+    })
+}
+
+const ALGORITHMS: [ConvAlgorithm; 9] = [
+    ConvAlgorithm::SimpleSyncCyclic,
+    ConvAlgorithm::SimpleSyncStrided,
+    ConvAlgorithm::SimpleSyncTilewise,
+    ConvAlgorithm::SimpleAsyncCyclic,
+    ConvAlgorithm::SimpleAsyncStrided,
+    ConvAlgorithm::SimpleAsyncTma,
+    ConvAlgorithm::SpecializedAsyncCyclic,
+    ConvAlgorithm::SpecializedAsyncStrided,
+    ConvAlgorithm::SpecializedTma,
+];
+
+/// Runs `pass` with the chosen routine, then with Burn's default implicit GEMM where it declines.
+fn with_gemm<T, E: std::fmt::Debug>(
+    which: Pass,
+    pass: impl Fn(ConvStrategy) -> Result<T, E>,
+) -> Result<T, E> {
+    if let Some(strategy) = gemm_strategy(which) {
+        match pass(strategy) {
+            Ok(out) => return Ok(out),
+            Err(err) => {
+                // Once per pass and reason: a network meets the same refusal at every layer.
+                static SAID: Mutex<Vec<String>> = Mutex::new(Vec::new());
+                let said = format!("{} pass: {err:?}", PASS_NAMES[which as usize]);
+                let mut seen = SAID.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+                if !seen.contains(&said) {
+                    eprintln!("F3G_CONV_GEMM declined a {said}");
+                    seen.push(said);
+                }
+            }
+        }
+    }
+    pass(ConvStrategy::ImplicitGemm)
+}
+
 impl ConvBackend for CubeBackend {
     fn conv2d_forward(
         x: FloatTensor<Self>,
@@ -49,13 +140,9 @@ impl ConvBackend for CubeBackend {
     ) -> FloatTensor<Self> {
         if choose_here(&options)
             && has_matrix_units(&x)
-            && let Ok(out) = conv_forward::<2>(
-                x.clone(),
-                weight.clone(),
-                None,
-                options.clone(),
-                ConvStrategy::ImplicitGemm,
-            )
+            && let Ok(out) = with_gemm(Pass::Forward, |strategy| {
+                conv_forward::<2>(x.clone(), weight.clone(), None, options.clone(), strategy)
+            })
         {
             return out;
         }
@@ -80,13 +167,15 @@ impl ConvBackend for CubeBackend {
                     ConvTranspose2dStrategy::Gemm,
                 ))
             } else if has_matrix_units(&x) {
-                Some(conv_data_backward(
-                    grad.clone(),
-                    weight.clone(),
-                    x.shape(),
-                    options.clone(),
-                    ConvStrategy::ImplicitGemm,
-                ))
+                Some(with_gemm(Pass::InputGrad, |strategy| {
+                    conv_data_backward(
+                        grad.clone(),
+                        weight.clone(),
+                        x.shape(),
+                        options.clone(),
+                        strategy,
+                    )
+                }))
             } else {
                 None
             };
@@ -110,13 +199,15 @@ impl ConvBackend for CubeBackend {
                 return weight_grad;
             }
             if has_matrix_units(&x)
-                && let Ok(weight_grad) = conv_weight_backward::<2>(
-                    x.clone(),
-                    grad.clone(),
-                    weight.shape(),
-                    options.clone(),
-                    ConvStrategy::ImplicitGemm,
-                )
+                && let Ok(weight_grad) = with_gemm(Pass::WeightGrad, |strategy| {
+                    conv_weight_backward::<2>(
+                        x.clone(),
+                        grad.clone(),
+                        weight.shape(),
+                        options.clone(),
+                        strategy,
+                    )
+                })
             {
                 return weight_grad;
             }

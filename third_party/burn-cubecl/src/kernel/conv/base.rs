@@ -1,6 +1,6 @@
 use burn_backend::ops::ConvOptions;
 use burn_std::Shape;
-use cubek::convolution::{AcceleratedTileKind, components::ConvSetupError};
+use cubek::convolution::{AcceleratedTileKind, ConvAlgorithm, Strategy, components::ConvSetupError};
 
 #[cfg(feature = "autotune")]
 use crate::kernel::conv::{backward_weight::wgrad_autotune, dgrad_autotune};
@@ -8,7 +8,7 @@ use crate::{
     kernel::conv::{
         backward_data::{fallback::conv_data_backward_fallback, implicit_gemm::*},
         backward_weight::{fallback::conv_weight_backward_fallback, implicit_gemm::*},
-        forward::implicit_gemm::conv_gemm_simple_sync,
+        forward::implicit_gemm::{conv_gemm_simple_sync, launch_convolution_forward},
     },
     ops::{permute_nchw_to_nhwc, permute_nchw_to_nhwc_shape, permute_nhwc_to_nchw},
     tensor::CubeTensor,
@@ -28,6 +28,15 @@ pub enum ConvStrategy {
     /// Implicit GEMM implementation of convolution. Lower memory usage but requires CMMA and
     /// has constraints on tensor shape.
     ImplicitGemm,
+    /// Implicit GEMM with the given CubeK algorithm and tile matmul (`ImplicitGemm` is
+    /// `SimpleSyncCyclic` with CMMA): without autotune, the only way to run the asynchronous,
+    /// TMA or `mma` variants the tuner would otherwise choose among.
+    ImplicitGemmWith {
+        /// The CubeK convolution routine.
+        algorithm: ConvAlgorithm,
+        /// The tile matmul it runs on.
+        tile_kind: AcceleratedTileKind,
+    },
 }
 
 impl Default for ConvStrategy {
@@ -89,6 +98,20 @@ pub fn conv_forward_nhwc<const N: usize>(
                 conv_gemm_simple_sync::<N>(input, weight, bias, options, AcceleratedTileKind::Cmma)
             }
         }
+        ConvStrategy::ImplicitGemmWith {
+            algorithm,
+            tile_kind,
+        } => {
+            if options.groups != 1 {
+                conv_direct::<N>(input, weight, bias, options)
+            } else {
+                let strategy = Strategy::Inferred {
+                    algorithm,
+                    tile_kind,
+                };
+                launch_convolution_forward::<N>(&strategy, input, weight, bias, options)
+            }
+        }
     }
 }
 
@@ -127,6 +150,20 @@ pub fn conv_weight_backward<const N: usize>(
                     options,
                     AcceleratedTileKind::Cmma,
                 )
+            }
+        }
+        ConvStrategy::ImplicitGemmWith {
+            algorithm,
+            tile_kind,
+        } => {
+            if options.groups != 1 {
+                conv_weight_backward_fallback::<N>(input, out_grad, weight_shape, options)
+            } else {
+                let strategy = Strategy::Inferred {
+                    algorithm,
+                    tile_kind,
+                };
+                launch_backwards_weight::<N>(&strategy, input, out_grad, weight_shape, options)
             }
         }
     }?;
@@ -169,6 +206,20 @@ pub fn conv_data_backward<const N: usize>(
                     options,
                     AcceleratedTileKind::Cmma,
                 )?
+            }
+        }
+        ConvStrategy::ImplicitGemmWith {
+            algorithm,
+            tile_kind,
+        } => {
+            if options.groups != 1 || options.stride.iter().any(|&s| s != 1) {
+                conv_data_backward_fallback::<N>(out_grad, weights, in_shape, options)?
+            } else {
+                let strategy = Strategy::Inferred {
+                    algorithm,
+                    tile_kind,
+                };
+                launch_backwards_data::<N>(&strategy, out_grad, weights, in_shape, options)?
             }
         }
     };

@@ -20,6 +20,8 @@ pub(crate) use direct::*;
 pub(crate) use im2col::*;
 
 pub use base::*;
+/// The names a [`ConvStrategy::ImplicitGemmWith`] is given in.
+pub use cubek::convolution::{AcceleratedTileKind, ConvAlgorithm};
 pub use conv_transpose2d::{ConvTranspose2dStrategy, conv_transpose2d};
 
 pub(crate) use tune_key::*;
