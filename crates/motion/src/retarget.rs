@@ -8,7 +8,7 @@
 //!    model's ([`f3g_rig::Rig::roles`]); the source's are inferred from its joint names
 //!    ([`f3g_rig::Roles::infer`]: prefixes, side markers and synonyms; completed from the
 //!    skeleton's shape, [`f3g_rig::Roles::completed`]) or, where the names give neither hip,
-//!    from the shape alone ([`f3g_rig::Roles::from_shape`]), overridden by a `--joint-map`
+//!    from the shape and the motion ([`f3g_rig::Roles::from_motion`]), overridden by a `--joint-map`
 //!    ([`f3g_rig::RoleMap`], role → source joint name). Joints whose names are equal
 //!    correspond first, unless the pair contradicts the roles: where the target joint's role
 //!    belongs to another source joint that no name pairs (Unreal's `root` on the floor is not
@@ -86,7 +86,7 @@ pub struct Correspondence {
 pub enum RolesFrom {
     /// The joint names (completed from the skeleton's shape), or the same family.
     Names,
-    /// The skeleton's shape alone ([`Roles::from_shape`]): the names give no hip.
+    /// The skeleton's shape alone ([`Roles::from_motion`]): the names give no hip.
     Shape,
 }
 
@@ -270,9 +270,13 @@ pub fn complete_by_topology(skeleton: &f3g_rig::Skeleton, roles: Roles) -> Roles
     roles.completed(skeleton)
 }
 
+/// At most this many of a motion's frames (evenly spaced) tell a toeless skeleton's sides.
+const SHAPE_FRAMES: usize = 240;
+
 /// The source's roles (rule 2): from its names, completed from its shape; where the names
-/// give neither hip, from its shape alone ([`Roles::from_shape`], in the motion's first
-/// frame), with what the names do give put over them. The third value says why the shape gave
+/// give neither hip, from its shape alone ([`Roles::from_motion`]: the tree and the motion's
+/// first frame, its sides from the feet or else from the motion's knees and walk), with what
+/// the names do give put over them. The third value says why the shape gave
 /// none, when it was tried and failed.
 fn source_roles(motion: &Motion) -> (Roles, RolesFrom, Option<String>) {
     let source = &motion.skeleton;
@@ -280,7 +284,13 @@ fn source_roles(motion: &Motion) -> (Roles, RolesFrom, Option<String>) {
     if named.get(Role::LeftHip).is_some() || named.get(Role::RightHip).is_some() {
         return (complete_by_topology(source, named), RolesFrom::Names, None);
     }
-    match Roles::from_shape(source, &motion.positions(0)) {
+    // The motion's poses, for a skeleton without toes (its knees and its walk tell its sides).
+    let step = motion.frames().div_ceil(SHAPE_FRAMES).max(1);
+    let poses: Vec<Vec<Vec3>> = (0..motion.frames())
+        .step_by(step)
+        .map(|f| motion.positions(f))
+        .collect();
+    match Roles::from_motion(source, &motion.positions(0), &poses) {
         Ok(shape) => {
             let taken: Vec<usize> = shape.iter().map(|(_, j)| j).collect();
             let extra = named

@@ -485,11 +485,41 @@ fn a_joint_map_names_what_the_names_do_not() {
     assert_eq!(r.roles_from, f3g_motion::retarget::RolesFrom::Shape);
     assert_eq!(r.source_roles.0[&Role::Pelvis], "Bone_007");
     assert_eq!(r.source_roles.0[&Role::LeftHip], "mixamorig:LeftStrut");
-    // Without toes the shape cannot tell left from right either: the error lists the joints
-    // that took no role, says why the shape did not help and how to name them.
+    // Without toes the feet point nowhere: the walk's bending knees tell left from right.
     let toeless = without(&odd, &["mixamorig:LeftToeBase", "mixamorig:RightToeBase"]);
-    let e = retarget(
+    let r = retarget(
         &toeless,
+        &rig,
+        &RetargetOptions::default(),
+        Path::new("odd.bvh"),
+    )
+    .unwrap();
+    assert_eq!(r.source_roles.0[&Role::LeftHip], "mixamorig:LeftStrut");
+    assert_eq!(r.source_roles.0[&Role::RightWrist], "mixamorig:RightHand");
+    // Standing still with straight legs nothing does: the error lists the joints that took no
+    // role, says why the shape did not help and how to name them.
+    let mut still = toeless.clone();
+    let joints = still.skeleton.len();
+    still.rotations.truncate(joints);
+    still.rotations.fill(Quat::IDENTITY);
+    still.root_translation.truncate(1);
+    let straight: Vec<f3g_rig::Joint> = still
+        .skeleton
+        .joints()
+        .iter()
+        .map(|j| f3g_rig::Joint {
+            // The knees on the hip–ankle lines.
+            offset: if j.name.ends_with("Leg") || j.name.ends_with("Foot") {
+                Vec3::new(0.0, j.offset.y, 0.0)
+            } else {
+                j.offset
+            },
+            ..j.clone()
+        })
+        .collect();
+    still.skeleton = f3g_rig::Skeleton::new(straight).unwrap();
+    let e = retarget(
+        &still,
         &rig,
         &RetargetOptions::default(),
         Path::new("odd.bvh"),
@@ -500,7 +530,8 @@ fn a_joint_map_names_what_the_names_do_not() {
         e.contains("odd.bvh")
             && e.contains("--joint-map")
             && e.contains("Bone_007")
-            && e.contains("no toe joints"),
+            && e.contains("no toe joints")
+            && e.contains("knees never bend"),
         "{e}"
     );
     let map: RoleMap = serde_json::from_str(

@@ -16,8 +16,12 @@
 //!
 //! Sides need a pose: up is the pelvis toward the spine's joints, forward the direction the
 //! feet point (ankle to toe, across both legs), and the body's left is up × forward (a
-//! right-handed frame: +Y up and +Z forward put the left on +X). A skeleton without toes has
-//! no forward and is refused with that reason. Positions may come in any axes and units (a
+//! right-handed frame: +Y up and +Z forward put the left on +X). Legs that end at the ankles
+//! point nowhere; then the motion tells ([`Roles::from_motion`]): knees bend forward, so over
+//! its frames the knees' offsets from the hip–ankle lines give forward, each frame in its own
+//! orientation (a body that turns around keeps its sides); where the knees stay straight, the
+//! direction the pelvis travels does (a walk goes forward). A toeless skeleton whose motion
+//! shows neither is refused with that reason. Positions may come in any axes and units (a
 //! motion's first frame, whatever its up axis), so a rest laid along one axis is no obstacle.
 
 use glam::Vec3;
@@ -32,9 +36,32 @@ impl Roles {
     /// Roles from the skeleton's shape (module docs). `positions`: each joint's world position
     /// in one pose of the body, any axes and units. An error says what was not found.
     pub fn from_shape(skeleton: &Skeleton, positions: &[Vec3]) -> Result<Self, String> {
-        Shape::new(skeleton, positions)?.roles()
+        Self::from_motion(skeleton, positions, &[])
+    }
+
+    /// [`Self::from_shape`] with a motion's poses (each joint's position, in `positions`'
+    /// axes and units), which tell the sides apart where the legs have no toes (module docs).
+    pub fn from_motion(
+        skeleton: &Skeleton,
+        positions: &[Vec3],
+        frames: &[Vec<Vec3>],
+    ) -> Result<Self, String> {
+        if let Some(f) = frames.iter().position(|p| p.len() != positions.len()) {
+            return Err(format!(
+                "frame {f} has {} positions for {} joints",
+                frames[f].len(),
+                positions.len()
+            ));
+        }
+        Shape::new(skeleton, positions)?.roles(frames)
     }
 }
+
+/// Knees bent by less than this share of the leg's length on average say nothing of forward.
+const LEAST_BEND: f32 = 0.02;
+
+/// A side must win this share of the evidence (each frame weighted by how clearly it shows).
+const DECISIVE: f32 = 0.5;
 
 /// A leg (hip, knee, ankle) or an arm (shoulder, elbow, wrist) along its chain.
 #[derive(Clone, Copy)]
@@ -158,7 +185,59 @@ impl<'a> Shape<'a> {
             .map(|(i, _)| i)
     }
 
-    fn roles(&self) -> Result<Roles, String> {
+    /// Whether `legs[0]` is the left leg, from the motion's `frames` (module docs): where the
+    /// knees bend, else where the pelvis travels; `None` where neither tells.
+    fn first_leg_is_left(&self, frames: &[Vec<Vec3>], legs: [Limb; 2], spine: usize, pelvis: usize) -> Option<bool> {
+        let spine = self.subtree(spine);
+        let leg_length = |at: &[Vec3], leg: Limb| {
+            let [h, k, a] = leg.joints.map(|j| at[j]);
+            h.distance(k) + k.distance(a)
+        };
+        // Per frame: its up, the hips' axis across it (legs[0] − legs[1]), and for a forward
+        // `f` the evidence `axis · (up × f)`: positive when legs[0] lies on the left.
+        let (mut bend, mut bend_total, mut bent) = (0.0f32, 0.0f32, 0.0f32);
+        let (mut travel, mut travel_total, mut travelled) = (0.0f32, 0.0f32, Vec3::ZERO);
+        let mut previous: Option<Vec3> = None;
+        for at in frames {
+            let up = (spine.iter().map(|&j| at[j]).sum::<Vec3>() / spine.len() as f32
+                - at[pelvis])
+                .normalize_or_zero();
+            let flat = |v: Vec3| v - up * v.dot(up);
+            let axis = flat(at[legs[0].joints[0]] - at[legs[1].joints[0]]);
+            let length = 0.5 * (leg_length(at, legs[0]) + leg_length(at, legs[1]));
+            if up == Vec3::ZERO || length <= 0.0 {
+                continue;
+            }
+            let knees: Vec3 = legs
+                .iter()
+                .map(|leg| {
+                    let [h, k, a] = leg.joints.map(|j| at[j]);
+                    let line = (a - h).normalize_or_zero();
+                    k - h - line * (k - h).dot(line)
+                })
+                .sum();
+            let knees = flat(knees) / length;
+            bend += axis.dot(up.cross(knees));
+            bend_total += axis.length() * knees.length();
+            bent += 0.5 * knees.length();
+            let here = at[pelvis];
+            if let Some(before) = previous {
+                let step = flat(here - before) / length;
+                travel += axis.dot(up.cross(step));
+                travel_total += axis.length() * step.length();
+                travelled += step;
+            }
+            previous = Some(here);
+        }
+        let frames = frames.len().max(1) as f32;
+        if bent / frames >= LEAST_BEND && bend.abs() > DECISIVE * bend_total {
+            return Some(bend > 0.0);
+        }
+        // A walk, not a sway: the pelvis ends a leg's length or more from where it began.
+        (travelled.length() >= 1.0 && travel.abs() > DECISIVE * travel_total).then_some(travel > 0.0)
+    }
+
+    fn roles(&self, frames: &[Vec<Vec3>]) -> Result<Roles, String> {
         // The pelvis: from the root down the one limb-deep child until three leave together.
         // Parents precede children: joint 0 is a root, and the only one if it holds them all.
         if self.children.is_empty() || self.subtree(0).len() != self.children.len() {
@@ -218,14 +297,23 @@ impl<'a> Shape<'a> {
             })
             .collect();
         let forward = toes.iter().sum::<Vec3>().normalize_or_zero();
-        if toes.len() < 2 || forward == Vec3::ZERO || up == Vec3::ZERO {
-            return Err(
-                "the legs end at the ankles (no toe joints), so which side is left cannot be \
-                 told from the shape"
-                    .into(),
-            );
-        }
-        let left = up.cross(forward);
+        let left = if toes.len() == 2 && forward != Vec3::ZERO && up != Vec3::ZERO {
+            up.cross(forward)
+        } else {
+            let hips = self.positions[left_leg.joints[0]] - self.positions[right_leg.joints[0]];
+            match self.first_leg_is_left(frames, [left_leg, right_leg], spine, pelvis) {
+                Some(true) => hips,
+                Some(false) => -hips,
+                None => {
+                    return Err(
+                        "the legs end at the ankles (no toe joints), and over the motion the \
+                         knees never bend and the body does not walk, so which side is left \
+                         cannot be told"
+                            .into(),
+                    );
+                }
+            }
+        };
         let side = |a: usize, b: usize| (self.positions[a] - self.positions[b]).dot(left);
         if side(left_leg.joints[0], right_leg.joints[0]) < 0.0 {
             std::mem::swap(&mut left_leg, &mut right_leg);
@@ -395,6 +483,73 @@ mod tests {
             roles.get(Role::RightWrist).map(|j| names[j].as_str()),
             Some("hand_l")
         );
+    }
+
+    /// `positions` with `move` applied to the named joints, then turned about +Y by `yaw`.
+    fn posed(
+        positions: &[Vec3],
+        names: &[String],
+        moved: &[(&str, Vec3)],
+        yaw: f32,
+    ) -> Vec<Vec3> {
+        let turn = Quat::from_rotation_y(yaw);
+        let mut at = positions.to_vec();
+        for (name, by) in moved {
+            let j = names.iter().position(|n| n == name).unwrap();
+            at[j] += *by;
+        }
+        at.iter().map(|p| turn * *p).collect()
+    }
+
+    fn assert_sides(roles: &Roles, names: &[String], why: &str) {
+        for (role, name) in expected() {
+            let got = roles.get(role).map(|j| names[j].as_str());
+            assert_eq!(got, Some(name), "{role:?}: {why}");
+        }
+    }
+
+    #[test]
+    fn without_toes_the_motion_tells_the_sides() {
+        let (s, positions, names) = skeleton(Quat::IDENTITY, 1.0, false);
+        // Knees bent forward (+Z) by turns, the body turning round as it goes: each frame's
+        // own orientation counts, not the first frame's.
+        let walk: Vec<Vec<Vec3>> = (0..12)
+            .map(|f| {
+                let swing = 0.04 + 0.06 * (f as f32 * 0.7).sin().abs();
+                let knees = [("shin_l", Vec3::Z * swing), ("shin_r", Vec3::Z * (0.1 - swing))];
+                posed(&positions, &names, &knees, f as f32 * 0.5)
+            })
+            .collect();
+        let roles = Roles::from_motion(&s, &positions, &walk).unwrap();
+        assert_sides(&roles, &names, "from the knees");
+        // Mirrored, the knees tell the other way.
+        let mirror = |p: &Vec<Vec3>| p.iter().map(|v| Vec3::new(-v.x, v.y, v.z)).collect();
+        let mirrored: Vec<Vec<Vec3>> = walk.iter().map(mirror).collect();
+        let roles = Roles::from_motion(&s, &mirror(&positions), &mirrored).unwrap();
+        assert_eq!(
+            roles.get(Role::LeftHip).map(|j| names[j].as_str()),
+            Some("thigh_r")
+        );
+        // Straight knees, the body gliding forward two leg lengths.
+        let glide: Vec<Vec<Vec3>> = (0..10)
+            .map(|f| {
+                let ahead = Vec3::Z * 0.2 * f as f32;
+                posed(&positions, &names, &[], 0.0)
+                    .into_iter()
+                    .map(|p| p + ahead)
+                    .collect()
+            })
+            .collect();
+        let roles = Roles::from_motion(&s, &positions, &glide).unwrap();
+        assert_sides(&roles, &names, "from the travel");
+        // Standing still, straight-legged (the fixture's knees, 2 cm forward of the hip–ankle
+        // line, moved onto it): nothing tells.
+        let straight = [("shin_l", Vec3::Z * -0.02), ("shin_r", Vec3::Z * -0.02)];
+        let still = vec![posed(&positions, &names, &straight, 0.0); 10];
+        let e = Roles::from_motion(&s, &positions, &still).unwrap_err();
+        assert!(e.contains("no toe joints") && e.contains("knees never bend"), "{e}");
+        let e = Roles::from_motion(&s, &positions, &[vec![Vec3::ZERO; 3]]).unwrap_err();
+        assert!(e.contains("frame 0 has 3 positions"), "{e}");
     }
 
     #[test]
