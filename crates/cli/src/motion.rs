@@ -27,6 +27,10 @@ pub struct RetargetArgs {
         value_name = "auto|file-rest|first-frame|t-pose"
     )]
     pub rest: f3g_motion::RestChoice,
+    /// Keep planted feet from sliding: where the motion's foot is down and still, the root is
+    /// shifted horizontally so that the body's foot stays where it was planted.
+    #[arg(long)]
+    pub lock_feet: bool,
 }
 
 impl RetargetArgs {
@@ -41,6 +45,7 @@ impl RetargetArgs {
             fps,
             identity: Vec::new(),
             rest: self.rest,
+            lock_feet: self.lock_feet,
         })
     }
 }
@@ -133,6 +138,16 @@ pub fn describe(path: &Path, r: &Retargeted, frames: usize) -> String {
             100.0 * floor.largest_shift_m,
             100.0 * floor.largest_float_m,
             100.0 * floor.largest_penetration_m
+        );
+    }
+    if let Some(lock) = &r.feet_locked {
+        text += &format!(
+            "\n  feet locked: planted in {} frames, where they slid up to {:.1} cm (now {:.1} cm); \
+             the root shifted by up to {:.1} cm",
+            lock.planted_frames,
+            100.0 * lock.largest_slide_before_m,
+            100.0 * lock.largest_slide_after_m,
+            100.0 * lock.largest_shift_m
         );
     }
     for warning in r.plausibility.iter().flat_map(|p| &p.warnings) {

@@ -29,6 +29,7 @@ mod error;
 mod export;
 mod fbx;
 pub mod floor;
+pub mod foot_lock;
 mod gltf;
 pub mod plausibility;
 pub mod rest;

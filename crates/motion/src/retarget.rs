@@ -47,6 +47,7 @@ use serde::Serialize;
 use f3g_rig::{Rig, RigParams, Role, RoleMap, Roles};
 
 use crate::floor::{FloorReport, Sole, SourceFeet, shifts};
+use crate::foot_lock::{self, FootLockReport};
 use crate::plausibility::{self, Plausibility, upright};
 use crate::rest::{Reference, RestChoice, StandingJoints, TRUNK_TOP, reference_pose, up_to_y};
 use crate::{Motion, MotionError};
@@ -62,6 +63,8 @@ pub struct RetargetOptions {
     pub identity: Vec<f32>,
     /// The source pose its rotations are taken relative to ([`crate::rest`]).
     pub rest: RestChoice,
+    /// Keep planted feet from sliding by shifting the root horizontally ([`crate::foot_lock`]).
+    pub lock_feet: bool,
 }
 
 /// How a target joint found its source joint.
@@ -115,6 +118,9 @@ pub struct Retargeted {
     /// How rule 6 put the body on the floor; `None` where it does not apply (the same
     /// family's parameters, the target's own skeleton, a source without ankles).
     pub floor: Option<FloorReport>,
+    /// What `--lock-feet` did; `None` where it was not asked for or does not apply (no floor
+    /// contact, no ankles on either side).
+    pub feet_locked: Option<FootLockReport>,
     /// Whether the result looks like the source ([`crate::plausibility`]); `None` for the
     /// same family's parameters.
     pub plausibility: Option<Plausibility>,
@@ -227,6 +233,7 @@ fn same_family(
         scale: 1.0,
         dropped_degrees: 0.0,
         floor: None,
+        feet_locked: None,
         plausibility: None,
         reference: None,
     })
@@ -586,6 +593,10 @@ fn by_rotations(
     );
     let target_pelvis = rig.roles.get(Role::Pelvis).unwrap_or(0);
     let source_pelvis = pair[target_pelvis].unwrap_or(0);
+    // (target, source) ankles, left and right, for locking the feet.
+    let ankle_pairs = [Role::LeftAnkle, Role::RightAnkle]
+        .map(|r| rig.roles.get(r).and_then(|t| Some((t, pair[t]?))));
+    let mut source_ankles: [Vec<Vec3>; 2] = [Vec::new(), Vec::new()];
 
     // The plausibility checks' bones (each limb bone with both ends corresponding) and trunks.
     // Each bone's joints: target from, target to, source from, source to.
@@ -645,6 +656,11 @@ fn by_rotations(
         if let Some(feet) = &mut feet {
             feet.push(foot_joints.iter().map(|&j| place(posed[j].translation)));
         }
+        for (track, ankle) in source_ankles.iter_mut().zip(ankle_pairs) {
+            if let Some((_, s)) = ankle {
+                track.push(place(posed[s].translation));
+            }
+        }
         let src = place(posed[source_pelvis].translation);
         let want = Vec3::new(
             src.x * scale,
@@ -668,14 +684,24 @@ fn by_rotations(
         }
         frames.push(p);
     }
-    let floor = match feet.and_then(|f| f.contact(motion.fps, source_leg)) {
-        Some((source_floor, contact)) if !own_skeleton => Some(on_the_floor(
+    let contact = feet
+        .and_then(|f| f.contact(motion.fps, source_leg))
+        .filter(|_| !own_skeleton);
+    let floor = match &contact {
+        Some((source_floor, contact)) => Some(on_the_floor(
             rig,
             base,
             &mut frames,
-            &contact,
+            contact,
             source_floor / unit,
         )?),
+        None => None,
+    };
+    let feet_locked = match (&contact, ankle_pairs) {
+        (Some((_, contact)), [Some((left, _)), Some((right, _))]) if options.lock_feet => {
+            let planted = foot_lock::planted(&source_ankles, contact, motion.fps, source_leg);
+            Some(lock_feet(rig, &mut frames, [left, right], &planted)?)
+        }
         _ => None,
     };
     Ok(Retargeted {
@@ -697,8 +723,32 @@ fn by_rotations(
             !own_skeleton && foot_joints.is_empty(),
         )),
         floor,
+        feet_locked,
         reference: Some(reference),
     })
+}
+
+/// `--lock-feet` ([`crate::foot_lock`]): shifts each frame's root horizontally so that planted
+/// feet stay where they were planted. `ankles`: the target's left and right ankle joints.
+fn lock_feet(
+    rig: &Rig,
+    frames: &mut [RigParams],
+    ankles: [usize; 2],
+    planted: &[Vec<bool>; 2],
+) -> Result<FootLockReport, MotionError> {
+    let mut at: [Vec<Vec3>; 2] = [Vec::new(), Vec::new()];
+    for p in frames.iter() {
+        let world = rig.joint_world(p)?;
+        for (track, &j) in at.iter_mut().zip(&ankles) {
+            track.push(world[j].translation);
+        }
+    }
+    let (shift, report) = foot_lock::shifts(&at, planted);
+    for (p, s) in frames.iter_mut().zip(shift) {
+        let root = rig.root_translation(p);
+        rig.set_root_translation(p, root + s)?;
+    }
+    Ok(report)
 }
 
 /// The plausibility checks ([`crate::plausibility`]), with one more finding: `no_ankles` where

@@ -1332,6 +1332,93 @@ fn a_clip_that_never_stands_takes_a_t_pose_built_from_the_rest() {
     eprintln!("lafan1 crouch, --rest t-pose: limb bones within {worst:.2}°");
 }
 
+/// A squat with planted feet (Mixamo's skeleton with a cartoon's short thighs and long shins,
+/// the knees 16 cm higher): the knees bend forward and the pelvis goes down and back, the
+/// ankles still. The human's thigh and shin are proportioned unlike these, so the same angles
+/// move its feet along the floor; `lock_feet` keeps them where they stand (each ankle within
+/// 5 mm of where it was planted).
+#[test]
+fn locked_feet_stay_where_they_stand_in_a_squat() {
+    let dir = tempfile::tempdir().unwrap();
+    let bones: Vec<Bone> = mixamo()
+        .into_iter()
+        .map(|(n, p, h)| match n.ends_with("Leg") && !n.ends_with("UpLeg") {
+            true => (n, p, h + Vec3::Y * 16.0),
+            false => (n, p, h),
+        })
+        .collect();
+    let at = |n: &str| bones.iter().find(|b| b.0 == format!("mixamorig:{n}")).unwrap().2;
+    let (thigh, shin) = (
+        at("LeftUpLeg").distance(at("LeftLeg")),
+        at("LeftLeg").distance(at("LeftFoot")),
+    );
+    let (mut frames, mut moved) = (Vec::new(), Vec::new());
+    for f in 0..24 {
+        // Down and up twice: thighs forward by `a`, shins back by `b`, ankles fixed.
+        let a = 1.1 * (std::f32::consts::PI * f as f32 / 12.0).sin().abs();
+        let b = 0.7 * a;
+        let (knee, ankle) = (
+            Vec3::new(0.0, -a.cos(), a.sin()),
+            Vec3::new(0.0, -b.cos(), -b.sin()),
+        );
+        let drop = thigh + shin - (thigh * a.cos() + shin * b.cos());
+        let back = thigh * a.sin() - shin * b.sin();
+        moved.push(Vec3::new(0.0, -drop, -back));
+        let mut pose = Vec::new();
+        for side in ["Left", "Right"] {
+            let n = |w: &str| format!("mixamorig:{side}{w}");
+            pose.push(aim(&bones, &n("UpLeg"), &n("Leg"), knee));
+            pose.push(aim(&bones, &n("Leg"), &n("Foot"), ankle));
+            // The feet flat on the floor.
+            pose.push(aim(&bones, &n("Foot"), &n("ToeBase"), at("LeftToeBase") - at("LeftFoot")));
+        }
+        frames.push(pose);
+    }
+    let none = vec![Quat::IDENTITY; bones.len()];
+    let text = bvh_turned(&bones, &frames, "ZXY", &none, &moved);
+    let motion = write_read(dir.path(), "squat.bvh", &text);
+    // The source's ankles stay put: the fixture is right.
+    let ankle = motion.skeleton.index_of("mixamorig:LeftFoot").unwrap();
+    for f in 0..motion.frames() {
+        let d = motion.positions(f)[ankle].distance(motion.positions(0)[ankle]);
+        assert!(d < 0.05, "the source's ankle moved {d} cm in frame {f}");
+    }
+    let rig = builtin();
+    let ankles = [Role::LeftAnkle, Role::RightAnkle].map(|r| rig.roles.get(r).unwrap());
+    let slide = |lock_feet: bool| {
+        let r = retarget(
+            &motion,
+            &rig,
+            &RetargetOptions {
+                lock_feet,
+                ..Default::default()
+            },
+            Path::new("squat.bvh"),
+        )
+        .unwrap();
+        let flat = |v: Vec3| Vec3::new(v.x, 0.0, v.z);
+        let start = rig.joint_world(&r.frames[0]).unwrap();
+        let mut worst = 0.0f32;
+        for p in &r.frames {
+            let w = rig.joint_world(p).unwrap();
+            for &j in &ankles {
+                worst = worst.max(flat(w[j].translation).distance(flat(start[j].translation)));
+            }
+        }
+        (worst, r)
+    };
+    let (free, r) = slide(false);
+    assert!(r.feet_locked.is_none());
+    assert!(free > 0.02, "the unlocked feet slide {free} m (the case this is for)");
+    let (locked, r) = slide(true);
+    let report = r.feet_locked.unwrap();
+    assert_eq!(report.planted_frames, 24, "{report:?}");
+    assert!(locked < 0.005, "locked feet slide {locked} m: {report:?}");
+    assert!((report.largest_slide_before_m - free).abs() < 0.005, "{report:?} vs {free}");
+    assert!(r.plausibility.unwrap().warnings.is_empty());
+    eprintln!("squat: feet slid {:.1} cm, locked {:.2} cm", 100.0 * free, 100.0 * locked);
+}
+
 /// A kneel (Mixamo's skeleton, centimetres): standing, then on both knees — thighs down, shins
 /// and feet back along the floor, the hips 49 cm lower. Rule 5 alone sank the human's knees
 /// into the floor (its shins are shorter for its legs than Mixamo's); with the floor rule the
