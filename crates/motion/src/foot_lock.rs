@@ -91,7 +91,9 @@ pub fn shifts(ankles: &[Vec<Vec3>; 2], planted: &[Vec<bool>; 2]) -> (Vec<Vec3>, 
             report.largest_slide_after_m = report.largest_slide_after_m.max(after.distance(a0));
         }
     }
-    report.planted_frames = (0..frames).filter(|&f| planted[0][f] || planted[1][f]).count();
+    report.planted_frames = (0..frames)
+        .filter(|&f| planted[0][f] || planted[1][f])
+        .count();
     (shift, report)
 }
 
@@ -104,8 +106,12 @@ mod tests {
         // Foot 0 slides 1 cm a frame while planted in frames 0–4; foot 1 is planted in 3–7
         // (sliding 2 cm a frame); nothing is planted in 8–9.
         let ankles = [
-            (0..10).map(|f| Vec3::new(0.01 * f as f32, 0.1, 0.0)).collect(),
-            (0..10).map(|f| Vec3::new(0.3, 0.1, 0.02 * f as f32)).collect(),
+            (0..10)
+                .map(|f| Vec3::new(0.01 * f as f32, 0.1, 0.0))
+                .collect(),
+            (0..10)
+                .map(|f| Vec3::new(0.3, 0.1, 0.02 * f as f32))
+                .collect(),
         ];
         let planted = [
             (0..10).map(|f| f <= 4).collect(),
@@ -127,7 +133,10 @@ mod tests {
         for f in 1..10 {
             assert!(shift[f].distance(shift[f - 1]) <= 0.02 + 1e-6, "{f}");
         }
-        assert!((report.largest_slide_before_m - 0.08).abs() < 1e-5, "{report:?}");
+        assert!(
+            (report.largest_slide_before_m - 0.08).abs() < 1e-5,
+            "{report:?}"
+        );
         assert_eq!(report.planted_frames, 8);
     }
 

@@ -122,8 +122,14 @@ impl StandingJoints {
             (&[Pelvis, top_role(&joint)?, Head], TBone::Up),
             (&[LeftHip, LeftKnee, LeftAnkle], TBone::Down),
             (&[RightHip, RightKnee, RightAnkle], TBone::Down),
-            (&[LeftClavicle, LeftShoulder, LeftElbow, LeftWrist], TBone::Left),
-            (&[RightClavicle, RightShoulder, RightElbow, RightWrist], TBone::Right),
+            (
+                &[LeftClavicle, LeftShoulder, LeftElbow, LeftWrist],
+                TBone::Left,
+            ),
+            (
+                &[RightClavicle, RightShoulder, RightElbow, RightWrist],
+                TBone::Right,
+            ),
         ];
         // Each role's bone ends at the next role of its chain the skeleton has.
         let mut bones = Vec::new();

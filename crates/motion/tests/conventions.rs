@@ -1270,7 +1270,12 @@ fn a_clip_that_never_stands_takes_a_t_pose_built_from_the_rest() {
     let mut crouch = vec![("Spine".to_string(), lean)];
     for side in ["Left", "Right"] {
         let n = |w: &str| format!("{side}{w}");
-        crouch.push(aim(&bones, &n("UpLeg"), &n("Leg"), forward * 0.9 - up * 0.45));
+        crouch.push(aim(
+            &bones,
+            &n("UpLeg"),
+            &n("Leg"),
+            forward * 0.9 - up * 0.45,
+        ));
         crouch.push(aim(&bones, &n("Leg"), &n("Foot"), -forward * 0.5 - up));
         crouch.push(aim(&bones, &n("Foot"), &n("ToeBase"), forward - up * 0.3));
         crouch.push(aim(&bones, &n("Arm"), &n("ForeArm"), -up));
@@ -1310,10 +1315,16 @@ fn a_clip_that_never_stands_takes_a_t_pose_built_from_the_rest() {
     let reference = auto.reference.clone().unwrap();
     assert_eq!((reference.frame, reference.t_pose), (None, false));
     assert!(
-        reference.reason.is_some_and(|r| r.contains("no frame does")),
+        reference
+            .reason
+            .is_some_and(|r| r.contains("no frame does")),
         "auto finds no standing frame"
     );
-    assert_eq!(auto.reference.as_ref().unwrap().up, f3g_motion::Up::Z, "misread");
+    assert_eq!(
+        auto.reference.as_ref().unwrap().up,
+        f3g_motion::Up::Z,
+        "misread"
+    );
     let side = |w: &str, left: bool| format!("{}{w}", if left { "Left" } else { "Right" });
     let limbs = limb_bones(["Arm", "ForeArm", "Hand", "UpLeg", "Leg", "Foot"], side);
     let mut as_stood = motion.clone();
@@ -1342,12 +1353,20 @@ fn locked_feet_stay_where_they_stand_in_a_squat() {
     let dir = tempfile::tempdir().unwrap();
     let bones: Vec<Bone> = mixamo()
         .into_iter()
-        .map(|(n, p, h)| match n.ends_with("Leg") && !n.ends_with("UpLeg") {
-            true => (n, p, h + Vec3::Y * 16.0),
-            false => (n, p, h),
-        })
+        .map(
+            |(n, p, h)| match n.ends_with("Leg") && !n.ends_with("UpLeg") {
+                true => (n, p, h + Vec3::Y * 16.0),
+                false => (n, p, h),
+            },
+        )
         .collect();
-    let at = |n: &str| bones.iter().find(|b| b.0 == format!("mixamorig:{n}")).unwrap().2;
+    let at = |n: &str| {
+        bones
+            .iter()
+            .find(|b| b.0 == format!("mixamorig:{n}"))
+            .unwrap()
+            .2
+    };
     let (thigh, shin) = (
         at("LeftUpLeg").distance(at("LeftLeg")),
         at("LeftLeg").distance(at("LeftFoot")),
@@ -1370,7 +1389,12 @@ fn locked_feet_stay_where_they_stand_in_a_squat() {
             pose.push(aim(&bones, &n("UpLeg"), &n("Leg"), knee));
             pose.push(aim(&bones, &n("Leg"), &n("Foot"), ankle));
             // The feet flat on the floor.
-            pose.push(aim(&bones, &n("Foot"), &n("ToeBase"), at("LeftToeBase") - at("LeftFoot")));
+            pose.push(aim(
+                &bones,
+                &n("Foot"),
+                &n("ToeBase"),
+                at("LeftToeBase") - at("LeftFoot"),
+            ));
         }
         frames.push(pose);
     }
@@ -1409,14 +1433,24 @@ fn locked_feet_stay_where_they_stand_in_a_squat() {
     };
     let (free, r) = slide(false);
     assert!(r.feet_locked.is_none());
-    assert!(free > 0.02, "the unlocked feet slide {free} m (the case this is for)");
+    assert!(
+        free > 0.02,
+        "the unlocked feet slide {free} m (the case this is for)"
+    );
     let (locked, r) = slide(true);
     let report = r.feet_locked.unwrap();
     assert_eq!(report.planted_frames, 24, "{report:?}");
     assert!(locked < 0.005, "locked feet slide {locked} m: {report:?}");
-    assert!((report.largest_slide_before_m - free).abs() < 0.005, "{report:?} vs {free}");
+    assert!(
+        (report.largest_slide_before_m - free).abs() < 0.005,
+        "{report:?} vs {free}"
+    );
     assert!(r.plausibility.unwrap().warnings.is_empty());
-    eprintln!("squat: feet slid {:.1} cm, locked {:.2} cm", 100.0 * free, 100.0 * locked);
+    eprintln!(
+        "squat: feet slid {:.1} cm, locked {:.2} cm",
+        100.0 * free,
+        100.0 * locked
+    );
 }
 
 /// A kneel (Mixamo's skeleton, centimetres): standing, then on both knees — thighs down, shins

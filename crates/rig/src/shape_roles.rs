@@ -187,7 +187,13 @@ impl<'a> Shape<'a> {
 
     /// Whether `legs[0]` is the left leg, from the motion's `frames` (module docs): where the
     /// knees bend, else where the pelvis travels; `None` where neither tells.
-    fn first_leg_is_left(&self, frames: &[Vec<Vec3>], legs: [Limb; 2], spine: usize, pelvis: usize) -> Option<bool> {
+    fn first_leg_is_left(
+        &self,
+        frames: &[Vec<Vec3>],
+        legs: [Limb; 2],
+        spine: usize,
+        pelvis: usize,
+    ) -> Option<bool> {
         let spine = self.subtree(spine);
         let leg_length = |at: &[Vec3], leg: Limb| {
             let [h, k, a] = leg.joints.map(|j| at[j]);
@@ -199,8 +205,7 @@ impl<'a> Shape<'a> {
         let (mut travel, mut travel_total, mut travelled) = (0.0f32, 0.0f32, Vec3::ZERO);
         let mut previous: Option<Vec3> = None;
         for at in frames {
-            let up = (spine.iter().map(|&j| at[j]).sum::<Vec3>() / spine.len() as f32
-                - at[pelvis])
+            let up = (spine.iter().map(|&j| at[j]).sum::<Vec3>() / spine.len() as f32 - at[pelvis])
                 .normalize_or_zero();
             let flat = |v: Vec3| v - up * v.dot(up);
             let axis = flat(at[legs[0].joints[0]] - at[legs[1].joints[0]]);
@@ -234,7 +239,8 @@ impl<'a> Shape<'a> {
             return Some(bend > 0.0);
         }
         // A walk, not a sway: the pelvis ends a leg's length or more from where it began.
-        (travelled.length() >= 1.0 && travel.abs() > DECISIVE * travel_total).then_some(travel > 0.0)
+        (travelled.length() >= 1.0 && travel.abs() > DECISIVE * travel_total)
+            .then_some(travel > 0.0)
     }
 
     fn roles(&self, frames: &[Vec<Vec3>]) -> Result<Roles, String> {
@@ -486,12 +492,7 @@ mod tests {
     }
 
     /// `positions` with `move` applied to the named joints, then turned about +Y by `yaw`.
-    fn posed(
-        positions: &[Vec3],
-        names: &[String],
-        moved: &[(&str, Vec3)],
-        yaw: f32,
-    ) -> Vec<Vec3> {
+    fn posed(positions: &[Vec3], names: &[String], moved: &[(&str, Vec3)], yaw: f32) -> Vec<Vec3> {
         let turn = Quat::from_rotation_y(yaw);
         let mut at = positions.to_vec();
         for (name, by) in moved {
@@ -516,7 +517,10 @@ mod tests {
         let walk: Vec<Vec<Vec3>> = (0..12)
             .map(|f| {
                 let swing = 0.04 + 0.06 * (f as f32 * 0.7).sin().abs();
-                let knees = [("shin_l", Vec3::Z * swing), ("shin_r", Vec3::Z * (0.1 - swing))];
+                let knees = [
+                    ("shin_l", Vec3::Z * swing),
+                    ("shin_r", Vec3::Z * (0.1 - swing)),
+                ];
                 posed(&positions, &names, &knees, f as f32 * 0.5)
             })
             .collect();
@@ -547,7 +551,10 @@ mod tests {
         let straight = [("shin_l", Vec3::Z * -0.02), ("shin_r", Vec3::Z * -0.02)];
         let still = vec![posed(&positions, &names, &straight, 0.0); 10];
         let e = Roles::from_motion(&s, &positions, &still).unwrap_err();
-        assert!(e.contains("no toe joints") && e.contains("knees never bend"), "{e}");
+        assert!(
+            e.contains("no toe joints") && e.contains("knees never bend"),
+            "{e}"
+        );
         let e = Roles::from_motion(&s, &positions, &[vec![Vec3::ZERO; 3]]).unwrap_err();
         assert!(e.contains("frame 0 has 3 positions"), "{e}");
     }
