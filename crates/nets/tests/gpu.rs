@@ -144,36 +144,57 @@ fn lpips_matches_the_cpu_on_the_gpu() {
 }
 
 /// One LPIPS layer, the smallest case of a bug in Burn 0.22.1's fusion (`--features fusion`):
-/// a ReLU that runs in place on a tensor nothing else holds, then a channel normalisation that
-/// broadcasts a reduction back over the ReLU's output. Fused, the division read the features
-/// from before the ReLU (negative values where the CPU has zeros); it passes without fusion.
-/// Kept as the report to send upstream and the check for a Burn upgrade (BENCHMARKS.md,
-/// "Burn's `fusion` on lavapipe").
+/// a ReLU that runs in place on a convolution's `[N, C, 1, 1]` output nothing else holds, then
+/// a channel normalisation. Fused, the reduction's read block took the vector axis from the
+/// buffer's NHWC strides, launched no thread, and the division read the features from before
+/// the ReLU (negative values where the CPU has zeros) over a norm of left-over memory. Fixed
+/// by the vendored `burn-cubecl-fusion` patch (third_party/burn-cubecl-fusion.md); passes
+/// unfused. Batches 1 and 4, the norm itself and the sum alone, each checked.
 #[test]
 fn a_normalisation_after_an_in_place_relu_matches_the_cpu() {
     use burn::tensor::activation::relu;
     use burn::tensor::module::max_pool2d;
     use burn::tensor::ops::{ConvOptions, MaxPoolOptions};
     use f3g_nets::conv::conv2d;
-    let run = |device: &Device| {
-        let x = ramp([1, 192, 3, 3], device) + 0.5;
+    let features = |batch: usize, device: &Device| {
+        let x = ramp([batch, 192, 3, 3], device) + 0.5;
         let x = max_pool2d(x, MaxPoolOptions::new([3, 3]).with_stride([2, 2]));
         let w = ramp([384, 192, 3, 3], device) * 0.05;
-        let r = relu(conv2d(
+        relu(conv2d(
             x,
             w,
             None,
             ConvOptions::new([1, 1], [1, 1], [1, 1], 1),
-        ));
-        let norm = r.clone().powf_scalar(2.0).sum_dim(1).sqrt() + 1e-10;
-        values(r / norm)
+        ))
     };
-    let gpu = run(&test_device());
-    assert!(
-        gpu.iter().all(|&v| v >= 0.0),
-        "negative after a ReLU: {gpu:?}"
-    );
-    assert_close(&gpu, &run(&Device::flex()), 1e-4, "normalised features");
+    for batch in [1, 4] {
+        let normalised = |device: &Device| {
+            let r = features(batch, device);
+            let norm = r.clone().powf_scalar(2.0).sum_dim(1).sqrt() + 1e-10;
+            (values(r / norm.clone()), values(norm))
+        };
+        let ((gpu, gpu_norm), (cpu, cpu_norm)) =
+            (normalised(&test_device()), normalised(&Device::flex()));
+        assert!(
+            gpu.iter().all(|&v| v >= 0.0),
+            "batch {batch}: negative after a ReLU: {gpu:?}"
+        );
+        assert_close(
+            &gpu,
+            &cpu,
+            1e-4,
+            &format!("batch {batch}: normalised features"),
+        );
+        assert_close(
+            &gpu_norm,
+            &cpu_norm,
+            1e-4,
+            &format!("batch {batch}: their norm"),
+        );
+        let sum = |device: &Device| values(features(batch, device).powf_scalar(2.0).sum_dim(1));
+        let (gpu, cpu) = (sum(&test_device()), sum(&Device::flex()));
+        assert_close(&gpu, &cpu, 1e-4, &format!("batch {batch}: the sum alone"));
+    }
 }
 
 /// The convolution op and both its gradients, one shape per algorithm the GPU path picks
