@@ -27,6 +27,8 @@ mod autodiff;
 pub mod bands;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
 mod cube;
+#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+pub use cube::{GemmChoice, gemm_choices};
 mod flex;
 pub mod profile;
 

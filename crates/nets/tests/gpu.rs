@@ -339,6 +339,27 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
     }
 }
 
+/// `F3G_CONV_GEMM`'s values: one routine for every pass, one per pass, and what is refused.
+#[cfg(not(feature = "fusion"))]
+#[test]
+fn conv_gemm_names_read_as_cubek_routines() {
+    use burn_cubecl::kernel::conv::{AcceleratedTileKind, ConvAlgorithm};
+    use f3g_nets::conv::gemm_choices;
+    let tma = Some((ConvAlgorithm::SimpleAsyncTma, AcceleratedTileKind::Cmma));
+    assert_eq!(gemm_choices("simple_async_tma_cmma"), Ok([tma; 3]));
+    assert_eq!(gemm_choices(""), Ok([None; 3]));
+    let mma = Some((ConvAlgorithm::SimpleSyncCyclic, AcceleratedTileKind::Mma));
+    let tilewise = Some((ConvAlgorithm::SimpleSyncTilewise, AcceleratedTileKind::Cmma));
+    assert_eq!(
+        gemm_choices("forward:simple_sync_cyclic_mma,weight:simple_sync_tilewise_cmma"),
+        Ok([mma, None, tilewise])
+    );
+    let e = gemm_choices("simple_sync_cyclic").unwrap_err();
+    assert!(e.contains("not a routine"), "{e}");
+    let e = gemm_choices("backward:simple_sync_cyclic_mma").unwrap_err();
+    assert!(e.contains("no pass \"backward\""), "{e}");
+}
+
 /// The split chosen for the layers it is for, and not for the others.
 #[cfg(not(feature = "fusion"))]
 #[test]

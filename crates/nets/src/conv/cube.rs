@@ -12,8 +12,10 @@
 //! setup declines, and for grouped or asymmetrically padded convolutions, the direct kernels run
 //! as before. A weight gradient whose implicit GEMM would have too few tiles for its long
 //! reduction (few channels at a high resolution) runs split into bands of positions instead,
-//! on any device ([`super::bands`]). With Burn's `autotune` on, its tuner chooses among all of
-//! these and more, so this choice steps aside.
+//! on any device ([`super::bands`]). `F3G_CONV_GEMM` runs another of CubeK's implicit-GEMM
+//! routines instead of the default, to measure them one by one ([`gemm_choices`]). With
+//! Burn's `autotune` on, its tuner chooses among all of these and more, so this choice steps
+//! aside.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::ModuleOps;
@@ -53,48 +55,56 @@ enum Pass {
 const PASS_NAMES: [&str; 3] = ["forward", "input", "weight"];
 
 /// The implicit GEMM's routine for `pass`: Burn's `ImplicitGemm` (CubeK's synchronous cyclic
-/// routine on CMMA) unless `F3G_CONV_GEMM` names another as `<routine>_<cmma|mma>` (e.g.
-/// `simple_async_tma_cmma`) for every pass, or per pass as
-/// `forward:<name>,input:<name>,weight:<name>`: the variants Burn's autotuner chooses among,
-/// to measure one at a time. A variant that declines a problem leaves it to the default.
+/// routine on CMMA) unless `F3G_CONV_GEMM` names another ([`gemm_choices`]). What it cannot
+/// read is said once and the default runs.
 fn gemm_strategy(pass: Pass) -> Option<ConvStrategy> {
-    type Choice = Option<(ConvAlgorithm, AcceleratedTileKind)>;
-    static CHOICES: OnceLock<[Choice; 3]> = OnceLock::new();
+    static CHOICES: OnceLock<[GemmChoice; 3]> = OnceLock::new();
     let choices = CHOICES.get_or_init(|| {
-        let mut choices = [None; 3];
-        let Ok(value) = std::env::var("F3G_CONV_GEMM") else {
-            return choices;
-        };
-        for part in value.split(',') {
-            let (passes, name) = match part.split_once(':') {
-                Some((pass, name)) => match PASS_NAMES.iter().position(|&p| p == pass) {
-                    Some(i) => (i..i + 1, name),
-                    None => {
-                        eprintln!("F3G_CONV_GEMM: no pass {pass:?} (forward, input, weight)");
-                        continue;
-                    }
-                },
-                None => (0..3, part),
-            };
-            let found = ALGORITHMS.iter().find_map(|&algorithm| {
-                [AcceleratedTileKind::Cmma, AcceleratedTileKind::Mma]
-                    .into_iter()
-                    .find(|tile| format!("{algorithm}_{tile}") == name)
-                    .map(|tile| (algorithm, tile))
-            });
-            if found.is_none() {
-                eprintln!("F3G_CONV_GEMM: {name:?} is not a routine; the default runs");
-            }
-            for i in passes {
-                choices[i] = found;
-            }
-        }
-        choices
+        let value = std::env::var("F3G_CONV_GEMM").unwrap_or_default();
+        gemm_choices(&value).unwrap_or_else(|e| {
+            eprintln!("F3G_CONV_GEMM={value}: {e}; the default runs");
+            [None; 3]
+        })
     });
     choices[pass as usize].map(|(algorithm, tile_kind)| ConvStrategy::ImplicitGemmWith {
         algorithm,
         tile_kind,
     })
+}
+
+/// A routine and its tile matmul; `None`: Burn's `ImplicitGemm`.
+pub type GemmChoice = Option<(ConvAlgorithm, AcceleratedTileKind)>;
+
+/// The routine of each pass (forward, input gradient, weight gradient) named by an
+/// `F3G_CONV_GEMM` value: `<routine>_<cmma|mma>` (e.g. `simple_async_tma_cmma`) for every
+/// pass, or per pass `forward:<name>,input:<name>,weight:<name>`, as CubeK names them (the
+/// variants Burn's autotuner chooses among, to measure one at a time); empty for the default.
+pub fn gemm_choices(value: &str) -> Result<[GemmChoice; 3], String> {
+    let mut choices = [None; 3];
+    for part in value.split(',').filter(|p| !p.is_empty()) {
+        let (passes, name) = match part.split_once(':') {
+            Some((pass, name)) => match PASS_NAMES.iter().position(|&p| p == pass) {
+                Some(i) => (i..i + 1, name),
+                None => return Err(format!("no pass {pass:?} (forward, input, weight)")),
+            },
+            None => (0..3, part),
+        };
+        let found = ALGORITHMS.iter().find_map(|&algorithm| {
+            [AcceleratedTileKind::Cmma, AcceleratedTileKind::Mma]
+                .into_iter()
+                .find(|tile| format!("{algorithm}_{tile}") == name)
+                .map(|tile| (algorithm, tile))
+        });
+        let Some(found) = found else {
+            return Err(format!(
+                "{name:?} is not a routine (e.g. simple_sync_cyclic_mma)"
+            ));
+        };
+        for i in passes {
+            choices[i] = Some(found);
+        }
+    }
+    Ok(choices)
 }
 
 const ALGORITHMS: [ConvAlgorithm; 9] = [
