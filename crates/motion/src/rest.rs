@@ -89,8 +89,8 @@ pub struct StandingJoints {
     pub top: usize,
     /// (hip, knee, ankle) of each leg that has all three.
     pub legs: Vec<[usize; 3]>,
-    /// Bones of the T-pose ([`t_pose`]): (joint, the joint its bone ends at, which way in
-    /// the T: 1 up, −1 down, or 0 sideways).
+    /// Bones of the T-pose ([`t_pose`]): (joint, the joint its bone ends at, which way it
+    /// points in the T).
     bones: Vec<(usize, usize, TBone)>,
     /// (left, right) hips.
     hips: Option<(usize, usize)>,
@@ -108,7 +108,8 @@ enum TBone {
 impl StandingJoints {
     /// From the source's joint of each role; `None` without a pelvis and a trunk top.
     pub fn new(joint: impl Fn(Role) -> Option<usize>) -> Option<Self> {
-        let top = TRUNK_TOP.into_iter().find_map(&joint)?;
+        let top_role = TRUNK_TOP.into_iter().find(|&r| joint(r).is_some())?;
+        let top = joint(top_role)?;
         let legs = [
             [Role::LeftHip, Role::LeftKnee, Role::LeftAnkle],
             [Role::RightHip, Role::RightKnee, Role::RightAnkle],
@@ -119,7 +120,7 @@ impl StandingJoints {
         let pelvis = joint(Role::Pelvis)?;
         use Role::*;
         let chains: [(&[Role], TBone); 5] = [
-            (&[Pelvis, top_role(&joint)?, Head], TBone::Up),
+            (&[Pelvis, top_role, Head], TBone::Up),
             (&[LeftHip, LeftKnee, LeftAnkle], TBone::Down),
             (&[RightHip, RightKnee, RightAnkle], TBone::Down),
             (
@@ -162,11 +163,6 @@ impl StandingJoints {
         }
         worst
     }
-}
-
-/// The trunk's top role ([`TRUNK_TOP`]) the skeleton has.
-fn top_role(joint: &impl Fn(Role) -> Option<usize>) -> Option<Role> {
-    TRUNK_TOP.into_iter().find(|&r| joint(r).is_some())
 }
 
 /// The up axis as a vector of `up`-up coordinates.
