@@ -183,17 +183,23 @@ impl SourceFeet {
             .map(|f| {
                 let (j, clearance) = lowest[f];
                 let above = clearance - floor;
-                let (a, b) = (f.saturating_sub(1), (f + 1).min(frames - 1));
-                let speed = match b - a {
-                    0 => 0.0,
-                    steps => at(a, j).distance(at(b, j)) * fps / steps as f32,
-                };
+                let speed = speed_at(|f| at(f, j), f, frames, fps);
                 above <= CONTACT_TOLERANCE * leg_length
                     || (speed <= STILL_LEGS_PER_SECOND * leg_length
                         && above <= STILL_HEIGHT * leg_length)
             })
             .collect();
         Some((floor, contact))
+    }
+}
+
+/// How fast a point whose position at each frame is `at` moves at frame `f` of `frames`
+/// (units per second): the central difference, one-sided at the ends, 0 for one frame.
+pub fn speed_at(at: impl Fn(usize) -> Vec3, f: usize, frames: usize, fps: f32) -> f32 {
+    let (a, b) = (f.saturating_sub(1), (f + 1).min(frames - 1));
+    match b - a {
+        0 => 0.0,
+        steps => at(a).distance(at(b)) * fps / steps as f32,
     }
 }
 

@@ -39,11 +39,7 @@ pub fn planted(ankles: &[Vec<Vec3>; 2], contact: &[bool], fps: f32, leg: f32) ->
         let lowest = at.iter().map(|p| p.y).fold(f32::INFINITY, f32::min);
         (0..frames)
             .map(|f| {
-                let (a, b) = (f.saturating_sub(1), (f + 1).min(frames - 1));
-                let speed = match b - a {
-                    0 => 0.0,
-                    steps => at[a].distance(at[b]) * fps / steps as f32,
-                };
+                let speed = crate::floor::speed_at(|f| at[f], f, frames, fps);
                 contact[f]
                     && at[f].y - lowest <= crate::floor::CONTACT_TOLERANCE * leg
                     && speed <= crate::floor::STILL_LEGS_PER_SECOND * leg

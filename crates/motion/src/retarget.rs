@@ -593,7 +593,8 @@ fn by_rotations(
     );
     let target_pelvis = rig.roles.get(Role::Pelvis).unwrap_or(0);
     let source_pelvis = pair[target_pelvis].unwrap_or(0);
-    // (target, source) ankles, left and right, for locking the feet.
+    // (target, source) ankles, left and right, and the source's over the frames where the
+    // feet are to be locked.
     let ankle_pairs = [Role::LeftAnkle, Role::RightAnkle]
         .map(|r| rig.roles.get(r).and_then(|t| Some((t, pair[t]?))));
     let mut source_ankles: [Vec<Vec3>; 2] = [Vec::new(), Vec::new()];
@@ -656,9 +657,11 @@ fn by_rotations(
         if let Some(feet) = &mut feet {
             feet.push(foot_joints.iter().map(|&j| place(posed[j].translation)));
         }
-        for (track, ankle) in source_ankles.iter_mut().zip(ankle_pairs) {
-            if let Some((_, s)) = ankle {
-                track.push(place(posed[s].translation));
+        if options.lock_feet {
+            for (track, ankle) in source_ankles.iter_mut().zip(ankle_pairs) {
+                if let Some((_, s)) = ankle {
+                    track.push(place(posed[s].translation));
+                }
             }
         }
         let src = place(posed[source_pelvis].translation);

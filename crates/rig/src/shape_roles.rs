@@ -57,6 +57,17 @@ impl Roles {
     }
 }
 
+/// The mean position of `joints` in the pose `at`.
+fn mean(at: &[Vec3], joints: &[usize]) -> Vec3 {
+    joints.iter().map(|&j| at[j]).sum::<Vec3>() / joints.len() as f32
+}
+
+/// A body's up in the pose `at`: from the pelvis toward the mean of the spine's subtree
+/// (`spine`, every joint above the pelvis); zero where they coincide.
+fn body_up(at: &[Vec3], spine: &[usize], pelvis: usize) -> Vec3 {
+    (mean(at, spine) - at[pelvis]).normalize_or_zero()
+}
+
 /// Knees bent by less than this share of the leg's length on average say nothing of forward.
 const LEAST_BEND: f32 = 0.02;
 
@@ -138,10 +149,6 @@ impl<'a> Shape<'a> {
         out
     }
 
-    fn mean(&self, joints: &[usize]) -> Vec3 {
-        joints.iter().map(|&j| self.positions[j]).sum::<Vec3>() / joints.len() as f32
-    }
-
     /// From `j`, the deepest child each time, until a joint with none or, with `to_hand`,
     /// with several of two joints' depth or more (the hand, where fingers branch; a twist
     /// bone beside the forearm is a leaf).
@@ -205,8 +212,7 @@ impl<'a> Shape<'a> {
         let (mut travel, mut travel_total, mut travelled) = (0.0f32, 0.0f32, Vec3::ZERO);
         let mut previous: Option<Vec3> = None;
         for at in frames {
-            let up = (spine.iter().map(|&j| at[j]).sum::<Vec3>() / spine.len() as f32 - at[pelvis])
-                .normalize_or_zero();
+            let up = body_up(at, &spine, pelvis);
             let flat = |v: Vec3| v - up * v.dot(up);
             let axis = flat(at[legs[0].joints[0]] - at[legs[1].joints[0]]);
             let length = 0.5 * (leg_length(at, legs[0]) + leg_length(at, legs[1]));
@@ -262,12 +268,13 @@ impl<'a> Shape<'a> {
                 }
             }
         };
-        let up = (self.mean(&self.subtree(spine)) - self.positions[pelvis]).normalize_or_zero();
+        let up = body_up(self.positions, &self.subtree(spine), pelvis);
         // The chest: up the spine until two limbs leave besides the one going furthest up.
         let mut chest = spine;
         let arms = loop {
             let mut limbs = self.limbs(chest);
-            let rise = |c: usize| (self.mean(&self.subtree(c)) - self.positions[chest]).dot(up);
+            let rise =
+                |c: usize| (mean(self.positions, &self.subtree(c)) - self.positions[chest]).dot(up);
             let neck = self.children[chest]
                 .iter()
                 .copied()
