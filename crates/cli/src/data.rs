@@ -53,7 +53,9 @@ pub struct SynthArgs {
     pub overwrite: bool,
 }
 
-/// The frames of `--motion` for the built-in human: retargeted, cut to `--frames`, centred.
+/// The frames of `--motion` for the built-in human: retargeted onto the person `--seed` draws
+/// (the shape `f3g synth --seed` renders; a sequence of the built-in human's own takes it too),
+/// cut to `--frames`, centred.
 fn synth_motion(path: &Path, a: &SynthArgs) -> Result<Vec<f3g_rig::RigParams>> {
     if let Some(fps) = a.fps
         && !(fps.is_finite() && fps > 0.0 && fps <= 1000.0)
@@ -61,17 +63,20 @@ fn synth_motion(path: &Path, a: &SynthArgs) -> Result<Vec<f3g_rig::RigParams>> {
         bail!("--fps {fps}: expected a rate in (0, 1000]");
     }
     let rig = &f3g_rig::builtin::load()?.rig;
-    let read = f3g_avatar::infer::animate::read_motion(
-        path,
-        rig,
-        &rig.zero_params(),
-        &a.retarget.options(a.fps)?,
-    )?;
+    let person = f3g_rig::RigParams {
+        identity: f3g_rig::choreography::identity(rig, a.seed),
+        ..rig.zero_params()
+    };
+    let read =
+        f3g_avatar::infer::animate::read_motion(path, rig, &person, &a.retarget.options(a.fps)?)?;
     if let Some(r) = &read.retargeted {
         eprintln!("{}", crate::motion::describe(path, r, read.frames.len()));
     }
     let mut frames = read.frames;
     frames.truncate(a.frames.unwrap_or(usize::MAX));
+    for frame in &mut frames {
+        frame.identity.clone_from(&person.identity);
+    }
     if frames.is_empty() {
         bail!("{}: the motion has no frames", path.display());
     }

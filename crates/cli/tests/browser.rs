@@ -237,6 +237,59 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
         drop(server);
     }
 
+    // A pose far from training (a deep lunge, the arms overhead): the player poses the avatar
+    // and adds its correctives there as f3g does, so what it shows is the avatar's own.
+    let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
+    let mut far = f3g_rig::sequence::read(&d.join("cap/body_params.npz"), &rig).unwrap()[0].clone();
+    for (name, value) in [
+        ("upperleg01.L_rx", -1.4),
+        ("lowerleg01.L_rx", 1.9),
+        ("upperarm01.L_rz", 2.4),
+        ("upperarm01.R_rz", -2.4),
+    ] {
+        let i = rig.pose_param_names().iter().position(|n| n == name);
+        far.pose[i.unwrap_or_else(|| panic!("{name}"))] = value;
+    }
+    f3g_rig::sequence::write(&d.join("far.npz"), &rig, &[far]).unwrap();
+    let server = Server::start(d, &["k16.glb", "--motion", "far.npz"]);
+    let shot = d.join("far.png");
+    let report = shoot(
+        &format!("{}?paused&bare", server.url),
+        &shot,
+        &["--view", &view, "--frame", "0"],
+    );
+    assert_eq!(report["errors"].as_array().unwrap().len(), 0, "{report}");
+    drop(server);
+    ok(&f3g(
+        d,
+        &[
+            "animate",
+            "k16.glb",
+            "--motion",
+            "far.npz",
+            "--camera",
+            "cam.json",
+            "--out",
+            "far",
+            "--no-floor",
+        ],
+    ));
+    let (psnr, pixels) = avatar_psnr(&shot, &d.join("far/frames/frame_00000.png"));
+    assert!(pixels > 1000, "the avatar covers {pixels} pixels");
+    // 27.2 dB when written (2026-11-27; frame 3: ≥ 30): the pictures differ only at the two
+    // shoulders, where the blend of the arm's and the torso's transforms is furthest from a
+    // rotation — the player transforms covariances by the blended matrix, f3g by its polar
+    // rotation (BENCHMARKS, "Where the blotches under new motions come from").
+    assert!(
+        psnr >= 26.0,
+        "far pose: the player's picture is {psnr:.2} dB from f3g's"
+    );
+    let (psnr, _) = avatar_psnr(&shot, &d.join("k16.png"));
+    assert!(
+        psnr < 25.0,
+        "the far pose looks like frame 3 ({psnr:.1} dB)"
+    );
+
     // Moving the slider changes the frame and the picture.
     let server = Server::start(d, &["k16.glb", "--motion", "cap/body_params.npz"]);
     let report = shoot(

@@ -194,8 +194,9 @@ fn bad_motion_files_are_refused_and_nothing_is_written() {
 }
 
 /// `f3g synth --motion`: a motion of each kind `--motion` reads becomes a capture of the
-/// built-in human whose body parameters are that motion retargeted (cut to `--frames`, its
-/// first frame moved over the ring's centre), with the body in view.
+/// built-in human whose body parameters are that motion retargeted onto the person `f3g synth`
+/// draws with the same seed (cut to `--frames`, its first frame moved over the ring's centre),
+/// with the body in view.
 #[test]
 fn every_motion_kind_becomes_a_capture_of_that_motion() {
     use f3g_testkit::{Array, write_arrays};
@@ -268,6 +269,17 @@ fn every_motion_kind_becomes_a_capture_of_that_motion() {
     files.push("walk.smpl".into());
 
     let rig = &f3g_rig::builtin::load().unwrap().rig;
+    // The person of the seed-0 capture: every motion's capture shows that body.
+    let person = f3g_rig::sequence::read(&d.join("cap/body_params.npz"), rig).unwrap()[0].clone();
+    assert!(
+        person.identity.iter().any(|&v| v != 0.0),
+        "{:?}",
+        person.identity
+    );
+    let rest = f3g_rig::RigParams {
+        identity: person.identity.clone(),
+        ..rig.zero_params()
+    };
     for (i, file) in files.iter().enumerate() {
         let out = format!("of{i}");
         ok(&f3g(
@@ -288,15 +300,14 @@ fn every_motion_kind_becomes_a_capture_of_that_motion() {
                 "1",
             ],
         ));
-        let mut expected = f3g_avatar::infer::animate::read_motion(
-            &d.join(file),
-            rig,
-            &rig.zero_params(),
-            &Default::default(),
-        )
-        .unwrap()
-        .frames;
+        let mut expected =
+            f3g_avatar::infer::animate::read_motion(&d.join(file), rig, &rest, &Default::default())
+                .unwrap()
+                .frames;
         expected.truncate(3);
+        for e in &mut expected {
+            e.identity.clone_from(&person.identity);
+        }
         f3g_data::synth::centre_on_ring(rig, &mut expected).unwrap();
         let got = f3g_rig::sequence::read(&d.join(&out).join("body_params.npz"), rig).unwrap();
         assert_eq!(got.len(), expected.len(), "{file}");
@@ -304,10 +315,10 @@ fn every_motion_kind_becomes_a_capture_of_that_motion() {
             for (a, b) in g.pose.iter().zip(&e.pose) {
                 assert!((a - b).abs() < 1e-5, "{file}: {a} ≠ {b}");
             }
+            assert_eq!(g.identity, person.identity, "{file}");
         }
         // The first frame stands where the human stands at rest: root over the ring's centre,
         // feet on the rest pose's floor; the body in view.
-        let rest = rig.zero_params();
         let (root, rest_root) = (
             rig.joint_world(&got[0]).unwrap()[0].translation,
             rig.joint_world(&rest).unwrap()[0].translation,

@@ -376,7 +376,7 @@ pub fn generate(
 
 /// Moves a motion of the built-in human so that its first frame stands where the human stands
 /// in its own captures: the root over the ring's centre as at rest, the lowest point of the
-/// body at the rest pose's (the floor). A walk recorded elsewhere in its room, or a skeleton
+/// body at the rest pose's of the same shape (the floor). A walk recorded elsewhere in its room, or a skeleton
 /// whose origin is on the floor rather than at the pelvis, then starts in view.
 pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<(), DataError> {
     let Some(first) = frames.first() else {
@@ -384,7 +384,10 @@ pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<()
     };
     let lowest =
         |params: &RigParams| -> Result<f32, DataError> { Ok(rig.pose(params)?.bounds().0.y) };
-    let rest = rig.zero_params();
+    let rest = RigParams {
+        identity: first.identity.clone(),
+        ..rig.zero_params()
+    };
     let (root, rest_root) = (
         rig.joint_world(first)?[0].translation,
         rig.joint_world(&rest)?[0].translation,

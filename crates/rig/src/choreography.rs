@@ -21,6 +21,14 @@ fn set(rig: &Rig, p: &mut RigParams, name: &str, value: f32) {
     }
 }
 
+/// The shape (identity parameters) of the person `seed` draws, which every frame of
+/// [`motion`] with that seed carries: another motion performed by the same person
+/// (`f3g synth --motion`) takes it, so that an avatar trained on one capture is compared with
+/// itself, not with a differently built body, on the other.
+pub fn identity(rig: &Rig, seed: u64) -> Vec<f32> {
+    motion(rig, 1, seed).swap_remove(0).identity
+}
+
 /// The synthetic capture's motion: `frames` frames at 15 fps from `seed` (module docs).
 pub fn motion(rig: &Rig, frames: usize, seed: u64) -> Vec<RigParams> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x3071);
