@@ -52,7 +52,7 @@ pub struct DemoArgs {
     /// `runs/demo`, or `runs/demo-quality` with `--quality`.
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Train the `cpu-long` preset (about 40 minutes on two cores) instead of `cpu`:
+    /// Train the `cpu-long` preset (about 25 minutes on two cores) instead of `cpu`:
     /// the same avatar, closer to the ground truth.
     #[arg(long)]
     pub quality: bool,

@@ -78,8 +78,8 @@ impl TrainConfig {
         }
     }
 
-    /// The `cpu` preset trained longer, for `f3g demo --quality` (about 40 minutes of training
-    /// on two CPU cores at the measured 0.5 s per body step and 1.1 s per joint step): 3.5× the
+    /// The `cpu` preset trained longer, for `f3g demo --quality` (the whole demo 25.6 minutes on
+    /// two CPU cores, measured 2026-11-26; the steps have been faster since): 3.5× the
     /// rendering steps, most of them in the body and joint stages, whose losses are still
     /// falling when the demo stops.
     pub fn cpu_long() -> Self {
