@@ -40,7 +40,7 @@ pub struct SynthArgs {
     /// Samples per pixel along each axis, 1–4 (default 2: each pixel averages 2 × 2).
     #[arg(long, value_parser = crate::bounds::size::<1, 4>)]
     pub supersample: Option<usize>,
-    /// Seed of the motion and the camera jitter.
+    /// Seed of the person's shape (with --motion too), the motion and the camera jitter.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// `paper`: AvatarReX scale (16 cameras, 1536×2048, 2000 frames); defaults otherwise
