@@ -107,6 +107,50 @@ fn avatar_psnr(a: &Path, b: &Path) -> (f64, usize) {
     (-10.0 * (sum / count.max(1) as f64).log10(), count)
 }
 
+/// `avatar` driven by `motion` at `frame`, seen by the same camera (`view` for the player,
+/// `cam.json` for f3g): the player's `?paused&bare` screenshot (`OUT.png`, its page ready and
+/// without errors) against f3g's render of that frame (`OUT/frames/`, without the floor the
+/// bare picture lacks); their PSNR over the avatar and the pixels it covers.
+fn player_against_f3g(
+    d: &Path,
+    avatar: &str,
+    motion: &str,
+    view: &str,
+    frame: usize,
+    out: &str,
+) -> (f64, usize) {
+    let server = Server::start(d, &[avatar, "--motion", motion]);
+    assert!(
+        server.url.starts_with("http://127.0.0.1:"),
+        "{}",
+        server.url
+    );
+    let shot = d.join(format!("{out}.png"));
+    let report = shoot(
+        &format!("{}?paused&bare", server.url),
+        &shot,
+        &["--view", view, "--frame", &frame.to_string()],
+    );
+    assert_eq!(report["ready"], true, "{report}");
+    assert_eq!(report["errors"].as_array().unwrap().len(), 0, "{report}");
+    drop(server);
+    ok(&f3g(
+        d,
+        &[
+            "animate",
+            avatar,
+            "--motion",
+            motion,
+            "--camera",
+            "cam.json",
+            "--out",
+            out,
+            "--no-floor",
+        ],
+    ));
+    avatar_psnr(&shot, &d.join(format!("{out}/frames/frame_{frame:05}.png")))
+}
+
 /// `cam.json` of a three.js PerspectiveCamera at `eye` looking at `target` (+Y up) with a
 /// vertical field of view `fov` (degrees): what the player's `setView` sets.
 fn camera_json(eye: [f64; 3], target: [f64; 3], fov: f64, w: u32, h: u32) -> String {
@@ -199,42 +243,13 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
             .unwrap();
         ok(&out);
         // The same frame, seen by the same camera, in the browser and by f3g's renderer.
-        let server = Server::start(d, &[&format!("{k}.glb"), "--motion", "cap/body_params.npz"]);
-        assert!(
-            server.url.starts_with("http://127.0.0.1:"),
-            "{}",
-            server.url
-        );
-        let shot = d.join(format!("{k}.png"));
-        let report = shoot(
-            &format!("{}?paused&bare", server.url),
-            &shot,
-            &["--view", &view, "--frame", "3"],
-        );
-        assert_eq!(report["ready"], true, "{report}");
-        assert_eq!(report["errors"].as_array().unwrap().len(), 0, "{report}");
-        ok(&f3g(
-            d,
-            &[
-                "animate",
-                &format!("{k}.glb"),
-                "--motion",
-                "cap/body_params.npz",
-                "--camera",
-                "cam.json",
-                "--out",
-                k,
-                // The player's `?bare` picture has no floor.
-                "--no-floor",
-            ],
-        ));
-        let (psnr, pixels) = avatar_psnr(&shot, &d.join(format!("{k}/frames/frame_00003.png")));
+        let (psnr, pixels) =
+            player_against_f3g(d, &format!("{k}.glb"), "cap/body_params.npz", &view, 3, k);
         assert!(pixels > 1000, "the avatar covers {pixels} pixels");
         assert!(
             psnr >= 30.0,
             "{k}: the player's picture is {psnr:.2} dB from f3g's"
         );
-        drop(server);
     }
 
     // A pose far from training (a deep lunge, the arms overhead): the player poses the avatar
@@ -251,30 +266,7 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
         far.pose[i.unwrap_or_else(|| panic!("{name}"))] = value;
     }
     f3g_rig::sequence::write(&d.join("far.npz"), &rig, &[far]).unwrap();
-    let server = Server::start(d, &["k16.glb", "--motion", "far.npz"]);
-    let shot = d.join("far.png");
-    let report = shoot(
-        &format!("{}?paused&bare", server.url),
-        &shot,
-        &["--view", &view, "--frame", "0"],
-    );
-    assert_eq!(report["errors"].as_array().unwrap().len(), 0, "{report}");
-    drop(server);
-    ok(&f3g(
-        d,
-        &[
-            "animate",
-            "k16.glb",
-            "--motion",
-            "far.npz",
-            "--camera",
-            "cam.json",
-            "--out",
-            "far",
-            "--no-floor",
-        ],
-    ));
-    let (psnr, pixels) = avatar_psnr(&shot, &d.join("far/frames/frame_00000.png"));
+    let (psnr, pixels) = player_against_f3g(d, "k16.glb", "far.npz", &view, 0, "far");
     assert!(pixels > 1000, "the avatar covers {pixels} pixels");
     // 27.2 dB when written (2026-11-27; frame 3: ≥ 30): the pictures differ only at the two
     // shoulders, where the blend of the arm's and the torso's transforms is furthest from a
@@ -284,7 +276,7 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
         psnr >= 26.0,
         "far pose: the player's picture is {psnr:.2} dB from f3g's"
     );
-    let (psnr, _) = avatar_psnr(&shot, &d.join("k16.png"));
+    let (psnr, _) = avatar_psnr(&d.join("far.png"), &d.join("k16.png"));
     assert!(
         psnr < 25.0,
         "the far pose looks like frame 3 ({psnr:.1} dB)"

@@ -376,8 +376,9 @@ pub fn generate(
 
 /// Moves a motion of the built-in human so that its first frame stands where the human stands
 /// in its own captures: the root over the ring's centre as at rest, the lowest point of the
-/// body at the rest pose's of the same shape (the floor). A walk recorded elsewhere in its room, or a skeleton
-/// whose origin is on the floor rather than at the pelvis, then starts in view.
+/// body on the floor of the rest pose with the first frame's shape. A walk recorded elsewhere
+/// in its room, or a skeleton whose origin is on the floor rather than at the pelvis, then
+/// starts in view.
 pub fn centre_on_ring(rig: &f3g_rig::Rig, frames: &mut [RigParams]) -> Result<(), DataError> {
     let Some(first) = frames.first() else {
         return Ok(());

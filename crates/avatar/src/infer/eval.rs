@@ -93,7 +93,8 @@ pub const BLOTCH_ERROR: f32 = 0.3;
 /// blotch and a patch a few pixels wide is.
 pub const BLOTCH_SIGMA: f32 = 2.0;
 
-/// [`Scores::blotched`] of a render against its ground truth (both over white).
+/// [`Scores::blotched`] of a render against its ground truth (both over white, of one size:
+/// eval's scoring checks that with [`psnr`] first).
 pub fn blotched(render: &Image, gt: &Image) -> f64 {
     let (width, height) = (render.width, render.height);
     // Drawn: any colour channel visibly below the white background.
