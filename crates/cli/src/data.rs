@@ -155,9 +155,11 @@ pub struct CaptureModelArg {
 
 #[derive(Subcommand, Debug)]
 pub enum DataCommand {
-    /// Validate a capture: cameras, image and mask sizes, decodability, body parameters.
+    /// Validate a capture: cameras, image and mask sizes, decodability, body parameters, and
+    /// how well the posed body model lies on every camera's masks.
     Check(CheckArgs),
-    /// Write a contact sheet of all cameras of one frame with the face boxes drawn.
+    /// Write a contact sheet of all cameras of one frame with the face boxes drawn (and, with
+    /// --overlay, the posed body model's outline and its agreement with the masks).
     Show(ShowArgs),
 }
 
@@ -192,6 +194,28 @@ pub struct ShowArgs {
     /// Width of each camera's thumbnail (8–2048).
     #[arg(long, default_value_t = 256, value_parser = crate::bounds::size::<8, 2048>)]
     pub thumb: usize,
+    /// Draw the posed body model's outline over every image, with its IoU against the mask
+    /// and the share of it inside the mask (red: below 0.9, a camera to look at).
+    #[arg(long)]
+    pub overlay: bool,
+}
+
+/// Prints the body model's agreement with each camera's masks.
+fn print_fits(fits: &[check::CameraFit]) {
+    if fits.is_empty() {
+        return;
+    }
+    println!("camera     frames  IoU    body in mask");
+    for f in fits {
+        println!(
+            "{:<10} {:>6}  {:.3}  {:.3}{}",
+            f.camera,
+            f.frames,
+            f.iou,
+            f.body_in_mask,
+            if f.flagged { "  flagged" } else { "" }
+        );
+    }
 }
 
 pub fn run(cmd: &DataCommand) -> Result<()> {
@@ -210,6 +234,7 @@ pub fn run(cmd: &DataCommand) -> Result<()> {
                 r.images_decoded,
                 r.images_missing
             );
+            print_fits(&r.silhouettes);
             for w in &r.warnings {
                 println!("warning: {w}");
             }
@@ -227,8 +252,9 @@ pub fn run(cmd: &DataCommand) -> Result<()> {
         }
         DataCommand::Show(a) => {
             let ds = Dataset::open(&a.dir, a.model.spec.as_ref())?;
-            let sheet = check::contact_sheet(&ds, a.frame, a.thumb, 1.3)
+            let (sheet, fits) = check::contact_sheet(&ds, a.frame, a.thumb, 1.3, a.overlay)
                 .with_context(|| format!("drawing frame {}", a.frame))?;
+            print_fits(&fits);
             f3g_io::write_png(&a.out, &sheet)?;
             println!("wrote {}", a.out.display());
             Ok(())

@@ -160,6 +160,15 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     let run = out.join("run");
     println!("1/5 synthetic capture");
     ensure_capture(&capture, &a.capture)?;
+    // The posed body over every camera's first frame: what a user checks their own capture with.
+    let (sheet, fits) = f3g_data::check::contact_sheet(
+        &f3g_data::Dataset::open(&capture, None)?,
+        0,
+        192,
+        1.3,
+        true,
+    )?;
+    f3g_io::write_png(&out.join("capture_check.png"), &sheet)?;
     println!("2/5 training ({preset} preset)");
     let device = a.capture.device;
     train_or_resume(
@@ -230,6 +239,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             preset,
             &novel_view,
             &novel_pose,
+            &fits,
             start.elapsed().as_secs_f64(),
         )?
         .as_bytes(),
@@ -261,11 +271,36 @@ fn cell(s: Option<&Scores>) -> String {
     }
 }
 
+/// What the capture's check sheet shows, with its numbers.
+fn capture_caption(fits: &[f3g_data::check::CameraFit]) -> String {
+    let low = |f: fn(&f3g_data::check::CameraFit) -> f32| {
+        fits.iter().map(f).fold(f32::INFINITY, f32::min)
+    };
+    let flagged: Vec<&str> = fits
+        .iter()
+        .filter(|f| f.flagged)
+        .map(|f| f.camera.as_str())
+        .collect();
+    format!(
+        "frame 0 of every camera with the posed body model's outline (cyan; <code>f3g data \
+         show --overlay</code>): IoU with the masks ≥ {:.3}, body inside the masks ≥ {:.3}; \
+         cameras flagged: {}",
+        low(|f| f.iou),
+        low(|f| f.body_in_mask),
+        if flagged.is_empty() {
+            "none".to_string()
+        } else {
+            flagged.join(", ")
+        }
+    )
+}
+
 fn html(
     out: &Path,
     preset: &str,
     nv: &EvalReport,
     np: &EvalReport,
+    fits: &[f3g_data::check::CameraFit],
     seconds: f64,
 ) -> Result<String> {
     let run = out.join("run");
@@ -315,6 +350,8 @@ pre{{background:#f4f4f4;padding:1em;overflow:auto;max-height:300px}}</style></he
 preset (body branch + face branch, region-aware losses, adversarial face loss), evaluated on
 held-out cameras (novel view) and held-out frames (novel pose), and animated. Everything ran on
 the CPU in {minutes:.1} minutes.</p>
+<h2>The capture</h2>
+{capture}
 <h2>Metrics</h2>
 <table><tr><th></th><th>body PSNR ↑</th><th>body SSIM ↑</th><th>body LPIPS ({lpips}) ↓</th>
 <th>head PSNR ↑</th><th>head SSIM ↑</th><th>head LPIPS ↓</th></tr>
@@ -342,6 +379,7 @@ the CPU in {minutes:.1} minutes.</p>
 </body></html>
 "#,
         minutes = seconds / 60.0,
+        capture = img(out.join("capture_check.png"), &capture_caption(fits)),
         lpips = nv.lpips_net,
         nv_row = row("novel view", nv),
         np_row = row("novel pose", np),

@@ -322,3 +322,81 @@ fn views_have_consistent_cameras() {
     let zoom = face_wide.unwrap().camera.k[0][0] / face.camera.k[0][0];
     assert!((zoom - 1.3 / 2.0).abs() < 1e-3, "{zoom}");
 }
+
+/// The posed body model set against every camera's masks: right calibrations agree, a flipped
+/// axis and another camera's extrinsics are flagged, by `check` and on the overlay sheet.
+#[test]
+fn a_wrong_calibration_is_flagged_by_the_body_against_the_masks() {
+    let dir = tempfile::tempdir().unwrap();
+    small_capture(dir.path());
+    let root = dir.path();
+    let ds = Dataset::open(root, None).unwrap();
+    let report = f3g_data::check::check(&ds, 1);
+    assert_eq!(report.silhouettes.len(), 4);
+    for fit in &report.silhouettes {
+        assert_eq!(fit.frames, 3);
+        assert!(
+            fit.iou > 0.9 && fit.body_in_mask > 0.95 && !fit.flagged,
+            "{fit:?}"
+        );
+    }
+    assert!(report.warnings.is_empty(), "{:?}", report.warnings);
+
+    // cam01 turned upside down about its optical axis (the first two rows of R and T negated:
+    // a rotation still, unlike a single flipped axis, which reading refuses), cam02 given
+    // cam03's extrinsics.
+    let calib = root.join("calibration_full.json");
+    let mut c: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&calib).unwrap()).unwrap();
+    for k in 0..6 {
+        let v = c["cam01"]["R"][k].as_f64().unwrap();
+        c["cam01"]["R"][k] = (-v).into();
+    }
+    for k in 0..2 {
+        let t = c["cam01"]["T"][k].as_f64().unwrap();
+        c["cam01"]["T"][k] = (-t).into();
+    }
+    for key in ["R", "T"] {
+        c["cam02"][key] = c["cam03"][key].clone();
+    }
+    std::fs::write(&calib, serde_json::to_string(&c).unwrap()).unwrap();
+    let ds = Dataset::open(root, None).unwrap();
+    let report = f3g_data::check::check(&ds, 1);
+    let flagged: Vec<&str> = report
+        .silhouettes
+        .iter()
+        .filter(|f| f.flagged)
+        .map(|f| f.camera.as_str())
+        .collect();
+    assert_eq!(flagged, ["cam01", "cam02"], "{:?}", report.silhouettes);
+    for camera in ["cam01", "cam02"] {
+        assert!(
+            report
+                .warnings
+                .iter()
+                .any(|w| w.contains(&format!("`{camera}`"))),
+            "{:?}",
+            report.warnings
+        );
+    }
+    // The overlay draws the outline and gives the same verdict for the frame it shows.
+    let (sheet, fits) = f3g_data::check::contact_sheet(&ds, 1, 64, 1.3, true).unwrap();
+    let flagged: Vec<&str> = fits
+        .iter()
+        .filter(|f| f.flagged)
+        .map(|f| f.camera.as_str())
+        .collect();
+    assert_eq!(flagged, ["cam01", "cam02"], "{fits:?}");
+    let outline = sheet
+        .data
+        .chunks_exact(3)
+        .filter(|p| p == &[0.1, 0.9, 1.0])
+        .count();
+    assert!(outline > 100, "{outline} outline pixels");
+    let (plain, fits) = f3g_data::check::contact_sheet(&ds, 1, 64, 1.3, false).unwrap();
+    assert!(fits.is_empty());
+    assert!(
+        !plain.data.chunks_exact(3).any(|p| p == [0.1, 0.9, 1.0]),
+        "no outline without the overlay"
+    );
+}

@@ -7,6 +7,7 @@
 
 pub mod memory;
 mod outputs;
+pub mod text;
 
 pub use outputs::{MANIFEST, OutputDir, remove_pending_temporaries};
 
