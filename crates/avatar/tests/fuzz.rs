@@ -353,6 +353,10 @@ fn small_avatar_file() -> Vec<u8> {
         face_padding: 1.3,
         face_crop_size: 64,
         step: 7,
+        shading: Some(f3g_avatar::infer::bake::BakedShading {
+            coefficients: ramp(27, 1.0),
+            normals: (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect(),
+        }),
     };
     f3g_avatar::infer::avatar_file::to_bytes(&baked).unwrap()
 }
@@ -463,6 +467,21 @@ fn avatar_files_out_of_range_are_refused_naming_the_field() {
             with_float("/skins/0/inverseBindMatrices", 5, f32::NAN),
             "inverse-bind",
         ),
+        (
+            with_float(
+                &format!("{primitive}/extensions/F3G_world_shading/normal"),
+                7,
+                3.0,
+            ),
+            "F3G_world_shading.normal of Gaussian 2",
+        ),
+        (
+            with_document(|d| {
+                d.pointer_mut(&format!("{primitive}/extensions/F3G_world_shading"))
+                    .unwrap()["coefficients"] = serde_json::json!([1.0, 2.0]);
+            }),
+            "F3G_world_shading.coefficients",
+        ),
     ];
     for (bytes, field) in cases {
         match f3g_avatar::infer::avatar_file::from_bytes(&bytes) {
@@ -474,7 +493,7 @@ fn avatar_files_out_of_range_are_refused_naming_the_field() {
 
 /// The JSON fields of the avatar file that a mutation of its bytes rarely reaches intact:
 /// sizes, offsets, indices, the node graph and the extensions' numbers.
-const AVATAR_FIELDS: [&str; 14] = [
+const AVATAR_FIELDS: [&str; 15] = [
     "/extensions/F3G_avatar/facePadding",
     "/extensions/F3G_avatar/faceCropSize",
     "/extensions/F3G_avatar/bodyModel/bufferView",
@@ -489,6 +508,7 @@ const AVATAR_FIELDS: [&str; 14] = [
     "/skins/0/inverseBindMatrices",
     "/meshes/0/primitives/0/extensions/F3G_pose_correctives/count",
     "/meshes/0/primitives/0/attributes/JOINTS_0",
+    "/meshes/0/primitives/0/extensions/F3G_world_shading/normal",
 ];
 
 proptest! {

@@ -706,6 +706,7 @@ fn exported_ply_keeps_the_view_dependent_colour_in_either_up_convention() {
             degree,
             directions: 24,
             up,
+            lit: true,
         };
         export_cloud(&avatar, params, false, &options).unwrap()
     };
@@ -749,8 +750,29 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     let cap = dir.path().join("cap");
     capture(&cap);
     let run = dir.path().join("run");
-    train_to_end(&run, &cap, tiny([10, 10, 2, 6, 2]));
-    let avatar = f3g_avatar::infer::TrainedAvatar::load(&run, &Device::flex()).unwrap();
+    let mut config = tiny([10, 10, 2, 6, 2]);
+    config.model.world_shading = true;
+    train_to_end(&run, &cap, config);
+    let mut avatar = f3g_avatar::infer::TrainedAvatar::load(&run, &Device::flex()).unwrap();
+    // A strong light from above and the front (ten steps barely move the neutral one), so
+    // that the baked avatar matches its networks below only if it shades as they do.
+    let frame = avatar.training_poses().unwrap().last().unwrap().clone();
+    let camera =
+        f3g_splat::Camera::look_at([0.4, 0.2, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 90.0, 64, 96);
+    let unlit = avatar.render(&frame, &camera, [1.0; 3], false).unwrap();
+    // Parameters are a tenth of the coefficients' change from the neutral light (whose
+    // constant term they keep): `s = 1 + 1.22·y + 0.73·z` for a normal (x, y, z).
+    let mut light = vec![0.0f32; 27];
+    light[3..6].fill(-2.5 / 10.0);
+    light[6..9].fill(1.5 / 10.0);
+    let light = Tensor::<2>::from_data(
+        burn::tensor::TensorData::new(light, [9, 3]),
+        &Device::flex(),
+    );
+    avatar.nets.body.shading = Some(Param::from_tensor(light));
+    let lit = avatar.render(&frame, &camera, [1.0; 3], false).unwrap();
+    let psnr = f3g_nets::metrics::psnr(&unlit, &lit).unwrap();
+    assert!(psnr < 20.0, "the light changes the render: {psnr} dB");
     // The run keeps its training poses.
     let poses = avatar.training_poses().unwrap();
     assert_eq!(poses.len(), avatar.info.train_frames.len());
@@ -825,9 +847,10 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
         .fold(0.0f32, f32::max);
     assert!(deviation < 1e-4, "{deviation}");
 
+    assert_eq!(back.shading, baked.shading);
+    assert!(baked.shading.is_some());
+
     // At a training pose the baked avatar looks like its networks.
-    let camera =
-        f3g_splat::Camera::look_at([0.4, 0.2, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 90.0, 64, 96);
     let networks = avatar.render(frame, &camera, [1.0; 3], false).unwrap();
     let rendered = back.render(frame, &camera, [1.0; 3]).unwrap();
     let psnr = f3g_nets::metrics::psnr(&networks, &rendered).unwrap();

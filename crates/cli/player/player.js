@@ -13,6 +13,11 @@
 // covariances (`extSplats`, `covSplats`). The correctives and expressions change the canonical
 // splats before skinning, on the CPU.
 //
+// Light fixed in the world (`F3G_world_shading`, avatars trained with `world_shading`): each
+// frame, every splat's canonical normal is turned by its blended skinning matrix (normalised),
+// and its degree-0 colour multiplied by the degree ≤ 2 SH of that normal times the file's
+// coefficients, as f3g's baked avatar does (crates/avatar/src/model/shading.rs).
+//
 // The page sets `window.f3g = {ready, error, frame, setFrame(i), setView(...), fps}` so that
 // tests and scripts can wait for it and drive it; errors are shown on the page, not only
 // logged.
@@ -127,6 +132,18 @@ function readAvatar(glb) {
   }
   const expressions = [];
   for (let i = 0; i < e; i++) expressions.push(accessor(targets[k + i].POSITION));
+  const light = primitive.extensions.F3G_world_shading;
+  let shading = null;
+  if (light) {
+    if (!Array.isArray(light.coefficients) || light.coefficients.length !== 27) {
+      throw new Error("avatar.glb: F3G_world_shading.coefficients is not 27 numbers");
+    }
+    const normals = accessor(light.normal);
+    if (normals.length !== 3 * n) {
+      throw new Error(`avatar.glb: F3G_world_shading.normal holds ${normals.length} values for ${n} Gaussians`);
+    }
+    shading = { coefficients: Float32Array.from(light.coefficients), normals };
+  }
   const skin = json.skins[0];
   const joints = skin.joints.length;
   // The canonical pose's world matrices, from the nodes' hierarchy.
@@ -153,6 +170,7 @@ function readAvatar(glb) {
     skinWeights: get("WEIGHTS_0", 4),
     correctives,
     expressions,
+    shading,
     featureJoints: ext.featureJoints,
     featureUsed: ext.featureUsed === undefined ? new Uint32Array(0) : accessor(ext.featureUsed),
     featureMean: ext.featureMean === undefined ? new Float32Array(0) : accessor(ext.featureMean),
@@ -188,6 +206,47 @@ function canonicalPly(a) {
   const out = new Uint8Array(head.length + body.byteLength);
   out.set(head, 0);
   out.set(new Uint8Array(body.buffer), head.length);
+  return out;
+}
+
+// 3DGS's real SH of degree ≤ 2 at unit vector (x, y, z), in crates/splat/src/sh.rs's order.
+function shBasis2(x, y, z, out) {
+  const c1 = 0.4886025119029199;
+  out[0] = 0.28209479177387814;
+  out[1] = -c1 * y; out[2] = c1 * z; out[3] = -c1 * x;
+  out[4] = 1.0925484305920792 * x * y;
+  out[5] = -1.0925484305920792 * y * z;
+  out[6] = 0.31539156525252005 * (2 * z * z - x * x - y * y);
+  out[7] = -1.0925484305920792 * x * z;
+  out[8] = 0.5462742152960396 * (x * x - y * y);
+}
+
+// The light on every splat in a pose (`[n, 3]`), or null for an avatar without one: the
+// canonical normal turned by the blend of its bones' skinning matrices, normalised.
+function worldShading(a, bones) {
+  if (!a.shading) return null;
+  const { coefficients, normals } = a.shading;
+  const out = new Float32Array(3 * a.n), y = new Float32Array(9);
+  const linear = bones.map((m) => m.elements); // column major
+  for (let g = 0; g < a.n; g++) {
+    const nx = normals[3 * g], ny = normals[3 * g + 1], nz = normals[3 * g + 2];
+    let x = 0, yy = 0, z = 0;
+    for (let i = 0; i < 4; i++) {
+      const w = a.skinWeights[4 * g + i];
+      if (w === 0) continue;
+      const m = linear[a.skinJoints[4 * g + i]];
+      x += w * (m[0] * nx + m[4] * ny + m[8] * nz);
+      yy += w * (m[1] * nx + m[5] * ny + m[9] * nz);
+      z += w * (m[2] * nx + m[6] * ny + m[10] * nz);
+    }
+    const length = Math.hypot(x, yy, z) || 1;
+    shBasis2(x / length, yy / length, z / length, y);
+    for (let c = 0; c < 3; c++) {
+      let s = 0;
+      for (let k = 0; k < 9; k++) s += y[k] * coefficients[3 * k + c];
+      out[3 * g + c] = s;
+    }
+  }
   return out;
 }
 
@@ -354,6 +413,7 @@ async function main() {
     }
     skinning.updateBones();
     const w = correctiveWeights(avatar, bones);
+    const light = worldShading(avatar, bones);
     const e = row.subarray(16 * avatar.joints);
     for (let g = 0; g < avatar.n; g++) {
       let x = avatar.means[3 * g], y = avatar.means[3 * g + 1], z = avatar.means[3 * g + 2];
@@ -377,7 +437,12 @@ async function main() {
       scales.set(Math.exp(s0), Math.exp(s1), Math.exp(s2));
       const q = avatar.rotations;
       quaternion.set(q[4 * g], q[4 * g + 1], q[4 * g + 2], q[4 * g + 3]);
-      color.setRGB(0.5 + C0 * r, 0.5 + C0 * gr, 0.5 + C0 * b, THREE.LinearSRGBColorSpace);
+      if (light) {
+        color.setRGB((0.5 + C0 * r) * light[3 * g], (0.5 + C0 * gr) * light[3 * g + 1],
+          (0.5 + C0 * b) * light[3 * g + 2], THREE.LinearSRGBColorSpace);
+      } else {
+        color.setRGB(0.5 + C0 * r, 0.5 + C0 * gr, 0.5 + C0 * b, THREE.LinearSRGBColorSpace);
+      }
       packed.setSplat(g, center, scales, quaternion, 1 / (1 + Math.exp(-o)), color);
     }
     packed.needsUpdate = true;

@@ -640,6 +640,7 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
             UpArg::Y => Up::Y,
             UpArg::NegY => Up::NegY,
         },
+        lit: true,
     };
     let (cloud, fit) = export_cloud(&avatar, &params, use_pca, &options)?;
     f3g_splat::ply::write_ply(&a.out, &cloud)?;

@@ -282,6 +282,26 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
         "the far pose looks like frame 3 ({psnr:.1} dB)"
     );
 
+    // The light fixed in the world, made strong (from above and the front; the tiny run's is
+    // near the neutral one): the player shades each splat from its turned normal as f3g does.
+    let mut glb = f3g_rig::glb::GlbFile::parse(&std::fs::read(d.join("k16.glb")).unwrap()).unwrap();
+    let light = &mut glb.document["meshes"][0]["primitives"][0]["extensions"]["F3G_world_shading"];
+    assert!(light.is_object(), "the cpu preset's avatar has its light");
+    let mut coefficients = vec![0.0f32; 27];
+    coefficients[..3].fill(1.0 / 0.282_094_8);
+    coefficients[3..6].fill(-2.5);
+    coefficients[6..9].fill(1.5);
+    light["coefficients"] = serde_json::json!(coefficients);
+    std::fs::write(d.join("lit.glb"), glb.to_bytes()).unwrap();
+    let (psnr, pixels) = player_against_f3g(d, "lit.glb", "far.npz", &view, 0, "lit");
+    assert!(pixels > 1000, "the avatar covers {pixels} pixels");
+    assert!(
+        psnr >= 26.0,
+        "lit: the player's picture is {psnr:.2} dB from f3g's"
+    );
+    let (psnr, _) = avatar_psnr(&d.join("lit.png"), &d.join("far.png"));
+    assert!(psnr < 22.0, "the light changes nothing ({psnr:.1} dB)");
+
     // Moving the slider changes the frame and the picture.
     let server = Server::start(d, &["k16.glb", "--motion", "cap/body_params.npz"]);
     let report = shoot(

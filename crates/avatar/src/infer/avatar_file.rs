@@ -19,6 +19,12 @@
 //!   the pose to the corrective weights: `featureJoints` (joint indices), `featureUsed` (which
 //!   of the `9·J` values of `R_root⁻¹ R_j − I`, row-major per joint, are used), `featureMean`
 //!   and `featureMap` (`[K, F]`, row-major): `w = featureMap · (f − featureMean)`.
+//! - **`F3G_world_shading`** (on the primitive, only for an avatar trained with
+//!   `world_shading`): the light fixed in the world — `coefficients` (27 numbers, `[9, 3]`
+//!   row-major: SH basis function of degree ≤ 2, channel) and `normal` (VEC3 accessor, each
+//!   Gaussian's canonical unit normal). A player turns the normal by the Gaussian's skinning
+//!   rotation and multiplies the degree-0 colour by `Σ_k Y_k(n) a_kc`; the stored colours are
+//!   the albedo, so viewers that know no f3g extension show the avatar unshaded.
 //! - **`F3G_avatar`** (top level): the body model as an f3g rig file in a buffer view
 //!   (`bodyModel`), its parameter names (`parameters.pose|identity|expression`, so motions can
 //!   be mapped onto it), the canonical pose's parameters, the head's vertices and the head
@@ -31,7 +37,7 @@ use std::path::Path;
 use glam::Mat4;
 use serde_json::{Value, json};
 
-use super::bake::{BakedAvatar, CORRECTIVE_VALUES};
+use super::bake::{BakedAvatar, BakedShading, CORRECTIVE_VALUES};
 use crate::AvatarError;
 use crate::model::logit;
 use f3g_rig::glb::{GlbBuffer, GlbFile};
@@ -42,6 +48,7 @@ pub const VERSION: u64 = 1;
 const SPLATS: &str = "KHR_gaussian_splatting";
 const CORRECTIVES: &str = "F3G_pose_correctives";
 const AVATAR: &str = "F3G_avatar";
+const SHADING: &str = "F3G_world_shading";
 
 fn sigmoid(x: f32) -> f32 {
     1.0 / (1.0 + (-x).exp())
@@ -168,6 +175,14 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     if !targets.is_empty() {
         primitive["targets"] = Value::Array(targets);
     }
+    let mut used_extensions = vec![SPLATS, CORRECTIVES, AVATAR];
+    if let Some(light) = &avatar.shading {
+        primitive["extensions"][SHADING] = json!({
+            "coefficients": light.coefficients,
+            "normal": buffer.accessor(&light.normals, "VEC3", false, None),
+        });
+        used_extensions.push(SHADING);
+    }
     let mut mesh = json!({ "name": "avatar", "primitives": [primitive] });
     if !names.is_empty() {
         mesh["weights"] = json!(vec![0.0; names.len()]);
@@ -224,7 +239,7 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     }
     let document = json!({
         "asset": { "version": "2.0", "generator": "f3g-avatar export-avatar" },
-        "extensionsUsed": [SPLATS, CORRECTIVES, AVATAR],
+        "extensionsUsed": used_extensions,
         "extensions": { AVATAR: extension },
         "scene": 0,
         "scenes": [{ "nodes": roots }],
@@ -628,7 +643,41 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
             feature_used.len()
         ));
     }
+    let shading = match primitive.pointer(&format!("/extensions/{SHADING}")) {
+        None => None,
+        Some(light) => {
+            let coefficients: Vec<f32> = serde_json::from_value(light["coefficients"].clone())
+                .ok()
+                .filter(|c: &Vec<f32>| {
+                    c.len() == 3 * crate::model::shading::SHADING_BASIS
+                        && c.iter().all(|x| x.is_finite())
+                })
+                .ok_or_else(|| {
+                    format!(
+                        "{SHADING}.coefficients is {}, expected 27 finite numbers",
+                        light["coefficients"]
+                    )
+                })?;
+            let normals = sized(
+                floats(&light["normal"], 3, &format!("{SHADING}.normal"))?,
+                3,
+                &format!("{SHADING}.normal"),
+            )?;
+            in_range(
+                &normals,
+                3,
+                &format!("{SHADING}.normal"),
+                &|n| (n.iter().map(|x| x * x).sum::<f32>() - 1.0).abs() < 1e-3,
+                "a unit vector",
+            )?;
+            Some(BakedShading {
+                coefficients,
+                normals,
+            })
+        }
+    };
     Ok(BakedAvatar {
+        shading,
         rig,
         canonical,
         means,

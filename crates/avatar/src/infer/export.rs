@@ -66,6 +66,9 @@ pub struct ExportOptions {
     /// View directions of the fit (as many again check it).
     pub directions: usize,
     pub up: Up,
+    /// Colours under the light fixed in the world, in the pose exported (what a render of
+    /// that pose shows), or the albedo (what a baked avatar shades per frame itself).
+    pub lit: bool,
 }
 
 /// Unit directions `i = 0..n` of a Fibonacci sphere; `offset` in [0, 1) shifts the spiral so
@@ -125,7 +128,11 @@ pub fn export_cloud(
     }) / n.max(1) as f64;
     let colours_from = |dir: DVec3| -> Result<Vec<f32>, AvatarError> {
         let (c, _) = avatar.canonical_for(params, &distant_camera(centre, dir), use_pca)?;
-        Ok(host_values(c.colours))
+        Ok(host_values(if options.lit {
+            c.lit_colours()
+        } else {
+            c.colours
+        }))
     };
     let rotation = options.up.rotation();
     let k = num_coeffs(options.degree);

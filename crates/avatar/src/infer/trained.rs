@@ -5,6 +5,7 @@ use std::path::Path;
 
 use burn::tensor::Device;
 
+use super::bake::BakedShading;
 use super::report::tensor_to_image;
 use super::run::{Run, RunInfo, load_face_base, read_state};
 use crate::AvatarError;
@@ -13,7 +14,7 @@ use crate::model::posing::Skinning;
 use crate::model::{
     AvatarNets, Canonical, Constants, FaceBase, STORED_SETUP, Setup, canonical, pose, render_posed,
 };
-use crate::model::{NetInputs, PcaTensors, host_values};
+use crate::model::{NetInputs, PcaTensors, host_values, shading};
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
@@ -156,6 +157,26 @@ impl TrainedAvatar {
         Ok((c, inputs))
     }
 
+    /// The light fixed in the world (with `world_shading`): its `[9, 3]` coefficients
+    /// ([`crate::model::shading`]) and every rendered Gaussian's canonical unit normal (body,
+    /// then face), which skinning turns into the normal the light falls on.
+    pub fn world_light(&self) -> Option<BakedShading> {
+        let p = self.nets.body.shading.as_ref()?;
+        let mut normals = self.setup.maps.normals.clone();
+        if self.constants.has_face()
+            && let Some(h) = &self.setup.head
+        {
+            normals.extend(&h.normals);
+        }
+        Some(BakedShading {
+            coefficients: host_values(shading::coefficients(p)),
+            normals: normals
+                .iter()
+                .flat_map(|n| n.normalize_or_zero().to_array())
+                .collect(),
+        })
+    }
+
     /// The skin weights of every rendered Gaussian (body, then face), as the setup holds them.
     pub fn skin(&self) -> f3g_rig::SkinWeights {
         let mut skin = self.setup.maps.skin.clone();
@@ -209,7 +230,7 @@ impl TrainedAvatar {
     ) -> Result<GaussianCloud, AvatarError> {
         let (c, skinning) = self.canonical_for(params, camera, use_pca)?;
         let (means, quats) = pose(&c, &skinning);
-        let colours = host_values(c.colours);
+        let colours = host_values(c.lit_colours());
         Ok(GaussianCloud {
             means: host_values(means),
             log_scales: host_values(c.log_scales),

@@ -14,7 +14,7 @@ use glam::Vec3;
 
 use super::nets::Constants;
 use super::posing::{
-    Skinning, Taps, affine_tensor, blend, columns, normalize, split_affine, transform_points,
+    Skinning, Taps, affine_tensor, blend, normalize, split_affine, transform_points,
 };
 use super::setup::{FramePose, Setup};
 use crate::AvatarError;
@@ -107,13 +107,19 @@ impl Part {
             .reshape([1, 2 * c, s, s])
     }
 
-    /// `n · v` maps `[1, 1, S, S]` (front, back): canonical normals turned by the skinning
-    /// rotation, `v` the unit direction from the posed Gaussian to the camera centre, moved by
-    /// `noise` (`[N, 3]`, already scaled) and renormalised when given.
+    /// Posed unit normals `[N, 3]`: the canonical normals turned by the skinning rotation.
+    fn posed_normals(&self, skinning: &Skinning) -> Tensor<2> {
+        normalize(Tensor::cat(skinning.rotate(&self.normals).to_vec(), 1))
+    }
+
+    /// `n · v` maps `[1, 1, S, S]` (front, back) of the posed unit normals `normals`, `v` the
+    /// unit direction from the posed Gaussian to the camera centre, moved by `noise` (`[N,
+    /// 3]`, already scaled) and renormalised when given.
     fn view(
         &self,
         canonical: &Tensor<2>,
         skinning: &Skinning,
+        normals: &Tensor<2>,
         centre: &Tensor<2>,
         noise: Option<Tensor<2>>,
     ) -> (Tensor<4>, Tensor<4>) {
@@ -122,12 +128,7 @@ impl Part {
         if let Some(noise) = noise {
             to_camera = normalize(to_camera + noise);
         }
-        let [vx, vy, vz] = columns(&to_camera);
-        let [nx, ny, nz] = skinning.rotate(&self.normals);
-        let length = (nx.clone() * nx.clone() + ny.clone() * ny.clone() + nz.clone() * nz.clone())
-            .sqrt()
-            .clamp_min(1e-12);
-        let both = self.input((nx * vx + ny * vy + nz * vz) / length);
+        let both = self.input((normals.clone() * to_camera).sum_dim(1));
         let s = self.size;
         (
             both.clone().slice([0..1, 0..1, 0..s, 0..s]),
@@ -294,6 +295,9 @@ pub struct NetInputs {
     /// `[N, 3]` canonical displacement of every Gaussian by the frame's blend shapes and
     /// correctives (body then face).
     pub displacement: Tensor<2>,
+    /// `[N, 3]` posed unit surface normals of every Gaussian's template point (body then
+    /// face): the view maps' `n` and what the light fixed in the world falls on.
+    pub normals: Tensor<2>,
     /// Skinning of every Gaussian (body then face).
     pub skinning: Skinning,
 }
@@ -334,16 +338,21 @@ impl Constants {
             posed_body = pca.project(posed_body);
         }
         let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
-        let body_view =
-            tables
-                .body
-                .view(&body_canonical, &body_skinning, &centre, noise_rows(0, nb));
+        let body_normals = tables.body.posed_normals(&body_skinning);
+        let body_view = tables.body.view(
+            &body_canonical,
+            &body_skinning,
+            &body_normals,
+            &centre,
+            noise_rows(0, nb),
+        );
         let mut inputs = NetInputs {
             body_map: tables.body.input(posed_body),
             body_view,
             face_map: None,
             face_view: None,
             displacement: body_displacement.clone(),
+            normals: body_normals,
             skinning: body_skinning,
         };
         if let (Some((from_body, face)), true) = (&tables.face, self.has_face()) {
@@ -351,11 +360,18 @@ impl Constants {
             let canonical = face.positions.clone() + displacement.clone();
             let posed = face.input_pose(canonical.clone(), pose);
             let skinning = Skinning::new(&pose.joints, &face.skin);
+            let normals = face.posed_normals(&skinning);
             let total = tables.count();
-            inputs.face_view =
-                Some(face.view(&canonical, &skinning, &centre, noise_rows(nb, total)));
+            inputs.face_view = Some(face.view(
+                &canonical,
+                &skinning,
+                &normals,
+                &centre,
+                noise_rows(nb, total),
+            ));
             inputs.face_map = Some(face.input(posed));
             inputs.displacement = Tensor::cat(vec![inputs.displacement, displacement], 0);
+            inputs.normals = Tensor::cat(vec![inputs.normals, normals], 0);
             inputs.skinning = inputs.skinning.cat(skinning);
         }
         Ok(inputs)

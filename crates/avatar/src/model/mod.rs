@@ -12,6 +12,7 @@
 //! - `nets.rs`: the body and face networks ([`AvatarNets`]), the canonical face model
 //!   ([`FaceBase`]), the setup's tensors ([`Constants`]), fusion into canonical Gaussians
 //!   ([`canonical`]), posing and rendering them ([`render_posed`]).
+//! - [`shading`]: the light fixed in the world (`world_shading`).
 //!
 //! Conventions: metres, +Y up, the body facing +Z; Gaussian order body then face.
 
@@ -21,6 +22,7 @@ mod nets;
 pub mod posing;
 mod setup;
 mod setup_file;
+pub mod shading;
 
 pub(crate) use config::MAX_CROP;
 pub use config::{BodyLayout, ColourActivation, ModelConfig, TemplateChoice};

@@ -28,6 +28,10 @@
 //! paper concatenates the two sets and does not remove any), so the face branch adds detail on
 //! top. The fused set is posed by LBS (means by the blended transform, rotations by its polar
 //! rotation, scales unchanged) and splatted with SH degree 0.
+//!
+//! With `world_shading` (not in the paper; [`super::shading`]) the networks' colours are an
+//! albedo, and the rendered colour is the albedo times the light fixed in the world on the
+//! Gaussian's posed normal ([`Canonical::lit_colours`]).
 
 use burn::module::{Module, Param};
 use burn::tensor::activation::sigmoid;
@@ -38,6 +42,7 @@ use super::host_values;
 use super::inputs::{GaussianTables, NetInputs};
 use super::posing::{Skinning, pose_gaussians};
 use super::setup::Setup;
+use super::shading;
 use crate::AvatarError;
 use f3g_nets::DualStyleUNet;
 use f3g_nets::layers::resize;
@@ -85,6 +90,9 @@ pub struct BodyNets {
     pub other: Option<DualStyleUNet>,
     /// Learnable per-Gaussian canonical attributes `[N_b, 14]` (with `learn_canonical`).
     pub canonical: Option<Param<Tensor<2>>>,
+    /// The light fixed in the world (with `world_shading`): `[9, 3]` parameters of
+    /// [`shading::coefficients`]. Trained with the body networks, in the stages that train them.
+    pub shading: Option<Param<Tensor<2>>>,
 }
 
 /// Per-column step multipliers of the learnable canonical attributes (3DGS's relative
@@ -151,6 +159,9 @@ impl AvatarNets {
                 colour,
                 other,
                 canonical: zeros(setup.body_count()),
+                shading: config
+                    .world_shading
+                    .then(|| shading::initial_parameters(device)),
             },
             face,
         };
@@ -202,12 +213,27 @@ pub struct Canonical {
     pub log_scales: Tensor<2>,
     pub quats: Tensor<2>,
     pub opacity_logits: Tensor<1>,
+    /// `[N, 3]` albedo: what the networks predict, before the light fixed in the world.
     pub colours: Tensor<2>,
+    /// `[N, 3]` the light on each Gaussian in this frame's pose (with `world_shading`):
+    /// rendered colours are `colours · shading`.
+    pub shading: Option<Tensor<2>>,
     /// `[N_b, 3]` body position offsets (for the offset regulariser).
     pub body_offsets: Tensor<2>,
     /// `[N_f, 3]` face position offsets, and all face residuals `[N_f, 14]`.
     pub face_offsets: Option<Tensor<2>>,
     pub face_residuals: Option<Tensor<2>>,
+}
+
+impl Canonical {
+    /// `[N, 3]` the colours rendered: the albedo under this frame's light, when the model has
+    /// one.
+    pub fn lit_colours(&self) -> Tensor<2> {
+        match &self.shading {
+            Some(s) => self.colours.clone() * s.clone(),
+            None => self.colours.clone(),
+        }
+    }
 }
 
 /// Constant tensors of the avatar on one device.
@@ -466,6 +492,7 @@ pub fn canonical(
         quats,
         opacity_logits: opacity,
         colours,
+        shading: None,
         body_offsets,
         face_offsets: None,
         face_residuals: None,
@@ -487,6 +514,7 @@ pub fn canonical(
             quats: Tensor::cat(vec![out.quats, quats], 0),
             opacity_logits: Tensor::cat(vec![out.opacity_logits, opacity], 0),
             colours: Tensor::cat(vec![out.colours, colours], 0),
+            shading: None,
             body_offsets: out.body_offsets,
             face_offsets: Some(offsets),
             face_residuals: Some(r),
@@ -494,6 +522,9 @@ pub fn canonical(
     }
     if constants.sigmoid_colours {
         out.colours = sigmoid(out.colours);
+    }
+    if let Some(p) = &nets.body.shading {
+        out.shading = Some(shading::shade(shading::coefficients(p), &inputs.normals));
     }
     Ok(out)
 }
@@ -518,7 +549,7 @@ pub fn render_posed(
         log_scales: canonical.log_scales.clone(),
         quats,
         opacity_logits: canonical.opacity_logits.clone(),
-        sh: ((canonical.colours.clone() - 0.5) / SH_C0).reshape([n, 1, 3]),
+        sh: ((canonical.lit_colours() - 0.5) / SH_C0).reshape([n, 1, 3]),
     };
     let bg = t1(background.to_vec(), device);
     Ok(render(&gaussians, camera, bg, &RenderOptions::default())?)

@@ -28,7 +28,9 @@
 //! ([`crate::infer::export::export_cloud`]); their degree-0 term is the mean colour. Expressions:
 //! per expression of the body model, the displacement of every Gaussian by the expression at
 //! weight 1 (exact: blend shapes are linear). Posing: positions `Σ_k w_k S_{j_k} x`, rotations
-//! by the polar factor of the blended transform, scales unchanged.
+//! by the polar factor of the blended transform, scales unchanged. An avatar trained with the
+//! light fixed in the world ([`BakedShading`]) keeps its colours as albedo (the networks'
+//! outputs before the light) and shades them per pose from its turned normals.
 
 mod correctives;
 mod influences;
@@ -126,6 +128,19 @@ pub struct BakedAvatar {
     pub face_crop_size: usize,
     /// The training step of the networks it was baked from.
     pub step: u64,
+    /// The light fixed in the world, for an avatar trained with one.
+    pub shading: Option<BakedShading>,
+}
+
+/// A baked avatar's light fixed in the world ([`crate::model::shading`]): posing turns each
+/// Gaussian's canonical normal by its skinning rotation, and the degree-0 colour is multiplied
+/// by the shading of that normal (the higher SH bands are added unshaded).
+#[derive(Clone, Debug, PartialEq)]
+pub struct BakedShading {
+    /// `[9, 3]` row-major (basis function, channel).
+    pub coefficients: Vec<f32>,
+    /// `[N, 3]` canonical unit normals.
+    pub normals: Vec<f32>,
 }
 
 /// What baking measured.
@@ -286,6 +301,14 @@ impl BakedAvatar {
             let q = &quats[4 * g..4 * g + 4];
             let r = t.rotation * Quat::from_xyzw(q[1], q[2], q[3], q[0]);
             quats[4 * g..4 * g + 4].copy_from_slice(&[r.w, r.x, r.y, r.z]);
+            if let Some(light) = &self.shading {
+                let normal = t.rotation * Vec3::from_slice(&light.normals[3 * g..3 * g + 3]);
+                let s = crate::model::shading::shade_host(&light.coefficients, normal.to_array());
+                for (c, s) in s.into_iter().enumerate() {
+                    let f = &mut sh[g * coeffs * 3 + c];
+                    *f = ((0.5 + *f / dc) * s - 0.5) * dc;
+                }
+            }
         }
         Ok(GaussianCloud {
             means,
@@ -366,6 +389,7 @@ impl BakedAvatar {
                 degree: options.sh_degree,
                 directions: options.directions,
                 up: Up::Y,
+                lit: false,
             },
         )?;
         let n = reference.len();
@@ -424,6 +448,7 @@ impl BakedAvatar {
             face_padding: avatar.model.face_padding,
             face_crop_size: avatar.model.face_crop_size,
             step: avatar.step,
+            shading: avatar.world_light(),
         };
         Ok((baked, report))
     }

@@ -115,6 +115,12 @@ pub struct ModelConfig {
     pub learn_canonical: bool,
     /// Step-size multiplier of the canonical attributes relative to `lr`.
     pub canonical_lr_scale: f32,
+    /// Light fixed in the world: each colour is the networks' albedo times a learnt smooth
+    /// function of the Gaussian's posed normal (`model/shading.rs`), so shading follows a limb
+    /// into poses training never showed. Not in the paper; off in configurations written
+    /// before it was a key.
+    #[serde(default)]
+    pub world_shading: bool,
     /// Pose PCA components and clamp (in standard deviations) for unseen poses.
     pub pca_components: usize,
     pub pca_sigma: f32,
