@@ -760,11 +760,13 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     let camera =
         f3g_splat::Camera::look_at([0.4, 0.2, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 90.0, 64, 96);
     let unlit = avatar.render(&frame, &camera, [1.0; 3], false).unwrap();
-    // Parameters are a tenth of the coefficients' change from the neutral light (whose
-    // constant term they keep): `s = 1 + 1.22·y + 0.73·z` for a normal (x, y, z).
+    // `s = 1 + 1.22·y + 0.73·z` for a normal (x, y, z): the neutral light's constant term and
+    // coefficients −2.5 on `Y_1 = −C1·y`, 1.5 on `Y_2 = C1·z`, as parameters (the change from
+    // the neutral light over the shading's step).
+    use f3g_avatar::model::shading::SHADING_STEP;
     let mut light = vec![0.0f32; 27];
-    light[3..6].fill(-2.5 / 10.0);
-    light[6..9].fill(1.5 / 10.0);
+    light[3..6].fill(-2.5 / SHADING_STEP);
+    light[6..9].fill(1.5 / SHADING_STEP);
     let light = Tensor::<2>::from_data(
         burn::tensor::TensorData::new(light, [9, 3]),
         &Device::flex(),

@@ -1,7 +1,7 @@
 //! The portable avatar file: a [`BakedAvatar`] as one glTF 2.0 binary (`.glb`).
 //!
 //! - **Gaussians**: one `POINTS` primitive with the `KHR_gaussian_splatting` extension
-//!   (release candidate; kernel `ellipse`, colour space `srgb_rec709_display`): `POSITION`
+//!   (as ratified; kernel `ellipse`, colour space `srgb_rec709_display`): `POSITION`
 //!   (the canonical means), `KHR_gaussian_splatting:ROTATION` (unit quaternions, glTF's x, y,
 //!   z, w order), `:SCALE` (linear), `:OPACITY` (linear, in [0, 1]) and
 //!   `:SH_DEGREE_l_COEF_n` (3DGS's coefficients, `0.5 + C0·f_dc` for degree 0).

@@ -34,8 +34,8 @@ impl TrainConfig {
                 learn_canonical: true,
                 canonical_lr_scale: 8.0,
                 // The light fixed in the world (not in the paper): on motions the avatar never
-                // saw, blotched pixels 1.3–4.0 % → 0.04–0.4 % and body +1.0 to +1.5 dB; on the
-                // demo's novel views +0.35 dB body, −0.01 head LPIPS (BENCHMARKS, "The light
+                // saw, blotched pixels 1.3–3.8 % → 0.05–0.41 % and body +1.1 to +1.5 dB; on the
+                // demo's novel views +0.3 dB body, −0.014 head LPIPS (BENCHMARKS, "The light
                 // fixed in the world").
                 world_shading: true,
                 pca_components: 20,
