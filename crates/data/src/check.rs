@@ -41,6 +41,20 @@ pub struct CameraFit {
     pub flagged: bool,
 }
 
+impl CameraFit {
+    /// The fit of `camera` from sums over `frames` frames of (IoU, body in mask).
+    fn new(camera: &str, (iou, inside, frames): (f32, f32, usize)) -> Self {
+        let body_in_mask = inside / frames as f32;
+        Self {
+            camera: camera.to_string(),
+            frames,
+            iou: iou / frames as f32,
+            body_in_mask,
+            flagged: body_in_mask < MIN_BODY_IN_MASK,
+        }
+    }
+}
+
 /// The silhouette (`width × height`, row-major) of a posed mesh seen by `camera`, drawn at
 /// that size (the camera scaled to it).
 pub fn silhouette(
@@ -78,6 +92,20 @@ pub fn agreement(body: &[bool], mask: &Image) -> (f32, f32) {
     (both as f32 / either as f32, both as f32 / drawn as f32)
 }
 
+/// The posed mesh's silhouette seen by `camera` at `width × height`, and its [`agreement`]
+/// with `mask` resized to that size.
+fn against_mask(
+    (vertices, triangles): &PosedMesh,
+    camera: &Camera,
+    mask: &Image,
+    width: usize,
+    height: usize,
+) -> (Vec<bool>, (f32, f32)) {
+    let body = silhouette(vertices, triangles, camera, width, height);
+    let scores = agreement(&body, &resize(mask, width, height));
+    (body, scores)
+}
+
 /// The size a camera's images are compared at: [`FIT_WIDTH`] wide (or narrower images as they
 /// are), the height in proportion.
 fn fit_size(camera: &Camera, width: usize) -> (usize, usize) {
@@ -96,25 +124,6 @@ fn posed_body(ds: &Dataset, frame: usize) -> Result<Option<PosedMesh<'_>>, DataE
     };
     let posed = rig.pose(&ds.params[frame])?;
     Ok(Some((posed.vertices, &rig.mesh.triangles)))
-}
-
-/// [`CameraFit`]s from per-camera sums of (IoU, body in mask) over frames.
-fn camera_fits(ds: &Dataset, sums: &[(f32, f32, usize)]) -> Vec<CameraFit> {
-    ds.cameras
-        .iter()
-        .zip(sums)
-        .filter(|(_, s)| s.2 > 0)
-        .map(|(cam, &(iou, inside, frames))| {
-            let body_in_mask = inside / frames as f32;
-            CameraFit {
-                camera: cam.name.clone(),
-                frames,
-                iou: iou / frames as f32,
-                body_in_mask,
-                flagged: body_in_mask < MIN_BODY_IN_MASK,
-            }
-        })
-        .collect()
 }
 
 /// What a check found.
@@ -156,13 +165,17 @@ pub fn check(ds: &Dataset, decode_every: usize) -> CheckReport {
     if ds.rig.is_none() {
         r.warnings.push("SMPL-X parameters without the model file: pass --model smplx:PATH to check posing and face boxes".into());
     }
-    // The posed body of every frame that is decoded (`None`: no body model, or a pose error,
-    // reported below).
+    // Every frame posed once: its errors reported after the images' (as they always were), its
+    // mesh kept for the frames that are decoded.
     let every = decode_every.max(1);
-    let bodies: Vec<_> = (0..ds.frames())
-        .map(|f| match f % every {
-            0 => posed_body(ds, f).ok().flatten(),
-            _ => None,
+    let mut pose_errors = Vec::new();
+    let bodies: Vec<Option<PosedMesh>> = (0..ds.frames())
+        .map(|f| match posed_body(ds, f) {
+            Ok(mesh) => mesh.filter(|_| f % every == 0),
+            Err(e) => {
+                pose_errors.push(format!("frame {f}: {e}"));
+                None
+            }
         })
         .collect();
     let mut sums = vec![(0.0f32, 0.0f32, 0usize); ds.cameras.len()];
@@ -193,10 +206,9 @@ pub fn check(ds: &Dataset, decode_every: usize) -> CheckReport {
                 match ds.image(c, f).and_then(|_| ds.mask(c, f)) {
                     Ok(mask) => {
                         r.images_decoded += 1;
-                        if let Some((vertices, triangles)) = body {
+                        if let Some(mesh) = body {
                             let (w, h) = fit_size(&cam.camera, FIT_WIDTH);
-                            let body = silhouette(vertices, triangles, &cam.camera, w, h);
-                            let (iou, inside) = agreement(&body, &resize(&mask, w, h));
+                            let (_, (iou, inside)) = against_mask(mesh, &cam.camera, &mask, w, h);
                             sums[c].0 += iou;
                             sums[c].1 += inside;
                             sums[c].2 += 1;
@@ -207,14 +219,14 @@ pub fn check(ds: &Dataset, decode_every: usize) -> CheckReport {
             }
         }
     }
-    if let Ok(rig) = ds.rig() {
-        for (f, p) in ds.params.iter().enumerate() {
-            if let Err(e) = rig.pose(p) {
-                r.errors.push(format!("frame {f}: {e}"));
-            }
-        }
-    }
-    r.silhouettes = camera_fits(ds, &sums);
+    r.errors.extend(pose_errors);
+    r.silhouettes = ds
+        .cameras
+        .iter()
+        .zip(sums)
+        .filter(|(_, s)| s.2 > 0)
+        .map(|(cam, s)| CameraFit::new(&cam.name, s))
+        .collect();
     for fit in r.silhouettes.iter().filter(|f| f.flagged) {
         r.warnings.push(format!(
             "camera `{}`: only {:.0} % of the posed body lies inside its masks (IoU {:.2}; \
@@ -249,18 +261,23 @@ pub fn contact_sheet(
             ds.frames()
         )));
     }
-    let head = match ds.rig() {
-        Ok(rig) => {
-            let posed = rig.pose(&ds.params[frame])?;
-            Some(
-                rig.head_vertices()?
-                    .iter()
-                    .map(|&v| posed.vertices[v])
-                    .collect::<Vec<_>>(),
-            )
-        }
-        Err(_) => None,
+    // The frame's posed body (without a body model: no face boxes, and no overlay).
+    let mesh = posed_body(ds, frame)?;
+    let head = match (&mesh, ds.rig()) {
+        (Some((vertices, _)), Ok(rig)) => Some(
+            rig.head_vertices()?
+                .iter()
+                .map(|&v| vertices[v])
+                .collect::<Vec<_>>(),
+        ),
+        _ => None,
     };
+    if overlay && mesh.is_none() {
+        return Err(DataError::Invalid(
+            "the overlay needs the body model: pass --model".into(),
+        ));
+    }
+    let body = mesh.filter(|_| overlay);
     let columns = (ds.cameras.len() as f32).sqrt().ceil() as usize;
     let rows = ds.cameras.len().div_ceil(columns);
     let aspect = ds
@@ -270,14 +287,7 @@ pub fn contact_sheet(
         .fold(0.0, f32::max);
     let (tw, th) = (thumb, (thumb as f32 * aspect).ceil() as usize);
     let mut sheet = Image::filled(columns * tw, rows * th, 3, 0.1);
-    let body = if overlay {
-        Some(posed_body(ds, frame)?.ok_or_else(|| {
-            DataError::Invalid("the overlay needs the body model: pass --model".into())
-        })?)
-    } else {
-        None
-    };
-    let mut sums = vec![(0.0f32, 0.0f32, 0usize); ds.cameras.len()];
+    let mut fits = Vec::new();
     for (c, cam) in ds.cameras.iter().enumerate() {
         if !ds.has_image(c, frame) {
             continue;
@@ -301,13 +311,12 @@ pub fn contact_sheet(
                 [1.0, 0.1, 0.1],
             );
         }
-        if let Some((vertices, triangles)) = &body {
+        if let Some(mesh) = &body {
             let (w, h) = (small.width, small.height);
-            let drawn = silhouette(vertices, triangles, &cam.camera, w, h);
+            let (drawn, (iou, inside)) = against_mask(mesh, &cam.camera, &ds.mask(c, frame)?, w, h);
             draw_outline(&mut small, &drawn);
-            let (iou, inside) = agreement(&drawn, &resize(&ds.mask(c, frame)?, w, h));
-            sums[c] = (iou, inside, 1);
-            let colour = if inside < MIN_BODY_IN_MASK {
+            let fit = CameraFit::new(&cam.name, (iou, inside, 1));
+            let colour = if fit.flagged {
                 [1.0, 0.15, 0.15]
             } else {
                 [1.0, 1.0, 1.0]
@@ -315,10 +324,11 @@ pub fn contact_sheet(
             draw_text(&mut small, &cam.name, 4, 4, colour);
             draw_text(&mut small, &format!("iou {iou:.2}"), 4, 22, colour);
             draw_text(&mut small, &format!("in {inside:.2}"), 4, 40, colour);
+            fits.push(fit);
         }
         paste(&mut sheet, &small, (c % columns) * tw, (c / columns) * th);
     }
-    Ok((sheet, camera_fits(ds, &sums)))
+    Ok((sheet, fits))
 }
 
 /// Colours the pixels of `img` on the edge of `drawn` (drawn, with a 4-neighbour not).

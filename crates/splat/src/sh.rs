@@ -18,8 +18,10 @@ pub fn degree_for(coeffs: usize) -> Option<usize> {
 
 /// `Y_0`, the constant basis function: degree-0 colour is `0.5 + SH_C0 · f_dc`.
 pub const SH_C0: f64 = 0.282_094_791_773_878_14;
-const SH_C1: f64 = 0.488_602_511_902_919_9;
-const SH_C2: [f64; 5] = [
+/// The degree-1 constant (`Y_1 = −C1·y`, `C1·z`, `−C1·x`).
+pub const SH_C1: f64 = 0.488_602_511_902_919_9;
+/// The degree-2 constants, in the basis order of [`basis`].
+pub const SH_C2: [f64; 5] = [
     1.092_548_430_592_079_2,
     -1.092_548_430_592_079_2,
     0.315_391_565_252_520_05,

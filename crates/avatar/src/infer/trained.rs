@@ -157,15 +157,22 @@ impl TrainedAvatar {
         Ok((c, inputs))
     }
 
+    /// The head maps of the face Gaussians when they are rendered (the face branch and its
+    /// canonical face model exist): their tables follow the body's.
+    fn rendered_head(&self) -> Option<&f3g_template::HeadMaps> {
+        self.setup
+            .head
+            .as_ref()
+            .filter(|_| self.constants.has_face())
+    }
+
     /// The light fixed in the world (with `world_shading`): its `[9, 3]` coefficients
     /// ([`crate::model::shading`]) and every rendered Gaussian's canonical unit normal (body,
     /// then face), which skinning turns into the normal the light falls on.
     pub fn world_light(&self) -> Option<BakedShading> {
         let p = self.nets.body.shading.as_ref()?;
         let mut normals = self.setup.maps.normals.clone();
-        if self.constants.has_face()
-            && let Some(h) = &self.setup.head
-        {
+        if let Some(h) = self.rendered_head() {
             normals.extend(&h.normals);
         }
         Some(BakedShading {
@@ -180,9 +187,7 @@ impl TrainedAvatar {
     /// The skin weights of every rendered Gaussian (body, then face), as the setup holds them.
     pub fn skin(&self) -> f3g_rig::SkinWeights {
         let mut skin = self.setup.maps.skin.clone();
-        if self.constants.has_face()
-            && let Some(h) = &self.setup.head
-        {
+        if let Some(h) = self.rendered_head() {
             skin.joints.extend(&h.skin.joints);
             skin.weights.extend(&h.skin.weights);
         }

@@ -70,15 +70,8 @@ fn basis(v: &Tensor<2>) -> Tensor<2> {
         y.clone() * y.clone(),
         z.clone() * z.clone(),
     );
-    // 3DGS's constants, in the order of `sh::basis`.
-    let c1 = 0.488_602_52_f32;
-    let c2 = [
-        1.092_548_4_f32,
-        -1.092_548_4,
-        0.315_391_57,
-        -1.092_548_4,
-        0.546_274_2,
-    ];
+    let c1 = sh::SH_C1 as f32;
+    let c2 = sh::SH_C2.map(|c| c as f32);
     Tensor::cat(
         vec![
             Tensor::ones([n, 1], &v.device()) * sh::SH_C0 as f32,
