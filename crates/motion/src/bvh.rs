@@ -20,7 +20,7 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use glam::{EulerRot, Quat, Vec3};
+use glam::{Quat, Vec3};
 
 use f3g_rig::{Joint, Skeleton};
 
@@ -394,15 +394,8 @@ pub fn write_bvh(motion: &Motion) -> Result<String, String> {
         let p = joints[0].offset + motion.root_translation[f];
         let mut line = format!("{} {} {}", p.x, p.y, p.z);
         for &j in &order {
-            // In f64: near ±90° about y, f32's asin loses half its digits.
-            let (z, y, x) = motion.frame(f)[j].as_dquat().to_euler(EulerRot::ZYX);
-            let _ = write!(
-                line,
-                " {:.6} {:.6} {:.6}",
-                z.to_degrees(),
-                y.to_degrees(),
-                x.to_degrees()
-            );
+            let (z, y, x) = crate::euler_zyx_degrees(motion.frame(f)[j]);
+            let _ = write!(line, " {z:.6} {y:.6} {x:.6}");
         }
         out.push_str(&line);
         out.push('\n');

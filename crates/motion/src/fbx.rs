@@ -351,9 +351,8 @@ pub fn write_fbx(motion: &Motion) -> Result<String, String> {
     ))
 }
 
-/// Euler angles (degrees) with `R = Rz·Ry·Rx`, FBX's default `XYZ` order, from f64 (near ±90°
-/// about y, f32's asin loses half its digits).
+/// Euler angles (degrees) with `R = Rz·Ry·Rx` in FBX's default `XYZ` key order.
 fn degrees_xyz(q: Quat) -> [f64; 3] {
-    let (z, y, x) = q.as_dquat().to_euler(glam::EulerRot::ZYX);
-    [x.to_degrees(), y.to_degrees(), z.to_degrees()]
+    let (z, y, x) = crate::euler_zyx_degrees(q);
+    [x, y, z]
 }

@@ -53,6 +53,15 @@ pub use rest::RestChoice;
 pub use retarget::{Correspondence, RetargetOptions, Retargeted, retarget};
 pub use smpl::{SmplFamily, SmplMotion};
 
+/// Euler angles `(z, y, x)` in degrees with `R = Rz·Ry·Rx` (BVH's and FBX's writers), computed
+/// in f64 from the quaternion renormalised there: next to ±90° about y the x and z angles come
+/// from matrix entries of size cos y, so an f32 quaternion's 1e-7 norm error (or f32's asin)
+/// would turn them by 1e-3 rad.
+pub(crate) fn euler_zyx_degrees(q: glam::Quat) -> (f64, f64, f64) {
+    let (z, y, x) = q.as_dquat().normalize().to_euler(glam::EulerRot::ZYX);
+    (z.to_degrees(), y.to_degrees(), x.to_degrees())
+}
+
 /// Frame counts above this are refused before anything is allocated for them (a day at
 /// 120 fps): a damaged header cannot ask for terabytes.
 pub const MAX_FRAMES: usize = 10_368_000;

@@ -136,6 +136,21 @@ fn bad_files_are_refused_naming_the_line() {
     bad(&format!("{CMU_LIKE}7\n"), "after the 2 frames");
 }
 
+/// A rotation 70 µrad from gimbal lock (proptest found it): the written angles still make it.
+#[test]
+fn a_rotation_next_to_gimbal_lock_round_trips() {
+    let mut walk = common::walk(0, 2);
+    walk.rotations[11] = Quat::from_euler(EulerRot::XYZ, 1.594844, -1.5708671, -1.546457);
+    let text = write_bvh(&walk).unwrap();
+    let back = parse_bvh(text.as_bytes(), Path::new("p.bvh")).unwrap();
+    for (a, b) in walk.world(0).iter().zip(back.world(0)) {
+        assert!(
+            same_rotation(a.rotation, b.rotation, 1e-4),
+            "{a:?} vs {b:?}"
+        );
+    }
+}
+
 proptest! {
     /// Any rotations and root positions survive writing and reading (to the written precision).
     #[test]
