@@ -161,6 +161,9 @@ pub enum DataCommand {
     /// Write a contact sheet of all cameras of one frame with the face boxes drawn (and, with
     /// --overlay, the posed body model's outline and its agreement with the masks).
     Show(ShowArgs),
+    /// Write the 2D keypoints (OpenPose JSON) a capture's own body parameters project to, with
+    /// pixel noise: a test of `f3g fit --keypoints` on a synthetic capture.
+    Keypoints(crate::fit::KeypointsArgs),
 }
 
 /// Options of `f3g data check`.
@@ -250,6 +253,7 @@ pub fn run(cmd: &DataCommand) -> Result<()> {
             println!("ok");
             Ok(())
         }
+        DataCommand::Keypoints(a) => crate::fit::keypoints(a),
         DataCommand::Show(a) => {
             let ds = Dataset::open(&a.dir, a.model.spec.as_ref())?;
             let (sheet, fits) = check::contact_sheet(&ds, a.frame, a.thumb, 1.3, a.overlay)

@@ -7,6 +7,7 @@ mod cuda_probe;
 mod data;
 mod demo;
 mod device;
+mod fit;
 mod interrupt;
 mod metrics;
 mod motion;
@@ -57,6 +58,9 @@ enum Command {
     /// model, write f3g's motions for them, draw a motion's contact sheet.
     #[command(subcommand)]
     Motion(motion::MotionCommand),
+    /// Fit a body model's per-frame parameters to a capture's masks (and optional 2D
+    /// keypoints): the body_params.npz a capture of your own needs for training.
+    Fit(fit::FitArgs),
     /// Render a synthetic multi-view capture of the built-in human.
     Synth(data::SynthArgs),
     /// Captures: validate them, look at them.
@@ -122,6 +126,7 @@ fn run(cli: Cli) -> Result<()> {
         Command::Rig(cmd) => rig::run(&cmd),
         Command::Motion(cmd) => motion::run(&cmd),
         Command::Synth(args) => data::synth(&args),
+        Command::Fit(args) => fit::fit(&args),
         Command::Data(cmd) => data::run(&cmd),
         Command::Template(args) => template::run(&args),
         Command::Posmaps(args) => template::posmaps(&args),

@@ -9,7 +9,7 @@
 //! camera is flagged by ([`MIN_BODY_IN_MASK`]).
 
 use glam::Vec3;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::DataError;
 use crate::crop::head_box;
@@ -28,7 +28,7 @@ pub const MIN_BODY_IN_MASK: f32 = 0.9;
 pub const FIT_WIDTH: usize = 256;
 
 /// How well the posed body model lies on one camera's masks, over the frames checked.
-#[derive(Clone, Debug, Serialize, PartialEq)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct CameraFit {
     pub camera: String,
     /// Frames compared.
@@ -43,7 +43,7 @@ pub struct CameraFit {
 
 impl CameraFit {
     /// The fit of `camera` from sums over `frames` frames of (IoU, body in mask).
-    fn new(camera: &str, (iou, inside, frames): (f32, f32, usize)) -> Self {
+    pub(crate) fn new(camera: &str, (iou, inside, frames): (f32, f32, usize)) -> Self {
         let body_in_mask = inside / frames as f32;
         Self {
             camera: camera.to_string(),
@@ -108,7 +108,7 @@ fn against_mask(
 
 /// The size a camera's images are compared at: [`FIT_WIDTH`] wide (or narrower images as they
 /// are), the height in proportion.
-fn fit_size(camera: &Camera, width: usize) -> (usize, usize) {
+pub(crate) fn fit_size(camera: &Camera, width: usize) -> (usize, usize) {
     let w = width.min(camera.width as usize).max(1);
     let h = ((camera.height as f32 * w as f32 / camera.width as f32).round() as usize).max(1);
     (w, h)

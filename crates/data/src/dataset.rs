@@ -48,17 +48,7 @@ impl Dataset {
     /// Opens a capture. `model` is needed for `smpl_params.npz` (SMPL-X); a `body_params.npz`
     /// names its own model.
     pub fn open(root: &Path, model: Option<&ModelSpec>) -> Result<Self, DataError> {
-        let (layout, calibration) = if root.join("calibration_full.json").exists() {
-            (Layout::AvatarRex, root.join("calibration_full.json"))
-        } else if root.join("calibration.json").exists() {
-            (Layout::Thuman4, root.join("calibration.json"))
-        } else {
-            return Err(DataError::file(
-                root,
-                "not a capture: expected calibration_full.json (AvatarReX layout) or calibration.json (THuman4.0 layout)",
-            ));
-        };
-        let cameras = read_calibration(&calibration)?;
+        let (layout, cameras) = locate(root)?;
         let (rig, model_text, params) = read_body(root, model)?;
         let mut ds = Self {
             root: root.to_path_buf(),
@@ -70,6 +60,37 @@ impl Dataset {
             missing: HashSet::new(),
             warnings: Vec::new(),
         };
+        ds.find_missing()?;
+        Ok(ds)
+    }
+
+    /// Opens a capture for fitting its body parameters with `rig`, whatever parameter file it
+    /// has or lacks: the frames are those with an image in some camera, counted from 0 until
+    /// the first frame no camera has, and each frame's parameters are the rest pose until
+    /// fitted.
+    pub fn open_unfitted(root: &Path, rig: Rig, model: String) -> Result<Self, DataError> {
+        let (layout, cameras) = locate(root)?;
+        let mut ds = Self {
+            root: root.to_path_buf(),
+            layout,
+            cameras,
+            rig: None,
+            model,
+            params: Vec::new(),
+            missing: HashSet::new(),
+            warnings: Vec::new(),
+        };
+        let frames = (0usize..)
+            .take_while(|&f| (0..ds.cameras.len()).any(|c| ds.image_path(c, f).exists()))
+            .count();
+        if frames == 0 {
+            return Err(DataError::file(
+                root,
+                format!("no images: expected e.g. {}", ds.image_path(0, 0).display()),
+            ));
+        }
+        ds.params = vec![rig.zero_params(); frames];
+        ds.rig = Some(rig);
         ds.find_missing()?;
         Ok(ds)
     }
@@ -211,6 +232,21 @@ impl Dataset {
         }
         Ok(())
     }
+}
+
+/// A capture's layout and cameras, from the calibration file found in `root`.
+fn locate(root: &Path) -> Result<(Layout, Vec<CaptureCamera>), DataError> {
+    let (layout, calibration) = if root.join("calibration_full.json").exists() {
+        (Layout::AvatarRex, root.join("calibration_full.json"))
+    } else if root.join("calibration.json").exists() {
+        (Layout::Thuman4, root.join("calibration.json"))
+    } else {
+        return Err(DataError::file(
+            root,
+            "not a capture: expected calibration_full.json (AvatarReX layout) or calibration.json (THuman4.0 layout)",
+        ));
+    };
+    Ok((layout, read_calibration(&calibration)?))
 }
 
 type Body = (Option<Rig>, String, Vec<RigParams>);

@@ -36,6 +36,44 @@ pub fn resize(img: &Image, width: usize, height: usize) -> Image {
     }
 }
 
+/// The first channel of `img` shrunk to `width × height` (no larger than it) by area
+/// averaging: each output pixel is the mean of the input area it covers, exactly. Several
+/// times faster than [`resize`]'s filter on masks, whose edges it keeps as sharp.
+pub fn shrink_channel(img: &Image, width: usize, height: usize) -> Vec<f32> {
+    // Per output index: the input indices it covers with their weights (summing to 1).
+    let spans = |from: usize, to: usize| -> Vec<Vec<(usize, f32)>> {
+        let s = from as f64 / to as f64;
+        (0..to)
+            .map(|o| {
+                let (a, b) = (o as f64 * s, (o + 1) as f64 * s);
+                (a.floor() as usize..(b.ceil() as usize).min(from))
+                    .map(|i| {
+                        let w = (b.min(i as f64 + 1.0) - a.max(i as f64)) / s;
+                        (i, w as f32)
+                    })
+                    .collect()
+            })
+            .collect()
+    };
+    let (xs, ys) = (spans(img.width, width), spans(img.height, height));
+    let mut rows = vec![0.0f32; width * img.height];
+    for y in 0..img.height {
+        for (x, span) in xs.iter().enumerate() {
+            rows[y * width + x] = span
+                .iter()
+                .map(|&(i, w)| w * img.data[(y * img.width + i) * img.channels])
+                .sum();
+        }
+    }
+    let mut out = vec![0.0f32; width * height];
+    for (y, span) in ys.iter().enumerate() {
+        for x in 0..width {
+            out[y * width + x] = span.iter().map(|&(i, w)| w * rows[i * width + x]).sum();
+        }
+    }
+    out
+}
+
 /// The camera of an image resized from the camera's size to `width × height`: pixel
 /// coordinates scale by `width / W` and `height / H` (exact, since pixel centres are at i + 0.5).
 pub fn resized_camera(camera: &Camera, width: usize, height: usize) -> Camera {

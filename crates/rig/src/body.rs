@@ -12,7 +12,8 @@
 //! Everything else the pipeline needs is derived here from them: the head region
 //! ([`Rig::head_joints`], [`Rig::head_vertices`]), the canonical pose
 //! ([`Rig::canonical_params`]: legs apart, arms raised, by rotating the hip and shoulder joints
-//! about their forward axis) and the finger parameters ([`Rig::finger_params`]). No code
+//! about their forward axis), the finger parameters ([`Rig::finger_params`]) and those a
+//! silhouette sees ([`Rig::posture_params`]). No code
 //! outside this crate looks a joint up by name.
 
 use glam::{EulerRot, Quat, Vec3};
@@ -283,37 +284,59 @@ impl Rig {
     /// Indices of the pose parameters that articulate the fingers: those that drive only
     /// joints below a wrist (the wrists' roles).
     pub fn finger_params(&self) -> Result<Vec<usize>, RigError> {
-        let wrists = [self.role(Role::LeftWrist)?, self.role(Role::RightWrist)?];
-        let joints = self.skeleton.len();
-        let in_hand: Vec<bool> = (0..joints)
+        let in_hand = self.below(&[Role::LeftWrist, Role::RightWrist])?;
+        Ok(self.params_driving_only(&in_hand))
+    }
+
+    /// Indices of the pose parameters a silhouette sees: every one but those that drive only
+    /// joints below a wrist or below the head (fingers, jaw, eyes), which the masks of a
+    /// full-body capture cannot resolve.
+    pub fn posture_params(&self) -> Result<Vec<usize>, RigError> {
+        let hidden = self.below(&[Role::LeftWrist, Role::RightWrist, Role::Head])?;
+        let hidden = self.params_driving_only(&hidden);
+        Ok((0..self.num_pose_params())
+            .filter(|p| !hidden.contains(p))
+            .collect())
+    }
+
+    /// Per joint: whether it lies strictly below the joint of one of `roles`.
+    fn below(&self, roles: &[Role]) -> Result<Vec<bool>, RigError> {
+        let tops = roles
+            .iter()
+            .map(|&r| self.role(r))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok((0..self.skeleton.len())
             .map(|j| {
-                wrists
-                    .iter()
-                    .any(|&w| w != j && self.skeleton.is_ancestor_or_self(w, j))
+                tops.iter()
+                    .any(|&t| t != j && self.skeleton.is_ancestor_or_self(t, j))
             })
-            .collect();
-        Ok(match &self.parameterization {
-            Parameterization::AxisAngle => (0..joints)
-                .filter(|&j| in_hand[j])
+            .collect())
+    }
+
+    /// The pose parameters that drive joints in `region` and no joint outside it.
+    fn params_driving_only(&self, region: &[bool]) -> Vec<usize> {
+        match &self.parameterization {
+            Parameterization::AxisAngle => (0..region.len())
+                .filter(|&j| region[j])
                 .flat_map(|j| 3 * j..3 * j + 3)
                 .collect(),
             Parameterization::Momentum(t) => {
-                let mut drives_hand = vec![false; t.len()];
+                let mut drives_inside = vec![false; t.len()];
                 let mut drives_other = vec![false; t.len()];
                 for &(row, col, w) in &t.entries {
                     if w != 0.0 {
                         let joint = row as usize / PARAMS_PER_JOINT;
-                        if in_hand[joint] {
-                            drives_hand[col as usize] = true;
+                        if region[joint] {
+                            drives_inside[col as usize] = true;
                         } else {
                             drives_other[col as usize] = true;
                         }
                     }
                 }
                 (0..t.len())
-                    .filter(|&c| drives_hand[c] && !drives_other[c])
+                    .filter(|&c| drives_inside[c] && !drives_other[c])
                     .collect()
             }
-        })
+        }
     }
 }

@@ -217,3 +217,34 @@ fn joint_rotations_and_the_root_are_set_as_said() {
     let rest = rig.joint_world(&rig.zero_params()).unwrap()[0].translation;
     assert!((root - rest - Vec3::new(0.1, -0.2, 0.3)).length() < 1e-5);
 }
+
+/// What a silhouette sees: the root and the limbs, not the fingers, jaw or eyes — on the
+/// built-in human (Momentum) and on the same rig read as an axis-angle model would name it.
+#[test]
+fn posture_parameters_leave_out_fingers_and_face() {
+    let rig = builtin();
+    let names = rig.pose_param_names();
+    let posture: Vec<&str> = rig
+        .posture_params()
+        .unwrap()
+        .iter()
+        .map(|&p| names[p].as_str())
+        .collect();
+    for wanted in [
+        "root_tx",
+        "root_ry",
+        "upperarm01.L_rz",
+        "head_rx",
+        "neck01_ry",
+    ] {
+        assert!(posture.contains(&wanted), "{wanted} missing");
+    }
+    let fingers = rig.finger_params().unwrap();
+    assert!(!fingers.is_empty());
+    for p in fingers {
+        assert!(!posture.contains(&names[p].as_str()), "{}", names[p]);
+    }
+    for hidden in ["jaw_rx", "eye.L_rx"] {
+        assert!(!posture.contains(&hidden), "{hidden} is the face's");
+    }
+}
