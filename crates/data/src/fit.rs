@@ -1109,6 +1109,25 @@ mod tests {
         );
     }
 
+    proptest::proptest! {
+        /// The grid's nearest point is the brute-force nearest, for points inside, on the edge
+        /// of and beyond the image.
+        #[test]
+        fn the_grid_finds_the_nearest_point(
+            points in proptest::collection::vec((-40.0f32..140.0, -40.0f32..100.0), 1..60),
+            queries in proptest::collection::vec((0.0f32..100.0, 0.0f32..60.0), 1..20),
+        ) {
+            let points: Vec<Vec2> = points.into_iter().map(|(x, y)| Vec2::new(x, y)).collect();
+            let grid = PixelGrid::new(&points, 100, 60);
+            for (x, y) in queries {
+                let q = Vec2::new(x, y);
+                let found = points[grid.nearest(&points, q)].distance(q);
+                let best = points.iter().map(|p| p.distance(q)).fold(f32::INFINITY, f32::min);
+                proptest::prop_assert!((found - best).abs() < 1e-4, "{found} vs {best}");
+            }
+        }
+    }
+
     #[test]
     fn the_distance_transform_is_exact() {
         let (w, h) = (9, 7);

@@ -319,6 +319,30 @@ pub fn paste(canvas: &mut Image, tile: &Image, x: usize, y: usize) {
 mod tests {
     use super::*;
 
+    /// Area averaging keeps a mask's mean and makes each output pixel the covered share: a
+    /// 9-pixel-wide block shrunk by 2.25 covers 4 output pixels exactly.
+    #[test]
+    fn shrinking_averages_the_covered_area() {
+        let (w, h) = (18, 9);
+        let data: Vec<f32> = (0..w * h).map(|p| (p % w < 9) as u8 as f32).collect();
+        let img = Image {
+            width: w,
+            height: h,
+            channels: 1,
+            data,
+        };
+        let out = shrink_channel(&img, 8, 4);
+        let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+        assert!((mean(&out) - mean(&img.data)).abs() < 1e-5);
+        for y in 0..4 {
+            let row = &out[y * 8..(y + 1) * 8];
+            for (x, &v) in row.iter().enumerate() {
+                let expected = if x < 4 { 1.0 } else { 0.0 };
+                assert!((v - expected).abs() < 1e-5, "({x}, {y}): {v}");
+            }
+        }
+    }
+
     #[test]
     fn crop_resize_samples_where_the_camera_says() {
         // A horizontal ramp: value = x coordinate of the pixel centre / width.

@@ -94,7 +94,8 @@ fn from_triples(
     map.iter()
         .map(|&(i, role)| {
             let [x, y, c] = [values[3 * i], values[3 * i + 1], values[3 * i + 2]];
-            if !(x.is_finite() && y.is_finite() && c.is_finite()) {
+            // Finite as f32 too: 1e300 is a finite f64.
+            if ![x, y, c].iter().all(|v| (*v as f32).is_finite()) {
                 return Err(DataError::field(
                     path,
                     field,

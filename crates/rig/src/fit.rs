@@ -236,12 +236,12 @@ pub fn point_jacobian(
     joints: &[usize],
 ) -> Result<Vec<Vec<Vec3>>, RigError> {
     let analytic = analytic_pose_columns(rig, params, posed, columns, vertices, joints)?;
-    columns
-        .par_iter()
-        .enumerate()
-        .map(|(ci, &c)| -> Result<Vec<Vec3>, RigError> {
-            if let Some(col) = analytic.get(&ci) {
-                return Ok(col.clone());
+    analytic
+        .into_par_iter()
+        .zip(columns)
+        .map(|(analytic, &c)| -> Result<Vec<Vec3>, RigError> {
+            if let Some(col) = analytic {
+                return Ok(col);
             }
             let h = 1e-3f32;
             let mut plus = params.clone();
@@ -263,8 +263,8 @@ pub fn point_jacobian(
         .collect()
 }
 
-/// Analytic columns for Momentum pose parameters, keyed by column index: `[point]` as in
-/// [`point_jacobian`].
+/// Per column, its analytic derivatives (`[point]` as in [`point_jacobian`]) when it is a
+/// Momentum pose parameter, else `None`.
 fn analytic_pose_columns(
     rig: &Rig,
     params: &RigParams,
@@ -272,9 +272,9 @@ fn analytic_pose_columns(
     columns: &[Column],
     vertices: &[usize],
     joints: &[usize],
-) -> Result<std::collections::HashMap<usize, Vec<Vec3>>, RigError> {
+) -> Result<Vec<Option<Vec<Vec3>>>, RigError> {
     let Parameterization::Momentum(transform) = &rig.parameterization else {
-        return Ok(Default::default());
+        return Ok(vec![None; columns.len()]);
     };
     let skeleton = &rig.skeleton;
     let joint_params = transform.apply(&params.pose)?;
@@ -306,14 +306,10 @@ fn analytic_pose_columns(
         .collect();
     let points = vertices.len() + joints.len();
     // `[column][point]`, allocated for the analytic columns only.
-    let mut out: Vec<Vec<Vec3>> =
-        column_of
-            .iter()
-            .flatten()
-            .fold(vec![Vec::new(); columns.len()], |mut out, &ci| {
-                out[ci] = vec![Vec3::ZERO; points];
-                out
-            });
+    let mut out: Vec<Option<Vec<Vec3>>> = vec![None; columns.len()];
+    for &ci in column_of.iter().flatten() {
+        out[ci] = Some(vec![Vec3::ZERO; points]);
+    }
     // d(point attached below joint k)/dθ, accumulated into `point` with `weight`.
     let mut add_point = |point: usize, k: usize, x: Vec3, weight: f32| {
         for &a in &ancestors[k] {
@@ -324,7 +320,9 @@ fn analytic_pose_columns(
                 }
                 let d = axes[a].derivative(ch, x);
                 for &(ci, w) in entries {
-                    out[ci][point] += weight * w * d;
+                    if let Some(col) = &mut out[ci] {
+                        col[point] += weight * w * d;
+                    }
                 }
             }
         }
@@ -338,11 +336,7 @@ fn analytic_pose_columns(
     for (p, &j) in joints.iter().enumerate() {
         add_point(vertices.len() + p, j, posed.joints[j].translation, 1.0);
     }
-    Ok(column_of
-        .into_iter()
-        .flatten()
-        .map(|ci| (ci, std::mem::take(&mut out[ci])))
-        .collect())
+    Ok(out)
 }
 
 /// A joint's degrees of freedom in world space: translation axes (parent frame, with scale),
@@ -713,14 +707,15 @@ mod tests {
         let columns: Vec<Column> = (0..rig.num_pose_params()).map(Column::Pose).collect();
         let analytic =
             analytic_pose_columns(&rig, &params, &posed, &columns, &vertices, &joint_list).unwrap();
-        assert_eq!(analytic.len(), rig.num_pose_params());
-        for (ci, col) in &analytic {
+        assert!(analytic.iter().all(Option::is_some));
+        for (ci, col) in analytic.iter().enumerate() {
+            let col = col.as_ref().unwrap();
             // f32 positions near 1 m: a larger step keeps rounding out of the differences.
             let h = 1e-2;
             let mut plus = params.clone();
-            plus.pose[*ci] += h;
+            plus.pose[ci] += h;
             let mut minus = params.clone();
-            minus.pose[*ci] -= h;
+            minus.pose[ci] -= h;
             let (pp, pm) = (rig.pose(&plus).unwrap(), rig.pose(&minus).unwrap());
             let mut numeric: Vec<f32> = pp
                 .vertices
@@ -740,7 +735,7 @@ mod tests {
                 assert!(
                     (a - n).abs() < 2e-3 * scale + 2e-5,
                     "parameter {} row {r}: analytic {a} numeric {n}",
-                    rig.pose_param_names()[*ci]
+                    rig.pose_param_names()[ci]
                 );
             }
         }
