@@ -118,7 +118,6 @@ pub fn fit(a: &FitArgs) -> Result<()> {
         "{bar:30} {pos}/{len} frames, {msg} [{elapsed} < {eta}]",
     )?);
     bar.set_position(fitted.len() as u64);
-    let started = Instant::now();
     // The last frame fitted, as the next one starts from it.
     let mut previous = fitted
         .last()
@@ -170,7 +169,7 @@ pub fn fit(a: &FitArgs) -> Result<()> {
     if let Some(path) = &a.json {
         f3g_io::write_atomic(path, serde_json::to_string_pretty(&record)?.as_bytes())?;
     }
-    report(&record, started.elapsed().as_secs_f32());
+    report(&record);
     println!(
         "wrote {} ({} frames of {}) and {}",
         a.out.display(),
@@ -256,7 +255,7 @@ fn against_capture(
     Ok(Some(Errors { joint_m, vertex_m }))
 }
 
-fn report(record: &FitRecord, seconds: f32) {
+fn report(record: &FitRecord) {
     let n = record.frames.len().max(1) as f32;
     let iou = record.frames.iter().map(|f| f.mean_iou).sum::<f32>() / n;
     let worst = record
@@ -271,9 +270,7 @@ fn report(record: &FitRecord, seconds: f32) {
             .unwrap_or_default(),
         record.frames.iter().map(|f| f.seconds).sum::<f32>() / n
     );
-    if seconds > 0.0
-        && let Some(e) = record.against_capture
-    {
+    if let Some(e) = record.against_capture {
         println!(
             "against the capture's own parameters: mean joint error {:.1} cm, mean vertex error {:.1} cm",
             100.0 * e.joint_m,

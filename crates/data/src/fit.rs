@@ -809,8 +809,8 @@ impl Fitter<'_> {
     /// The masks' and keypoints' cost alone (no prior, no smoothness): comparable between
     /// frames and starts.
     fn data_cost(&self, params: &RigParams) -> Result<f64, DataError> {
-        let mut frame = self.frame(Vec::new(), None);
-        frame.prior_columns.clear();
+        // No columns: no prior and no smoothness rows.
+        let frame = self.frame(Vec::new(), None);
         Ok(frame.evaluate(params)?.0.iter().map(|v| v * v).sum())
     }
 
@@ -926,9 +926,9 @@ fn place(rig: &Rig, params: &mut RigParams, centre: Vec3) -> Result<(), DataErro
 
 /// `params` turned by `angle` about the body's own up axis, in place.
 fn turned(rig: &Rig, params: &RigParams, angle: f32) -> Result<RigParams, DataError> {
-    let world = rig.joint_world(params)?;
-    let (lo, hi) = rig.pose(params)?.bounds();
-    let root = world[0].rotation;
+    let posed = rig.pose(params)?;
+    let (lo, hi) = posed.bounds();
+    let root = posed.joints[0].rotation;
     let mut out = params.clone();
     rig.set_joint_rotation(&mut out, 0, root * Quat::from_rotation_y(angle));
     place(rig, &mut out, (lo + hi) / 2.0)?;
