@@ -301,6 +301,11 @@ proptest! {
 
 /// A small avatar file: two joints, five Gaussians, two correctives.
 fn small_avatar_file() -> Vec<u8> {
+    small_avatar_file_as(f3g_avatar::infer::avatar_file::Encoding::Float)
+}
+
+/// [`small_avatar_file`] in `encoding`.
+fn small_avatar_file_as(encoding: f3g_avatar::infer::avatar_file::Encoding) -> Vec<u8> {
     use f3g_rig::{Joint, Mesh, Parameterization, Rig, Roles, Skeleton, SkinWeights};
     use glam::{Quat, Vec3};
     let joint = |name: &str, parent: Option<usize>| Joint {
@@ -358,7 +363,7 @@ fn small_avatar_file() -> Vec<u8> {
             normals: (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect(),
         }),
     };
-    f3g_avatar::infer::avatar_file::to_bytes(&baked).unwrap()
+    f3g_avatar::infer::avatar_file::to_bytes(&baked, encoding).unwrap()
 }
 
 #[test]
@@ -511,8 +516,79 @@ const AVATAR_FIELDS: [&str; 15] = [
     "/meshes/0/primitives/0/extensions/F3G_world_shading/normal",
 ];
 
+/// The compressed small avatar reads back as the float one within the quantisation: its
+/// Gaussians from the SPZ payload, its correctives and normals from the packed arrays.
+#[test]
+fn the_compressed_small_avatar_file_reads_as_the_float_one() {
+    use f3g_avatar::infer::avatar_file::{Encoding, from_bytes};
+    let float = from_bytes(&small_avatar_file()).unwrap();
+    let bytes = small_avatar_file_as(Encoding::Compressed);
+    let compressed = from_bytes(&bytes).unwrap();
+    let close = |a: &[f32], b: &[f32], tolerance: f32, what: &str| {
+        assert_eq!(a.len(), b.len(), "{what}");
+        for (x, y) in a.iter().zip(b) {
+            assert!((x - y).abs() <= tolerance, "{what}: {x} against {y}");
+        }
+    };
+    close(&float.means, &compressed.means, 2e-4, "means");
+    close(
+        &float.log_scales,
+        &compressed.log_scales,
+        1.0 / 32.0,
+        "log-scales",
+    );
+    close(
+        &float.correctives,
+        &compressed.correctives,
+        0.01 / 127.0 + 1e-7,
+        "correctives",
+    );
+    close(
+        &float.feature_map,
+        &compressed.feature_map,
+        0.0,
+        "feature map",
+    );
+    let (a, b) = (float.shading.unwrap(), compressed.shading.clone().unwrap());
+    close(&a.normals, &b.normals, 0.01, "normals");
+    assert_eq!(compressed.skin_joints, float.skin_joints);
+    close(
+        &float.skin_weights.concat(),
+        &compressed.skin_weights.concat(),
+        // Rounded, and the largest takes the rounding's remainder.
+        1.0 / 255.0,
+        "skin weights",
+    );
+    let file = f3g_rig::glb::GlbFile::parse(&bytes).unwrap();
+    assert_eq!(
+        file.document["extensionsRequired"],
+        serde_json::json!([
+            "KHR_gaussian_splatting_compression_spz_2",
+            "F3G_packed_arrays"
+        ])
+    );
+    let posed = compressed.posed(&compressed.rig.zero_params());
+    assert!(posed.is_ok(), "{:?}", posed.err());
+}
+
 proptest! {
     #![proptest_config(config(1000))]
+
+    /// A compressed avatar `.glb` (SPZ and deflated arrays inside): every mutation reads to an
+    /// avatar that poses, or is an error naming the file.
+    #[test]
+    fn mutated_compressed_avatar_files_read_or_error(
+        bytes in mutated(small_avatar_file_as(f3g_avatar::infer::avatar_file::Encoding::Compressed)),
+    ) {
+        match f3g_avatar::infer::avatar_file::from_bytes(&bytes) {
+            Ok(avatar) => {
+                let posed = avatar.posed(&avatar.rig.zero_params());
+                prop_assert!(posed.is_ok(), "{:?}", posed.err());
+            }
+            Err(e) => prop_assert!(!e.is_empty()),
+        }
+        prop_assert!(GUARD.largest() <= 256 << 20);
+    }
 
     /// An avatar `.glb`: every mutation reads to an avatar that poses, or is an error naming
     /// the file.

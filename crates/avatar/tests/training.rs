@@ -792,7 +792,7 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
 
     // The file reads back as the same avatar.
     let path = dir.path().join("avatar.glb");
-    avatar_file::write(&baked, &path).unwrap();
+    avatar_file::write(&baked, &path, avatar_file::Encoding::Float).unwrap();
     let back = avatar_file::read(&path).unwrap();
     let frame = &poses[poses.len() - 1];
     let (a, b) = (baked.posed(frame).unwrap(), back.posed(frame).unwrap());
@@ -857,6 +857,25 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     let rendered = back.render(frame, &camera, [1.0; 3]).unwrap();
     let psnr = f3g_nets::metrics::psnr(&networks, &rendered).unwrap();
     assert!(psnr > 25.0, "baked vs networks: {psnr} dB");
+
+    // The compressed file is smaller and renders like the float one (its quantisation only),
+    // its expressions and light intact.
+    let small = dir.path().join("avatar-compressed.glb");
+    let size = avatar_file::write(&baked, &small, avatar_file::Encoding::Compressed).unwrap();
+    assert!(
+        size * 3 < std::fs::metadata(&path).unwrap().len(),
+        "{size} bytes"
+    );
+    let unpacked = avatar_file::read(&small).unwrap();
+    assert_eq!(unpacked.expression_names, baked.expression_names);
+    assert_eq!(
+        unpacked.shading.as_ref().unwrap().coefficients,
+        baked.shading.as_ref().unwrap().coefficients
+    );
+    let compressed = unpacked.render(frame, &camera, [1.0; 3]).unwrap();
+    let psnr = f3g_nets::metrics::psnr(&rendered, &compressed).unwrap();
+    println!("compressed against float: {psnr:.1} dB, {size} bytes");
+    assert!(psnr > 35.0, "compressed vs float: {psnr} dB");
 
     // Bad files are errors naming them.
     let bytes = std::fs::read(&path).unwrap();

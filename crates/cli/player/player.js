@@ -75,32 +75,136 @@ function parseGlb(buffer, name) {
   if (!json || !bin) throw new Error(`${name} has no JSON or no binary chunk`);
   const width = { SCALAR: 1, VEC2: 2, VEC3: 3, VEC4: 4, MAT4: 16 };
   const types = { 5126: Float32Array, 5125: Uint32Array, 5123: Uint16Array, 5121: Uint8Array };
+  // An accessor's values; `normalized` unsigned bytes (quantised skin weights) as floats.
   function accessor(index) {
     const a = json.accessors?.[index];
     if (!a) throw new Error(`${name}: accessor ${index} is missing`);
-    const v = json.bufferViews[a.bufferView];
     const Type = types[a.componentType];
+    if (!Type) throw new Error(`${name}: accessor ${index} has component type ${a.componentType}`);
     const count = a.count * width[a.type];
-    const start = (v.byteOffset ?? 0) + (a.byteOffset ?? 0);
-    if (!Type || start + count * Type.BYTES_PER_ELEMENT > bin.byteLength) {
-      throw new Error(`${name}: accessor ${index} does not fit the buffer`);
-    }
-    return new Type(bin.buffer.slice(bin.byteOffset + start,
-      bin.byteOffset + start + count * Type.BYTES_PER_ELEMENT));
+    const start = (a.byteOffset ?? 0);
+    const values = new Type(bufferView(a.bufferView, start, count * Type.BYTES_PER_ELEMENT));
+    if (!a.normalized) return values;
+    if (a.componentType !== 5121) throw new Error(`${name}: accessor ${index} is normalized but not bytes`);
+    return Float32Array.from(values, (x) => x / 255);
   }
-  return { json, accessor };
+  // `length` bytes (all when undefined) of buffer view `index` from `offset`, copied.
+  function bufferView(index, offset = 0, length) {
+    const v = json.bufferViews?.[index];
+    if (!v) throw new Error(`${name}: buffer view ${index} is missing`);
+    const start = (v.byteOffset ?? 0) + offset;
+    const size = length ?? v.byteLength;
+    if (start + size > bin.byteLength) throw new Error(`${name}: buffer view ${index} does not fit the buffer`);
+    return bin.buffer.slice(bin.byteOffset + start, bin.byteOffset + start + size);
+  }
+  return { json, accessor, view: bufferView };
 }
 
-// The avatar's arrays (see crates/avatar/src/avatar_file.rs for the layout).
-function readAvatar(glb) {
+// The browser's own inflater: `format` "gzip" (SPZ) or "deflate" (zlib, the packed arrays).
+async function inflate(bytes, format) {
+  const stream = new Blob([bytes]).stream().pipeThrough(new DecompressionStream(format));
+  return new Uint8Array(await new Response(stream).arrayBuffer());
+}
+
+// SPZ version 2 or 3 (crates/splat/src/spz.rs has the layout) in glTF's frame: SPZ stores
+// right-up-back, so x and z change sign, with the quaternion's x, z and the odd SH functions.
+const SPZ_FLIP_SH = [1, -1, -1, -1, -1, 1, 1, 1, 1, 1, 1, -1, -1, -1, -1];
+async function decodeSpz(compressed, count) {
+  const raw = await inflate(compressed, "gzip");
+  const header = new DataView(raw.buffer, raw.byteOffset, 16);
+  const version = header.getUint32(4, true), n = header.getUint32(8, true);
+  const degree = raw[12], fractional = raw[13];
+  if (header.getUint32(0, true) !== 0x5053474e || version < 2 || version > 3 || degree > 3 || raw[14] & 2) {
+    throw new Error("avatar.glb: the SPZ payload is not SPZ version 2 or 3 without extensions");
+  }
+  if (n !== count) throw new Error(`avatar.glb: the SPZ payload holds ${n} Gaussians, POSITION ${count}`);
+  const k = (degree + 1) * (degree + 1), rb = version >= 3 ? 4 : 3;
+  if (raw.length !== 16 + n * (19 + rb - 3 + 3 * (k - 1))) throw new Error("avatar.glb: the SPZ payload is truncated");
+  let at = 16;
+  const means = new Float32Array(3 * n), unit = 1 / (1 << fractional);
+  for (let i = 0; i < 3 * n; i++, at += 3) {
+    const fixed = (raw[at] | (raw[at + 1] << 8) | (raw[at + 2] << 16)) << 8 >> 8;
+    means[i] = (i % 3 === 1 ? 1 : -1) * fixed * unit;
+  }
+  const opacities = new Float32Array(n);
+  for (let g = 0; g < n; g++) opacities[g] = raw[at++] / 255;
+  const sh = Array.from({ length: k }, () => new Float32Array(3 * n));
+  for (let i = 0; i < 3 * n; i++) sh[0][i] = (raw[at++] / 255 - 0.5) / 0.15;
+  const scales = new Float32Array(3 * n);
+  for (let i = 0; i < 3 * n; i++) scales[i] = Math.exp(raw[at++] / 16 - 10);
+  const rotations = new Float32Array(4 * n);
+  for (let g = 0; g < n; g++, at += rb) {
+    const q = [0, 0, 0, 0];
+    if (rb === 3) {
+      for (let a = 0; a < 3; a++) q[a] = raw[at + a] / 127.5 - 1;
+      q[3] = Math.sqrt(Math.max(0, 1 - q[0] * q[0] - q[1] * q[1] - q[2] * q[2]));
+    } else {
+      let word = (raw[at] | (raw[at + 1] << 8) | (raw[at + 2] << 16) | (raw[at + 3] << 24)) >>> 0;
+      const largest = word >>> 30;
+      let squares = 0;
+      for (let i = 3; i >= 0; i--) {
+        if (i === largest) continue;
+        const m = ((word & 511) / 511) * Math.SQRT1_2;
+        q[i] = (word >>> 9) & 1 ? -m : m;
+        squares += q[i] * q[i];
+        word >>>= 10;
+      }
+      q[largest] = Math.sqrt(Math.max(0, 1 - squares));
+    }
+    rotations.set([-q[0], q[1], -q[2], q[3]], 4 * g);
+  }
+  for (let g = 0; g < n; g++) {
+    for (let j = 1; j < k; j++) {
+      for (let c = 0; c < 3; c++) sh[j][3 * g + c] = SPZ_FLIP_SH[j - 1] * (raw[at++] - 128) / 128;
+    }
+  }
+  return { means, opacities, sh, scales, rotations };
+}
+
+// `F3G_packed_arrays` (crates/avatar/src/infer/avatar_file.rs): zlib-deflated integers, each
+// array stored component by component, times its scale; returned row-major by name.
+async function unpackArrays(glb, ext, n) {
+  const raw = await inflate(glb.view(ext.bufferView), "deflate");
+  const data = new DataView(raw.buffer, raw.byteOffset, raw.byteLength);
+  const arrays = new Map();
+  let at = 0;
+  for (const { name, width, bits, scale } of ext.arrays) {
+    const size = bits / 8;
+    if (at + n * width * size > raw.length) throw new Error("avatar.glb: F3G_packed_arrays is truncated");
+    const values = new Float32Array(n * width);
+    for (let c = 0; c < width; c++) {
+      for (let g = 0; g < n; g++, at += size) {
+        values[g * width + c] = (size === 1 ? data.getInt8(at) : data.getInt16(at, true)) * scale;
+      }
+    }
+    arrays.set(name, values);
+  }
+  const take = (name) => {
+    if (!arrays.has(name)) throw new Error(`avatar.glb: F3G_packed_arrays has no array ${name}`);
+    return arrays.get(name);
+  };
+  return { names: ext.arrays.map((a) => a.name), take };
+}
+
+// Vectors `[n, 3]` scaled to unit length (quantised normals).
+function unit(v) {
+  for (let i = 0; i < v.length; i += 3) {
+    const l = Math.hypot(v[i], v[i + 1], v[i + 2]) || 1;
+    v[i] /= l; v[i + 1] /= l; v[i + 2] /= l;
+  }
+  return v;
+}
+
+// The avatar's arrays (see crates/avatar/src/infer/avatar_file.rs for the layout), from a
+// float file or a compressed one (SPZ Gaussians, packed correctives and expressions).
+async function readAvatar(glb) {
   const { json, accessor } = glb;
   if (!json.extensions?.F3G_avatar) {
     throw new Error("avatar.glb is not an f3g avatar (no F3G_avatar extension)");
   }
   const primitive = json.meshes[0].primitives[0];
   const at = primitive.attributes;
-  const means = accessor(at.POSITION);
-  const n = means.length / 3;
+  const n = json.accessors[at.POSITION].count;
   const get = (name, w) => {
     const values = accessor(at[name]);
     if (values.length !== w * n) {
@@ -108,37 +212,67 @@ function readAvatar(glb) {
     }
     return values;
   };
-  const sh = [];
-  for (let l = 0; l <= 3; l++) {
-    if (at[`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_0`] === undefined) break;
-    for (let m = 0; m < 2 * l + 1; m++) {
-      sh.push(get(`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_${m}`, 3));
+  const spz = primitive.extensions.KHR_gaussian_splatting?.extensions?.KHR_gaussian_splatting_compression_spz_2;
+  let gaussians;
+  if (spz) {
+    gaussians = await decodeSpz(glb.view(spz.bufferView), n);
+  } else {
+    const sh = [];
+    for (let l = 0; l <= 3; l++) {
+      if (at[`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_0`] === undefined) break;
+      for (let m = 0; m < 2 * l + 1; m++) {
+        sh.push(get(`KHR_gaussian_splatting:SH_DEGREE_${l}_COEF_${m}`, 3));
+      }
     }
+    gaussians = {
+      means: get("POSITION", 3), sh,
+      rotations: get("KHR_gaussian_splatting:ROTATION", 4),
+      scales: get("KHR_gaussian_splatting:SCALE", 3),
+      opacities: get("KHR_gaussian_splatting:OPACITY", 1),
+    };
   }
   const ext = primitive.extensions.F3G_pose_correctives;
   const k = ext.count, e = ext.expressions;
-  const targets = primitive.targets ?? [];
-  if (targets.length !== k + e) {
-    throw new Error(`avatar.glb: ${targets.length} morph targets for ${k} correctives and ${e} expressions`);
-  }
+  const packed = primitive.extensions.F3G_packed_arrays
+    ? await unpackArrays(glb, primitive.extensions.F3G_packed_arrays, n) : null;
   const correctives = [];
-  for (let c = 0; c < k; c++) {
-    correctives.push({
-      position: accessor(targets[c].POSITION),
-      colour: accessor(ext.colour[c]),
-      logScale: accessor(ext.logScale[c]),
-      opacityLogit: accessor(ext.opacityLogit[c]),
-    });
-  }
   const expressions = [];
-  for (let i = 0; i < e; i++) expressions.push(accessor(targets[k + i].POSITION));
+  if (packed) {
+    for (let c = 0; c < k; c++) {
+      const part = (name) => packed.take(`corrective_${c}:${name}`);
+      correctives.push({
+        position: part("position"), colour: part("colour"),
+        logScale: part("logScale"), opacityLogit: part("opacityLogit"),
+      });
+    }
+    for (const name of packed.names) {
+      if (name.startsWith("expression:")) expressions.push(packed.take(name));
+    }
+    if (expressions.length !== e) {
+      throw new Error(`avatar.glb: ${expressions.length} packed expressions, ${e} expected`);
+    }
+  } else {
+    const targets = primitive.targets ?? [];
+    if (targets.length !== k + e) {
+      throw new Error(`avatar.glb: ${targets.length} morph targets for ${k} correctives and ${e} expressions`);
+    }
+    for (let c = 0; c < k; c++) {
+      correctives.push({
+        position: accessor(targets[c].POSITION),
+        colour: accessor(ext.colour[c]),
+        logScale: accessor(ext.logScale[c]),
+        opacityLogit: accessor(ext.opacityLogit[c]),
+      });
+    }
+    for (let i = 0; i < e; i++) expressions.push(accessor(targets[k + i].POSITION));
+  }
   const light = primitive.extensions.F3G_world_shading;
   let shading = null;
   if (light) {
     if (!Array.isArray(light.coefficients) || light.coefficients.length !== 27) {
       throw new Error("avatar.glb: F3G_world_shading.coefficients is not 27 numbers");
     }
-    const normals = accessor(light.normal);
+    const normals = packed ? unit(packed.take("shading:normal")) : accessor(light.normal);
     if (normals.length !== 3 * n) {
       throw new Error(`avatar.glb: F3G_world_shading.normal holds ${normals.length} values for ${n} Gaussians`);
     }
@@ -162,10 +296,7 @@ function readAvatar(glb) {
   };
   const rest = skin.joints.map((i) => worldOf(i));
   return {
-    n, means, sh, joints, rest,
-    rotations: get("KHR_gaussian_splatting:ROTATION", 4),
-    scales: get("KHR_gaussian_splatting:SCALE", 3),
-    opacities: get("KHR_gaussian_splatting:OPACITY", 1),
+    n, joints, rest, ...gaussians,
     skinJoints: get("JOINTS_0", 4),
     skinWeights: get("WEIGHTS_0", 4),
     correctives,
@@ -288,7 +419,7 @@ async function main() {
   // `?bare` hides the controls (pictures for comparison), `?paused` starts still.
   if (params.get("bare") !== null) document.body.classList.add("bare");
   const status = document.getElementById("status");
-  const avatar = readAvatar(parseGlb(await fetchBytes("avatar.glb"), "avatar.glb"));
+  const avatar = await readAvatar(parseGlb(await fetchBytes("avatar.glb"), "avatar.glb"));
   if (avatar.joints > 256) {
     throw new Error(`the avatar has ${avatar.joints} joints; Spark's skinning takes at most 256`);
   }

@@ -531,10 +531,11 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
         })?;
     bar.finish_and_clear();
     println!(
-        "wrote {} frames ({:.2} s per frame) and {}{}",
+        "wrote {} frames ({:.2} s per frame), {} and {}{}",
         report.frames,
         report.seconds_per_frame,
         report.gif.display(),
+        report.video.display(),
         if a.export_ply {
             format!(" and {} .ply files", report.plys.len())
         } else {
@@ -560,7 +561,9 @@ pub enum UpArg {
 pub struct ExportPlyArgs {
     /// Run folder (`f3g train --out`; the networks colour the file, so not a baked avatar).
     pub run: PathBuf,
-    /// Output .ply (standard 3DGS layout, always with the degree-3 SH properties).
+    /// Output .ply (standard 3DGS layout, always with the degree-3 SH properties), or, for a
+    /// path ending in `.spz`, Niantic's compressed SPZ (about a tenth of the size; Spark and
+    /// Niantic's own tools read it).
     #[arg(long)]
     pub out: PathBuf,
     /// Frame of the capture (or of --motion) to pose the avatar in.
@@ -643,7 +646,15 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
         lit: true,
     };
     let (cloud, fit) = export_cloud(&avatar, &params, use_pca, &options)?;
-    f3g_splat::ply::write_ply(&a.out, &cloud)?;
+    if a.out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("spz"))
+    {
+        let bytes = f3g_splat::spz::encode(&cloud).with_context(|| a.out.display().to_string())?;
+        f3g_io::write_atomic(&a.out, &bytes)?;
+    } else {
+        f3g_splat::ply::write_ply(&a.out, &cloud)?;
+    }
     println!(
         "wrote {} Gaussians to {} (SH degree {} fitted on {} view directions; colour error on \
          {} others: RMS {:.4}, max {:.4})",
@@ -685,6 +696,12 @@ pub struct ExportAvatarArgs {
     /// Leave the body model's expressions out (smaller file, no facial animation).
     #[arg(long)]
     pub no_expressions: bool,
+    /// Compress the file (about a seventh of the size): the Gaussians as SPZ
+    /// (`KHR_gaussian_splatting_compression_spz_2`, a Khronos draft: Babylon.js does not read it
+    /// yet), the correctives and expressions quantised and deflated. f3g and its player read
+    /// both kinds.
+    #[arg(long)]
+    pub compress: bool,
     /// Seed of the pose perturbations.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -696,6 +713,16 @@ pub struct ExportAvatarArgs {
 }
 
 pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
+    export_avatar_files(a, None)
+}
+
+/// `export-avatar`, and from the same bake a compressed copy at `compressed` (the demo writes
+/// the float file for other viewers and the compressed one for its player).
+pub fn export_avatar_files(
+    a: &ExportAvatarArgs,
+    compressed: Option<&std::path::Path>,
+) -> Result<()> {
+    use f3g_avatar::infer::avatar_file::Encoding;
     use f3g_avatar::infer::bake::{BakeOptions, BakedAvatar};
     let avatar = TrainedAvatar::load(&a.run, &a.device.open()?)?;
     let poses = avatar.training_poses()?;
@@ -710,7 +737,12 @@ pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
         ..BakeOptions::default()
     };
     let (baked, report) = BakedAvatar::bake(&avatar, &poses, &options)?;
-    let bytes = f3g_avatar::infer::avatar_file::write(&baked, &a.out)?;
+    let encoding = if a.compress {
+        Encoding::Compressed
+    } else {
+        Encoding::Float
+    };
+    let bytes = f3g_avatar::infer::avatar_file::write(&baked, &a.out, encoding)?;
     println!(
         "wrote {} ({:.1} MB, {} bytes per Gaussian): {} Gaussians, {} correctives explaining {:.1} % \
          of the pose variation ({} poses; weights predicted from {} pose features to {:.1} % RMS), \
@@ -735,6 +767,14 @@ pub fn export_avatar(a: &ExportAvatarArgs) -> Result<()> {
         1e3 * report.skin_error_max,
         report.seconds
     );
+    if let Some(path) = compressed {
+        let size = f3g_avatar::infer::avatar_file::write(&baked, path, Encoding::Compressed)?;
+        println!(
+            "wrote {} ({:.1} MB, compressed)",
+            path.display(),
+            size as f64 / 1e6
+        );
+    }
     if let Some(path) = &a.json {
         let mut value = serde_json::to_value(&report)?;
         value["bytes"] = serde_json::json!(bytes);

@@ -205,21 +205,27 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
     })?;
     println!("5/5 avatar file and browser player");
     let glb = out.join("avatar.glb");
-    crate::avatar::export_avatar(&crate::avatar::ExportAvatarArgs {
-        run: run.clone(),
-        out: glb.clone(),
-        correctives: 16,
-        sh_degree: 3,
-        directions: 48,
-        poses: 60,
-        perturbations: 3,
-        no_expressions: false,
-        seed: a.capture.seed,
-        json: None,
-        device,
-    })?;
+    let compressed = out.join("avatar.compressed.glb");
+    crate::avatar::export_avatar_files(
+        &crate::avatar::ExportAvatarArgs {
+            run: run.clone(),
+            out: glb.clone(),
+            correctives: 16,
+            sh_degree: 3,
+            directions: 48,
+            poses: 60,
+            perturbations: 3,
+            no_expressions: false,
+            compress: false,
+            seed: a.capture.seed,
+            json: None,
+            device,
+        },
+        Some(&compressed),
+    )?;
+    // The player is the web's copy of the avatar: the compressed file (a seventh of the size).
     crate::view::view(&crate::view::ViewArgs {
-        source: glb.clone(),
+        source: compressed.clone(),
         motion: vec![capture.join("body_params.npz")],
         retarget: Default::default(),
         frames: Default::default(),
@@ -250,6 +256,11 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         report.display()
     );
     Ok(())
+}
+
+/// A file's size in MB (0 when it cannot be read).
+fn megabytes(path: &Path) -> f64 {
+    std::fs::metadata(path).map_or(0.0, |m| m.len() as f64 / 1e6)
 }
 
 fn rel(base: &Path, p: &Path) -> String {
@@ -364,13 +375,18 @@ the CPU in {minutes:.1} minutes.</p>
 <h2>Novel poses</h2>
 {np_grid}
 <h2>Animation (orbit over the capture's motion)</h2>
-{gif}
+<video src="{mp4}" controls loop autoplay muted playsinline style="max-width:100%"></video>
+<p>The same as <a href="{mp4}">H.264 video</a> and <a href="{gif_path}">GIF</a>. Every held-out
+view as ground truth | render | error: <a href="{nv_mp4}">novel views</a>,
+<a href="{np_mp4}">novel poses</a>.</p>
 <h2>The avatar in your browser</h2>
-<p>The avatar baked into one portable file, <a href="avatar.glb">avatar.glb</a> (glTF 2.0 with
-<code>KHR_gaussian_splatting</code> and a skin), plays in the browser player:
-<code>f3g view {glb}</code> and open <code>http://127.0.0.1:8080/</code>, or serve the folder
-<a href="player/">player/</a> with any static file server (browsers do not run it from
-<code>file://</code>).</p>
+<p>The avatar baked into one portable file, <a href="avatar.glb">avatar.glb</a> ({glb_mb:.1} MB:
+glTF 2.0 with <code>KHR_gaussian_splatting</code> and a skin, every value a float, which
+Babylon.js and other <code>KHR_gaussian_splatting</code> viewers read), and compressed,
+<a href="avatar.compressed.glb">avatar.compressed.glb</a> ({compressed_mb:.1} MB: SPZ Gaussians,
+quantised correctives; what the player loads). The player: <code>f3g view {glb}</code> and open
+<code>http://127.0.0.1:8080/</code>, or serve the folder <a href="player/">player/</a> with any
+static file server (browsers do not run it from <code>file://</code>).</p>
 <h2>Training</h2>
 {loss}
 {validation}
@@ -396,8 +412,13 @@ the CPU in {minutes:.1} minutes.</p>
             run.join("eval/novel-pose/comparison.png"),
             "held-out frames"
         ),
-        gif = img(out.join("animation/animation.gif"), "orbiting camera"),
-        glb = out.join("avatar.glb").display(),
+        mp4 = rel(out, &out.join("animation/animation.mp4")),
+        gif_path = rel(out, &out.join("animation/animation.gif")),
+        nv_mp4 = rel(out, &run.join("eval/novel-view/comparison.mp4")),
+        np_mp4 = rel(out, &run.join("eval/novel-pose/comparison.mp4")),
+        glb = out.join("avatar.compressed.glb").display(),
+        glb_mb = megabytes(&out.join("avatar.glb")),
+        compressed_mb = megabytes(&out.join("avatar.compressed.glb")),
         loss = img(run.join("loss.png"), "losses (moving average, log scale)"),
         validation = img(
             run.join("validation.png"),

@@ -136,7 +136,11 @@ fn avatar_of(
             ..BakeOptions::default()
         };
         let (baked, _) = BakedAvatar::bake(&trained, &trained.training_poses()?, &options)?;
-        f3g_avatar::infer::avatar_file::write(&baked, &cached)?;
+        f3g_avatar::infer::avatar_file::write(
+            &baked,
+            &cached,
+            f3g_avatar::infer::avatar_file::Encoding::Float,
+        )?;
     }
     let bytes = std::fs::read(&cached).with_context(|| cached.display().to_string())?;
     let avatar = f3g_avatar::infer::avatar_file::from_bytes(&bytes)

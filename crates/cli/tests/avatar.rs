@@ -140,6 +140,19 @@ fn train_resume_evaluate_animate_and_export() {
     assert!(d.join("anim/animation.gif").exists());
     let frame = f3g_io::read_rgb(&d.join("anim/frames/frame_00004.png")).unwrap();
     assert_eq!((frame.width, frame.height), (48, 64));
+    // The video decodes to the frames, in order, at the motion's rate.
+    let (video, fps) =
+        f3g_avatar::infer::video::read_mp4(&std::fs::read(d.join("anim/animation.mp4")).unwrap())
+            .unwrap();
+    let frames = std::fs::read_dir(d.join("anim/frames")).unwrap().count();
+    assert_eq!(video.len(), frames);
+    assert!(fps > 0.0, "{fps}");
+    let psnr = f3g_nets::metrics::psnr(&frame, &video[4]).unwrap();
+    let other = f3g_nets::metrics::psnr(&frame, &video[0]).unwrap();
+    assert!(
+        psnr > 30.0 && psnr > other,
+        "frame 4 decoded at {psnr:.1} dB (frame 0: {other:.1})"
+    );
     // The bottom corners see the floor (a grey of its chequer), or the white background
     // without it.
     let corner = |img: &f3g_io::Image| img.data[3 * (63 * 48)];
@@ -259,6 +272,23 @@ fn train_resume_evaluate_animate_and_export() {
     assert_eq!(one.len(), cloud.len());
     // Every file has the degree-3 layout the reference 3DGS loader and SIBR expect.
     assert_eq!((one.sh_degree, cloud.sh_degree), (3, 3));
+    // The same frame as SPZ: the same Gaussians within SPZ's quantisation (a quarter
+    // millimetre), in a smaller file.
+    ok(&f3g(
+        d,
+        &["export-ply", "run", "--out", "one.spz", "--frame", "4"],
+    ));
+    let spz_bytes = std::fs::read(d.join("one.spz")).unwrap();
+    let spz = f3g_splat::spz::decode(&spz_bytes).unwrap();
+    assert_eq!(spz.len(), one.len());
+    let worst = one
+        .means
+        .iter()
+        .zip(&spz.means)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1.3e-4, "{worst}");
+    assert!(spz_bytes.len() * 5 < std::fs::metadata(d.join("one.ply")).unwrap().len() as usize);
     let out = f3g(
         d,
         &[

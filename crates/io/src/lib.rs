@@ -560,16 +560,31 @@ fn encode_npy<T: npyz::AutoSerialize + Copy>(
     Ok(buf)
 }
 
-/// Named arrays as the bytes of an uncompressed `.npz` (readable by `numpy.load`); errors
-/// name the array.
-pub fn encode_npz(arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<Vec<u8>, String> {
+/// How the arrays of an `.npz` are stored in its zip archive.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NpzEntries {
+    /// As they are (`numpy.savez`): fast to write and read, the size of the data.
+    Stored,
+    /// Deflated (`numpy.savez_compressed`): for files that travel.
+    Deflated,
+}
+
+/// Named arrays as the bytes of an `.npz` (readable by `numpy.load`); errors name the array.
+pub fn encode_npz(
+    arrays: &[(&str, &[usize], NpyValues<'_>)],
+    entries: NpzEntries,
+) -> Result<Vec<u8>, String> {
     let mut buf = Cursor::new(Vec::new());
     {
         let mut zip = npyz::zip::ZipWriter::new(&mut buf);
         // A fixed timestamp (the zip epoch, 1980-01-01) instead of the current time, so the
         // same arrays always give the same bytes (checkpoints can be verified by hash).
+        let method = match entries {
+            NpzEntries::Stored => npyz::zip::CompressionMethod::Stored,
+            NpzEntries::Deflated => npyz::zip::CompressionMethod::Deflated,
+        };
         let options = npyz::zip::write::FileOptions::default()
-            .compression_method(npyz::zip::CompressionMethod::Stored)
+            .compression_method(method)
             .last_modified_time(npyz::zip::DateTime::default());
         for (name, shape, values) in arrays {
             zip.start_file(format!("{name}.npy"), options)
@@ -588,7 +603,7 @@ pub fn encode_npz(arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<Vec<u8>,
 
 /// Writes named arrays as an uncompressed `.npz` (readable by `numpy.load`), atomically.
 pub fn write_npz(path: &Path, arrays: &[(&str, &[usize], NpyValues<'_>)]) -> Result<(), IoError> {
-    let bytes = encode_npz(arrays).map_err(|e| IoError::new(path, e))?;
+    let bytes = encode_npz(arrays, NpzEntries::Stored).map_err(|e| IoError::new(path, e))?;
     write_atomic(path, &bytes)
 }
 

@@ -71,12 +71,12 @@ fn io(e: f3g_io::IoError) -> RigError {
 
 /// Writes `rig` to `path` (atomically).
 pub fn write(rig: &Rig, path: &Path) -> Result<(), RigError> {
-    let bytes = to_bytes(rig).map_err(|e| RigError::file(path, e))?;
+    let bytes = to_bytes(rig, f3g_io::NpzEntries::Stored).map_err(|e| RigError::file(path, e))?;
     f3g_io::write_atomic(path, &bytes).map_err(io)
 }
 
-/// The rig file's bytes (to embed it in another file).
-pub fn to_bytes(rig: &Rig) -> Result<Vec<u8>, String> {
+/// The rig file's bytes (to embed it in another file), its arrays stored or deflated.
+pub fn to_bytes(rig: &Rig, storage: f3g_io::NpzEntries) -> Result<Vec<u8>, String> {
     let skeleton = rig.skeleton.joints();
     let (j, v) = (skeleton.len(), rig.mesh.vertices.len());
     let meta = Meta {
@@ -215,7 +215,7 @@ pub fn to_bytes(rig: &Rig) -> Result<Vec<u8>, String> {
         .iter()
         .map(|(n, s, a)| (*n, s.as_slice(), *a))
         .collect();
-    f3g_io::encode_npz(&arrays)
+    f3g_io::encode_npz(&arrays, storage)
 }
 
 /// Reads a rig written by [`write`]: every size and index is checked against the description

@@ -118,6 +118,32 @@ impl GlbBuffer {
         self.accessors.len() - 1
     }
 
+    /// Like [`Self::accessor`] for unsigned bytes read as `value / 255` (glTF's `normalized`,
+    /// as quantised `WEIGHTS_0` are).
+    pub fn normalized_bytes(&mut self, values: &[u8], kind: &str, target: Option<u32>) -> usize {
+        let index = self.accessor(values, kind, false, target);
+        self.accessors[index]["normalized"] = json!(true);
+        index
+    }
+
+    /// An accessor of `count` float elements of `kind` without a buffer view: its values come
+    /// from an extension (a compressed payload), and a reader that knows none sees zeros.
+    /// `bounds` are the per-component `min` and `max` glTF requires of POSITION.
+    pub fn placeholder(
+        &mut self,
+        count: usize,
+        kind: &str,
+        bounds: Option<(Vec<f32>, Vec<f32>)>,
+    ) -> usize {
+        let mut accessor = json!({ "componentType": FLOAT, "count": count, "type": kind });
+        if let Some((min, max)) = bounds {
+            accessor["min"] = json!(min);
+            accessor["max"] = json!(max);
+        }
+        self.accessors.push(accessor);
+        self.accessors.len() - 1
+    }
+
     /// The `.glb` bytes of `document` (its `buffers`, `bufferViews` and `accessors` are set
     /// from this buffer).
     pub fn finish(self, mut document: Value) -> Vec<u8> {
@@ -321,6 +347,20 @@ impl GlbFile {
             .chunks_exact(4)
             .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
             .collect())
+    }
+
+    /// Unsigned byte accessor `index`, flattened, and whether it is `normalized`.
+    pub fn bytes(&self, index: usize, width: usize) -> Result<(Vec<u8>, bool), String> {
+        let (bytes, _) = self.accessor_bytes(index, UNSIGNED_BYTE, 1, width)?;
+        let normalized = self.document["accessors"][index]["normalized"] == json!(true);
+        Ok((bytes.to_vec(), normalized))
+    }
+
+    /// The component type of accessor `index`, if it has one.
+    pub fn component_type(&self, index: usize) -> Option<u32> {
+        self.document["accessors"][index]["componentType"]
+            .as_u64()
+            .map(|t| t as u32)
     }
 
     /// Bytes in the binary chunk.

@@ -27,6 +27,7 @@ mod real;
 pub mod reference;
 pub mod semantics;
 pub mod sh;
+pub mod spz;
 
 pub use cloud::GaussianCloud;
 pub use error::SplatError;

@@ -1,5 +1,6 @@
 //! Animation: a trained avatar driven by a pose sequence, seen by an orbiting or a fixed
-//! camera, written as PNG frames, an animated GIF and optionally 3DGS `.ply` files.
+//! camera, written as PNG frames, an animated GIF, an H.264 video (`animation.mp4`) and
+//! optionally 3DGS `.ply` files.
 
 use std::path::{Path, PathBuf};
 
@@ -48,6 +49,7 @@ pub struct AnimateOptions {
 pub struct AnimateReport {
     pub frames: usize,
     pub gif: PathBuf,
+    pub video: PathBuf,
     pub plys: Vec<PathBuf>,
     pub seconds_per_frame: f64,
 }
@@ -225,10 +227,13 @@ pub fn animate(
     }
     let gif = out.file("animation.gif")?;
     write_gif(&gif, &images, options.fps)?;
+    let video = out.file("animation.mp4")?;
+    super::video::write_mp4(&video, &images, options.fps)?;
     out.finish()?;
     Ok(AnimateReport {
         frames: motion.len(),
         gif,
+        video,
         plys,
         seconds_per_frame: start.elapsed().as_secs_f64() / motion.len().max(1) as f64,
     })

@@ -31,7 +31,22 @@
 //!   crops' padding (for evaluation), the training step, the format version.
 //!
 //! A renderer that knows neither extension still shows a skinned point cloud.
+//!
+//! **Compressed files** ([`Encoding::Compressed`], `export-avatar --compress`) keep this
+//! structure with three changes. The Gaussians are an SPZ payload
+//! (`KHR_gaussian_splatting_compression_spz_2`, Khronos's draft, in `extensionsRequired`; the
+//! attributes are accessors without buffer views, as the draft specifies; [`f3g_splat::spz`]).
+//! `JOINTS_0` and `WEIGHTS_0` are unsigned bytes (weights `normalized`, summing to 255; joints
+//! 16-bit when the skeleton has more than 256). The correctives, the expressions and the
+//! shading normals are not morph targets and accessors but **`F3G_packed_arrays`** (on the
+//! primitive): one zlib-compressed buffer view of quantised arrays, each per Gaussian, stored
+//! component by component as little-endian signed integers of `bits` bits times `scale`
+//! (`arrays`: `name`, `width`, `bits`, `scale`, in the buffer's order; names `corrective_c:position`,
+//! `corrective_c:colour`, `corrective_c:logScale`, `corrective_c:opacityLogit`,
+//! `expression:NAME`, `shading:normal`). No other glTF viewer animates the avatar's correctives
+//! or expressions, so nothing is lost to them that they used.
 
+use std::io::{Read, Write};
 use std::path::Path;
 
 use glam::Mat4;
@@ -46,6 +61,177 @@ use f3g_rig::{RigParams, Similarity};
 /// The version of the `F3G_avatar` extension this module writes and reads.
 pub const VERSION: u64 = 1;
 const SPLATS: &str = "KHR_gaussian_splatting";
+const SPZ: &str = "KHR_gaussian_splatting_compression_spz_2";
+const PACKED: &str = "F3G_packed_arrays";
+
+/// How an avatar file stores its numbers.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Encoding {
+    /// Every value a 32-bit float in a standard accessor: any `KHR_gaussian_splatting` loader
+    /// reads the Gaussians.
+    #[default]
+    Float,
+    /// SPZ Gaussians, byte skin weights, and the correctives, expressions and normals quantised
+    /// and deflated (module docs): about a seventh of the size.
+    Compressed,
+}
+
+/// Bits of the quantised arrays of compressed files, per kind (the size and quality this
+/// costs is measured in BENCHMARKS.md, "Compressed avatars").
+const POSITION_BITS: u32 = 16;
+const APPEARANCE_BITS: u32 = 8;
+const NORMAL_BITS: u32 = 8;
+
+/// Quantised per-Gaussian arrays, stored component by component, then deflated as one.
+#[derive(Default)]
+struct Packer {
+    raw: Vec<u8>,
+    arrays: Vec<Value>,
+}
+
+impl Packer {
+    /// Appends `values` (`[N, width]`) as `bits`-bit integers times the scale that maps the
+    /// largest magnitude onto the largest integer.
+    fn push(&mut self, name: String, values: &[f32], width: usize, bits: u32) {
+        let top = ((1i32 << (bits - 1)) - 1) as f32;
+        let largest = values.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let scale = if largest > 0.0 { largest / top } else { 0.0 };
+        for c in 0..width {
+            for row in values.chunks_exact(width) {
+                let q = if scale > 0.0 {
+                    (row[c] / scale).round().clamp(-top, top) as i32
+                } else {
+                    0
+                };
+                self.raw
+                    .extend_from_slice(&q.to_le_bytes()[..(bits / 8) as usize]);
+            }
+        }
+        self.arrays.push(json!({
+            "name": name,
+            "width": width,
+            "bits": bits,
+            "scale": scale,
+        }));
+    }
+
+    /// The extension object, its deflated bytes appended to `buffer`.
+    fn finish(self, buffer: &mut GlbBuffer) -> Result<Value, AvatarError> {
+        let mut zlib = flate2::write::ZlibEncoder::new(Vec::new(), flate2::Compression::best());
+        zlib.write_all(&self.raw)
+            .map_err(|e| AvatarError::Invalid(format!("deflating the packed arrays: {e}")))?;
+        let deflated = zlib
+            .finish()
+            .map_err(|e| AvatarError::Invalid(format!("deflating the packed arrays: {e}")))?;
+        Ok(json!({
+            "bufferView": buffer.view(&deflated),
+            "arrays": self.arrays,
+        }))
+    }
+}
+
+/// The packed arrays of a compressed file, dequantised, by name.
+struct Packed {
+    names: Vec<String>,
+    arrays: std::collections::HashMap<String, Vec<f32>>,
+}
+
+impl Packed {
+    /// Inflates and dequantises `F3G_packed_arrays` for `n` Gaussians; sizes are checked
+    /// against the declared ones before anything large is allocated.
+    fn read(file: &GlbFile, ext: &Value, n: usize) -> Result<Self, String> {
+        let view = file.view(index(&ext["bufferView"], &format!("{PACKED}.bufferView"))?)?;
+        let list = ext["arrays"]
+            .as_array()
+            .ok_or_else(|| format!("{PACKED}.arrays is not a list"))?;
+        let mut layout = Vec::with_capacity(list.len());
+        let mut total = 0usize;
+        for a in list {
+            let name = a["name"]
+                .as_str()
+                .ok_or_else(|| format!("{PACKED}: an array without a name"))?;
+            let width = a["width"].as_u64().filter(|w| (1..=4).contains(w));
+            let bits = a["bits"].as_u64().filter(|b| [8, 16].contains(b));
+            let scale = a["scale"].as_f64().filter(|s| s.is_finite() && *s >= 0.0);
+            let (Some(width), Some(bits), Some(scale)) = (width, bits, scale) else {
+                return Err(format!(
+                    "{PACKED}: array `{name}` needs a width 1–4, bits 8 or 16 and a finite scale ≥ 0"
+                ));
+            };
+            let bytes = n * width as usize * bits as usize / 8;
+            total = total
+                .checked_add(bytes)
+                .filter(|&t| t <= 1 << 31)
+                .ok_or_else(|| format!("{PACKED}: the arrays declare more than 2 GiB"))?;
+            layout.push((
+                name.to_string(),
+                width as usize,
+                bits as usize / 8,
+                scale as f32,
+            ));
+        }
+        // Grown as the data come, not reserved: a damaged size must not allocate gigabytes.
+        let mut raw = Vec::new();
+        flate2::read::ZlibDecoder::new(view)
+            .take(total as u64 + 1)
+            .read_to_end(&mut raw)
+            .map_err(|e| format!("{PACKED}: inflating: {e}"))?;
+        if raw.len() != total {
+            return Err(format!(
+                "{PACKED}: the buffer inflates to {} bytes, its arrays take {total}",
+                raw.len()
+            ));
+        }
+        let mut arrays = std::collections::HashMap::new();
+        let names = layout.iter().map(|(name, ..)| name.clone()).collect();
+        let mut at = 0;
+        for (name, width, size, scale) in layout {
+            let mut values = vec![0f32; n * width];
+            for c in 0..width {
+                for g in 0..n {
+                    let b = &raw[at..at + size];
+                    let q = if size == 1 {
+                        b[0] as i8 as f32
+                    } else {
+                        i16::from_le_bytes([b[0], b[1]]) as f32
+                    };
+                    values[g * width + c] = q * scale;
+                    at += size;
+                }
+            }
+            if arrays.insert(name.clone(), values).is_some() {
+                return Err(format!("{PACKED} names the array `{name}` twice"));
+            }
+        }
+        Ok(Self { names, arrays })
+    }
+
+    /// The array `name`, `[N, width]` row-major.
+    fn take(&mut self, name: &str) -> Result<Vec<f32>, String> {
+        self.arrays
+            .remove(name)
+            .ok_or_else(|| format!("{PACKED} has no array `{name}`"))
+    }
+}
+
+/// Writes `[N, width]` `values` into the `[·, N, CORRECTIVE_VALUES]` correctives at Gaussian
+/// `first` onwards, columns `offset..offset + width`.
+fn scatter(correctives: &mut [f32], values: &[f32], first: usize, offset: usize, width: usize) {
+    for (g, row) in values.chunks_exact(width).enumerate() {
+        let at = (first + g) * CORRECTIVE_VALUES + offset;
+        correctives[at..at + width].copy_from_slice(row);
+    }
+}
+
+/// Skin weights as bytes summing to 255 (glTF's normalised `WEIGHTS_0`): each rounded, the
+/// rounding's remainder given to the largest.
+fn weight_bytes(weights: &[f32; 4]) -> [u8; 4] {
+    let sum: f32 = weights.iter().sum::<f32>().max(1e-12);
+    let mut q = weights.map(|w| (w / sum * 255.0).round().clamp(0.0, 255.0) as i32);
+    let largest = (0..4).max_by(|&a, &b| q[a].cmp(&q[b])).unwrap_or(0);
+    q[largest] += 255 - q.iter().sum::<i32>();
+    q.map(|v| v.clamp(0, 255) as u8)
+}
 const CORRECTIVES: &str = "F3G_pose_correctives";
 const AVATAR: &str = "F3G_avatar";
 const SHADING: &str = "F3G_world_shading";
@@ -75,54 +261,98 @@ fn canonical_world(avatar: &BakedAvatar) -> Result<Vec<Similarity>, AvatarError>
 }
 
 /// Writes `avatar` to `path` as `.glb` (atomically); returns the file's size in bytes.
-pub fn write(avatar: &BakedAvatar, path: &Path) -> Result<u64, AvatarError> {
-    let bytes = to_bytes(avatar)?;
+pub fn write(avatar: &BakedAvatar, path: &Path, encoding: Encoding) -> Result<u64, AvatarError> {
+    let bytes = to_bytes(avatar, encoding)?;
     f3g_io::write_atomic(path, &bytes)?;
     Ok(bytes.len() as u64)
 }
 
+/// The Gaussians' attributes of a compressed file: accessors without data and the SPZ payload
+/// they come from; returns the attributes and the `KHR_gaussian_splatting` object.
+fn spz_gaussians(
+    avatar: &BakedAvatar,
+    buffer: &mut GlbBuffer,
+) -> Result<(Value, Value), AvatarError> {
+    let cloud = f3g_splat::GaussianCloud {
+        means: avatar.means.clone(),
+        log_scales: avatar.log_scales.clone(),
+        quats: avatar.quats.clone(),
+        opacity_logits: avatar.opacity_logits.clone(),
+        sh: avatar.sh.clone(),
+        sh_degree: avatar.sh_degree,
+    };
+    let spz = f3g_splat::spz::encode(&cloud).map_err(|e| AvatarError::Invalid(e.to_string()))?;
+    // POSITION's bounds are those of the positions as stored.
+    let stored = f3g_splat::spz::decode(&spz).map_err(AvatarError::Invalid)?;
+    let mut min = vec![f32::INFINITY; 3];
+    let mut max = vec![f32::NEG_INFINITY; 3];
+    for p in stored.means.chunks_exact(3) {
+        for c in 0..3 {
+            min[c] = min[c].min(p[c]);
+            max[c] = max[c].max(p[c]);
+        }
+    }
+    let n = avatar.len();
+    let bounds = (n > 0).then_some((min, max));
+    let mut attributes = json!({
+        "POSITION": buffer.placeholder(n, "VEC3", bounds),
+        format!("{SPLATS}:ROTATION"): buffer.placeholder(n, "VEC4", None),
+        format!("{SPLATS}:SCALE"): buffer.placeholder(n, "VEC3", None),
+        format!("{SPLATS}:OPACITY"): buffer.placeholder(n, "SCALAR", None),
+    });
+    for c in 0..f3g_splat::sh::num_coeffs(avatar.sh_degree) {
+        let l = (c as f64).sqrt() as usize;
+        attributes[format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l)] =
+            json!(buffer.placeholder(n, "VEC3", None));
+    }
+    let splats = json!({
+        "kernel": "ellipse",
+        "colorSpace": "srgb_rec709_display",
+        "extensions": { SPZ: { "bufferView": buffer.view(&spz) } },
+    });
+    Ok((attributes, splats))
+}
+
 /// The `.glb` bytes of `avatar`.
-pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
+pub fn to_bytes(avatar: &BakedAvatar, encoding: Encoding) -> Result<Vec<u8>, AvatarError> {
+    let compressed = encoding == Encoding::Compressed;
     let n = avatar.len();
     let k = avatar.corrective_count();
     let e = avatar.expression_names.len();
     let mut buffer = GlbBuffer::default();
+    let mut packer = Packer::default();
+    let mut used_extensions = vec![SPLATS, CORRECTIVES, AVATAR];
+    let mut required_extensions = Vec::new();
     const VERTEX: Option<u32> = Some(34962);
 
     // Gaussians.
-    let position = buffer.accessor(&avatar.means, "VEC3", true, VERTEX);
-    let rotations: Vec<f32> = avatar
-        .quats
-        .chunks_exact(4)
-        .flat_map(|q| {
-            let length = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
-            [q[1] / length, q[2] / length, q[3] / length, q[0] / length]
-        })
-        .collect();
-    let rotation = buffer.accessor(&rotations, "VEC4", false, VERTEX);
-    let scales: Vec<f32> = avatar.log_scales.iter().map(|s| s.exp()).collect();
-    let scale = buffer.accessor(&scales, "VEC3", false, VERTEX);
-    let opacities: Vec<f32> = avatar.opacity_logits.iter().map(|&o| sigmoid(o)).collect();
-    let opacity = buffer.accessor(&opacities, "SCALAR", false, VERTEX);
-    let mut attributes = json!({
-        "POSITION": position,
-        format!("{SPLATS}:ROTATION"): rotation,
-        format!("{SPLATS}:SCALE"): scale,
-        format!("{SPLATS}:OPACITY"): opacity,
-    });
-    let coeffs = f3g_splat::sh::num_coeffs(avatar.sh_degree);
-    for c in 0..coeffs {
-        let l = (c as f64).sqrt() as usize;
-        let values = vec3_column(&avatar.sh, 3 * coeffs, c);
-        attributes[format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l)] =
-            json!(buffer.accessor(&values, "VEC3", false, VERTEX));
-    }
+    let (mut attributes, splats) = if compressed {
+        used_extensions.push(SPZ);
+        required_extensions.push(SPZ);
+        spz_gaussians(avatar, &mut buffer)?
+    } else {
+        (
+            float_gaussians(avatar, &mut buffer),
+            json!({ "kernel": "ellipse", "colorSpace": "srgb_rec709_display" }),
+        )
+    };
     let joints: Vec<u16> = avatar.skin_joints.iter().flatten().copied().collect();
-    let weights: Vec<f32> = avatar.skin_weights.iter().flatten().copied().collect();
-    attributes["JOINTS_0"] = json!(buffer.accessor(&joints, "VEC4", false, VERTEX));
-    attributes["WEIGHTS_0"] = json!(buffer.accessor(&weights, "VEC4", false, VERTEX));
+    if compressed {
+        attributes["JOINTS_0"] = if avatar.rig.skeleton.len() <= 256 {
+            let bytes: Vec<u8> = joints.iter().map(|&j| j as u8).collect();
+            json!(buffer.accessor(&bytes, "VEC4", false, VERTEX))
+        } else {
+            json!(buffer.accessor(&joints, "VEC4", false, VERTEX))
+        };
+        let weights: Vec<u8> = avatar.skin_weights.iter().flat_map(weight_bytes).collect();
+        attributes["WEIGHTS_0"] = json!(buffer.normalized_bytes(&weights, "VEC4", VERTEX));
+    } else {
+        let weights: Vec<f32> = avatar.skin_weights.iter().flatten().copied().collect();
+        attributes["JOINTS_0"] = json!(buffer.accessor(&joints, "VEC4", false, VERTEX));
+        attributes["WEIGHTS_0"] = json!(buffer.accessor(&weights, "VEC4", false, VERTEX));
+    }
 
-    // Morph targets: correctives, then expressions.
+    // Correctives, then expressions: morph targets, or packed arrays.
     let stride = CORRECTIVE_VALUES * n;
     let mut targets = Vec::new();
     let mut names = Vec::new();
@@ -135,6 +365,33 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
                 .flat_map(|g| g[range.clone()].to_vec())
                 .collect()
         };
+        if compressed {
+            packer.push(
+                format!("corrective_{c}:position"),
+                &column(0..3),
+                3,
+                POSITION_BITS,
+            );
+            packer.push(
+                format!("corrective_{c}:colour"),
+                &column(3..6),
+                3,
+                APPEARANCE_BITS,
+            );
+            packer.push(
+                format!("corrective_{c}:logScale"),
+                &column(6..9),
+                3,
+                APPEARANCE_BITS,
+            );
+            packer.push(
+                format!("corrective_{c}:opacityLogit"),
+                &column(9..10),
+                1,
+                APPEARANCE_BITS,
+            );
+            continue;
+        }
         targets.push(json!({ "POSITION": buffer.accessor(&column(0..3), "VEC3", true, VERTEX) }));
         colour.push(buffer.accessor(&column(3..6), "VEC3", false, None));
         log_scale.push(buffer.accessor(&column(6..9), "VEC3", false, None));
@@ -143,18 +400,24 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     }
     for (i, name) in avatar.expression_names.iter().enumerate() {
         let d = &avatar.expressions[i * 3 * n..(i + 1) * 3 * n];
+        if compressed {
+            packer.push(format!("expression:{name}"), d, 3, POSITION_BITS);
+            continue;
+        }
         targets.push(json!({ "POSITION": buffer.accessor(d, "VEC3", true, VERTEX) }));
         names.push(format!("expression:{name}"));
     }
     let used: Vec<u32> = avatar.feature_used.iter().map(|&u| u as u32).collect();
     let mut correctives = json!({
         "count": k,
-        "colour": colour,
-        "logScale": log_scale,
-        "opacityLogit": opacity_logit,
         "featureJoints": avatar.feature_joints,
         "expressions": e,
     });
+    if !compressed {
+        correctives["colour"] = json!(colour);
+        correctives["logScale"] = json!(log_scale);
+        correctives["opacityLogit"] = json!(opacity_logit);
+    }
     if !used.is_empty() {
         correctives["featureUsed"] = json!(buffer.accessor(&used, "SCALAR", false, None));
         correctives["featureMean"] =
@@ -168,20 +431,28 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
         "attributes": attributes,
         "mode": 0,
         "extensions": {
-            SPLATS: { "kernel": "ellipse", "colorSpace": "srgb_rec709_display" },
+            SPLATS: splats,
             CORRECTIVES: correctives,
         },
     });
     if !targets.is_empty() {
         primitive["targets"] = Value::Array(targets);
     }
-    let mut used_extensions = vec![SPLATS, CORRECTIVES, AVATAR];
     if let Some(light) = &avatar.shading {
-        primitive["extensions"][SHADING] = json!({
-            "coefficients": light.coefficients,
-            "normal": buffer.accessor(&light.normals, "VEC3", false, None),
-        });
+        let mut shading = json!({ "coefficients": light.coefficients });
+        if compressed {
+            packer.push("shading:normal".into(), &light.normals, 3, NORMAL_BITS);
+        } else {
+            shading["normal"] = json!(buffer.accessor(&light.normals, "VEC3", false, None));
+        }
+        primitive["extensions"][SHADING] = shading;
         used_extensions.push(SHADING);
+    }
+    if compressed {
+        primitive["extensions"][PACKED] = packer.finish(&mut buffer)?;
+        used_extensions.push(PACKED);
+        // Without its arrays no reader can pose the avatar as it was trained.
+        required_extensions.push(PACKED);
     }
     let mut mesh = json!({ "name": "avatar", "primitives": [primitive] });
     if !names.is_empty() {
@@ -214,7 +485,13 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     let inverse_bind = buffer.accessor(&inverse_bind, "MAT4", false, None);
 
     // The body model and what evaluation needs.
-    let rig_bytes = f3g_rig::file::to_bytes(&avatar.rig).map_err(AvatarError::Invalid)?;
+    // Deflated in compressed files: the body model is most of a float file's non-Gaussian
+    // bytes (the built-in human's 34 expressions are 5.8 of its 9.2 MB, and deflate to 0.07).
+    let entries = match encoding {
+        Encoding::Float => f3g_io::NpzEntries::Stored,
+        Encoding::Compressed => f3g_io::NpzEntries::Deflated,
+    };
+    let rig_bytes = f3g_rig::file::to_bytes(&avatar.rig, entries).map_err(AvatarError::Invalid)?;
     let body_model = buffer.view(&rig_bytes);
     let head: Vec<u32> = avatar.head_vertices.iter().map(|&v| v as u32).collect();
     let mut extension = json!({
@@ -237,7 +514,7 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
     if !head.is_empty() {
         extension["headVertices"] = json!(buffer.accessor(&head, "SCALAR", false, None));
     }
-    let document = json!({
+    let mut document = json!({
         "asset": { "version": "2.0", "generator": "f3g-avatar export-avatar" },
         "extensionsUsed": used_extensions,
         "extensions": { AVATAR: extension },
@@ -250,7 +527,43 @@ pub fn to_bytes(avatar: &BakedAvatar) -> Result<Vec<u8>, AvatarError> {
             "inverseBindMatrices": inverse_bind,
         }],
     });
+    if !required_extensions.is_empty() {
+        document["extensionsRequired"] = json!(required_extensions);
+    }
     Ok(buffer.finish(document))
+}
+
+/// The Gaussians' attributes of a float file: every value in its own accessor.
+fn float_gaussians(avatar: &BakedAvatar, buffer: &mut GlbBuffer) -> Value {
+    const VERTEX: Option<u32> = Some(34962);
+    let position = buffer.accessor(&avatar.means, "VEC3", true, VERTEX);
+    let rotations: Vec<f32> = avatar
+        .quats
+        .chunks_exact(4)
+        .flat_map(|q| {
+            let length = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
+            [q[1] / length, q[2] / length, q[3] / length, q[0] / length]
+        })
+        .collect();
+    let rotation = buffer.accessor(&rotations, "VEC4", false, VERTEX);
+    let scales: Vec<f32> = avatar.log_scales.iter().map(|s| s.exp()).collect();
+    let scale = buffer.accessor(&scales, "VEC3", false, VERTEX);
+    let opacities: Vec<f32> = avatar.opacity_logits.iter().map(|&o| sigmoid(o)).collect();
+    let opacity = buffer.accessor(&opacities, "SCALAR", false, VERTEX);
+    let mut attributes = json!({
+        "POSITION": position,
+        format!("{SPLATS}:ROTATION"): rotation,
+        format!("{SPLATS}:SCALE"): scale,
+        format!("{SPLATS}:OPACITY"): opacity,
+    });
+    let coeffs = f3g_splat::sh::num_coeffs(avatar.sh_degree);
+    for c in 0..coeffs {
+        let l = (c as f64).sqrt() as usize;
+        let values = vec3_column(&avatar.sh, 3 * coeffs, c);
+        attributes[format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l)] =
+            json!(buffer.accessor(&values, "VEC3", false, VERTEX));
+    }
+    attributes
 }
 
 /// Reads an avatar file written by [`write`]; every count and index is checked, so a
@@ -352,6 +665,122 @@ fn index(v: &Value, what: &str) -> Result<usize, String> {
         .ok_or_else(|| format!("{what} is missing or not an index"))
 }
 
+/// Float accessor `v` (an index) with `width` components, every value finite.
+fn finite(file: &GlbFile, v: &Value, width: usize, what: &str) -> Result<Vec<f32>, String> {
+    let values = file.floats(index(v, what)?, width)?;
+    match values.iter().position(|x| !x.is_finite()) {
+        Some(i) => Err(format!("{what} holds a non-finite value at {i}")),
+        None => Ok(values),
+    }
+}
+
+/// Values out of range are refused, not clamped: the player would draw them as they are.
+fn in_range(
+    values: &[f32],
+    width: usize,
+    what: &str,
+    ok: &dyn Fn(&[f32]) -> bool,
+    expected: &str,
+) -> Result<(), String> {
+    match values.chunks_exact(width).position(|v| !ok(v)) {
+        Some(g) => Err(format!(
+            "{what} of Gaussian {g} is {:?}, expected {expected}",
+            &values[g * width..(g + 1) * width]
+        )),
+        None => Ok(()),
+    }
+}
+
+/// The Gaussians of a float file, from their accessors.
+fn float_gaussians_read(
+    file: &GlbFile,
+    attributes: &Value,
+) -> Result<f3g_splat::GaussianCloud, String> {
+    let means = finite(file, &attributes["POSITION"], 3, "POSITION")?;
+    let n = means.len() / 3;
+    let sized = |values: Vec<f32>, width: usize, what: &str| -> Result<Vec<f32>, String> {
+        if values.len() == width * n {
+            Ok(values)
+        } else {
+            Err(format!(
+                "{what} has {} values for {n} Gaussians",
+                values.len()
+            ))
+        }
+    };
+    let rotation = format!("{SPLATS}:ROTATION");
+    let rotations = sized(
+        finite(file, &attributes[&rotation], 4, &rotation)?,
+        4,
+        &rotation,
+    )?;
+    in_range(
+        &rotations,
+        4,
+        &rotation,
+        &|q| q.iter().map(|x| x * x).sum::<f32>() > 1e-12,
+        "a quaternion that is not zero",
+    )?;
+    let quats: Vec<f32> = rotations
+        .chunks_exact(4)
+        .flat_map(|q| [q[3], q[0], q[1], q[2]])
+        .collect();
+    let scale = format!("{SPLATS}:SCALE");
+    let scales = sized(finite(file, &attributes[&scale], 3, &scale)?, 3, &scale)?;
+    in_range(
+        &scales,
+        3,
+        &scale,
+        &|s| s.iter().all(|&x| x > 0.0),
+        "three positive scales",
+    )?;
+    let log_scales: Vec<f32> = scales.iter().map(|s| s.ln()).collect();
+    let opacity = format!("{SPLATS}:OPACITY");
+    let opacities = sized(
+        finite(file, &attributes[&opacity], 1, &opacity)?,
+        1,
+        &opacity,
+    )?;
+    in_range(
+        &opacities,
+        1,
+        &opacity,
+        &|o| (0.0..=1.0).contains(&o[0]),
+        "an opacity in [0, 1]",
+    )?;
+    let opacity_logits: Vec<f32> = opacities
+        .iter()
+        .map(|&o| logit(o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN)))
+        .collect();
+    let mut degree = 0;
+    while degree < 3
+        && attributes
+            .get(format!("{SPLATS}:SH_DEGREE_{}_COEF_0", degree + 1))
+            .is_some()
+    {
+        degree += 1;
+    }
+    let coeffs = f3g_splat::sh::num_coeffs(degree);
+    let mut sh = vec![0.0f32; n * coeffs * 3];
+    for c in 0..coeffs {
+        let l = (c as f64).sqrt() as usize;
+        let name = format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l);
+        let values = sized(finite(file, &attributes[&name], 3, &name)?, 3, &name)?;
+        for g in 0..n {
+            sh[(g * coeffs + c) * 3..(g * coeffs + c) * 3 + 3]
+                .copy_from_slice(&values[3 * g..3 * g + 3]);
+        }
+    }
+    Ok(f3g_splat::GaussianCloud {
+        means,
+        log_scales,
+        quats,
+        opacity_logits,
+        sh,
+        sh_degree: degree,
+    })
+}
+
 /// Reads an avatar from `.glb` bytes; errors say what is wrong.
 pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     let file = GlbFile::parse(bytes)?;
@@ -369,16 +798,9 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
     let rig_view = index(&ext["bodyModel"]["bufferView"], "bodyModel.bufferView")?;
     let rig = f3g_rig::file::from_bytes(file.view(rig_view)?, "the embedded body model")
         .map_err(|e| e.to_string())?;
-    let floats = |v: &Value, width: usize, what: &str| -> Result<Vec<f32>, String> {
-        let values = file.floats(index(v, what)?, width)?;
-        match values.iter().position(|x| !x.is_finite()) {
-            Some(i) => Err(format!("{what} holds a non-finite value at {i}")),
-            None => Ok(values),
-        }
-    };
-    let pose = floats(&ext["canonicalPose"], 1, "canonicalPose")?;
+    let pose = finite(&file, &ext["canonicalPose"], 1, "canonicalPose")?;
     let identity = match ext.get("canonicalIdentity") {
-        Some(v) => floats(v, 1, "canonicalIdentity")?,
+        Some(v) => finite(&file, v, 1, "canonicalIdentity")?,
         None => Vec::new(),
     };
     let canonical = RigParams {
@@ -427,8 +849,29 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         .ok_or("the file has no mesh primitive")?;
     let attributes = &primitive["attributes"];
     let attribute = |name: &str| index(&attributes[name], &format!("attribute {name}"));
-    let means = floats(&attributes["POSITION"], 3, "POSITION")?;
-    let n = means.len() / 3;
+    if primitive
+        .pointer(&format!("/extensions/{SPLATS}"))
+        .is_none()
+    {
+        return Err(format!("the primitive has no `{SPLATS}` extension"));
+    }
+    let gaussians = match primitive.pointer(&format!("/extensions/{SPLATS}/extensions/{SPZ}")) {
+        Some(spz) => {
+            let view = index(&spz["bufferView"], &format!("{SPZ}.bufferView"))?;
+            let cloud =
+                f3g_splat::spz::decode(file.view(view)?).map_err(|e| format!("{SPZ}: {e}"))?;
+            let declared = doc["accessors"][attribute("POSITION")?]["count"].as_u64();
+            if declared != Some(cloud.len() as u64) {
+                return Err(format!(
+                    "POSITION declares {declared:?} Gaussians, the SPZ payload holds {}",
+                    cloud.len()
+                ));
+            }
+            cloud
+        }
+        None => float_gaussians_read(&file, attributes)?,
+    };
+    let n = gaussians.len();
     let sized = |values: Vec<f32>, width: usize, what: &str| -> Result<Vec<f32>, String> {
         if values.len() == width * n {
             Ok(values)
@@ -439,84 +882,25 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
             ))
         }
     };
-    if primitive
-        .pointer(&format!("/extensions/{SPLATS}"))
-        .is_none()
-    {
-        return Err(format!("the primitive has no `{SPLATS}` extension"));
-    }
-    // Values out of range are refused, not clamped: the player would draw them as they are.
-    let in_range =
-        |values: &[f32], width: usize, what: &str, ok: &dyn Fn(&[f32]) -> bool, expected: &str| {
-            match values.chunks_exact(width).position(|v| !ok(v)) {
-                Some(g) => Err(format!(
-                    "{what} of Gaussian {g} is {:?}, expected {expected}",
-                    &values[g * width..(g + 1) * width]
-                )),
-                None => Ok(()),
-            }
-        };
-    let rotation = format!("{SPLATS}:ROTATION");
-    let rotations = sized(floats(&attributes[&rotation], 4, &rotation)?, 4, &rotation)?;
-    in_range(
-        &rotations,
-        4,
-        &rotation,
-        &|q| q.iter().map(|x| x * x).sum::<f32>() > 1e-12,
-        "a quaternion that is not zero",
-    )?;
-    let quats: Vec<f32> = rotations
-        .chunks_exact(4)
-        .flat_map(|q| [q[3], q[0], q[1], q[2]])
-        .collect();
-    let scale = format!("{SPLATS}:SCALE");
-    let scales = sized(floats(&attributes[&scale], 3, &scale)?, 3, &scale)?;
-    in_range(
-        &scales,
-        3,
-        &scale,
-        &|s| s.iter().all(|&x| x > 0.0),
-        "three positive scales",
-    )?;
-    let log_scales: Vec<f32> = scales.iter().map(|s| s.ln()).collect();
-    let opacity = format!("{SPLATS}:OPACITY");
-    let opacities = sized(floats(&attributes[&opacity], 1, &opacity)?, 1, &opacity)?;
-    in_range(
-        &opacities,
-        1,
-        &opacity,
-        &|o| (0.0..=1.0).contains(&o[0]),
-        "an opacity in [0, 1]",
-    )?;
-    let opacity_logits: Vec<f32> = opacities
-        .iter()
-        .map(|&o| logit(o.clamp(OPACITY_MARGIN, 1.0 - OPACITY_MARGIN)))
-        .collect();
-    let mut degree = 0;
-    while degree < 3
-        && attributes
-            .get(format!("{SPLATS}:SH_DEGREE_{}_COEF_0", degree + 1))
-            .is_some()
-    {
-        degree += 1;
-    }
-    let coeffs = f3g_splat::sh::num_coeffs(degree);
-    let mut sh = vec![0.0f32; n * coeffs * 3];
-    for c in 0..coeffs {
-        let l = (c as f64).sqrt() as usize;
-        let name = format!("{SPLATS}:SH_DEGREE_{l}_COEF_{}", c - l * l);
-        let values = sized(floats(&attributes[&name], 3, &name)?, 3, &name)?;
-        for g in 0..n {
-            sh[(g * coeffs + c) * 3..(g * coeffs + c) * 3 + 3]
-                .copy_from_slice(&values[3 * g..3 * g + 3]);
-        }
-    }
-    let joints = file.shorts(attribute("JOINTS_0")?, 4)?;
-    let weights = sized(
-        floats(&attributes["WEIGHTS_0"], 4, "WEIGHTS_0")?,
-        4,
-        "WEIGHTS_0",
-    )?;
+    let joints_accessor = attribute("JOINTS_0")?;
+    let joints: Vec<u16> = match file.component_type(joints_accessor) {
+        Some(f3g_rig::glb::UNSIGNED_BYTE) => file
+            .bytes(joints_accessor, 4)?
+            .0
+            .into_iter()
+            .map(u16::from)
+            .collect(),
+        _ => file.shorts(joints_accessor, 4)?,
+    };
+    let weights_accessor = attribute("WEIGHTS_0")?;
+    let weights = match file.component_type(weights_accessor) {
+        Some(f3g_rig::glb::UNSIGNED_BYTE) => match file.bytes(weights_accessor, 4)? {
+            (bytes, true) => bytes.into_iter().map(|b| b as f32 / 255.0).collect(),
+            (_, false) => return Err("WEIGHTS_0 holds unsigned bytes not marked normalized".into()),
+        },
+        _ => finite(&file, &attributes["WEIGHTS_0"], 4, "WEIGHTS_0")?,
+    };
+    let weights = sized(weights, 4, "WEIGHTS_0")?;
     if joints.len() != 4 * n || joints.iter().any(|&j| j as usize >= rig.skeleton.len()) {
         return Err("JOINTS_0 does not name four joints of the skeleton per Gaussian".into());
     }
@@ -532,81 +916,103 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         .ok_or_else(|| format!("the primitive has no `{CORRECTIVES}`"))?;
     let k = index(&correctives_ext["count"], "count")?;
     let e = index(&correctives_ext["expressions"], "expressions")?;
-    let targets = primitive["targets"].as_array().cloned().unwrap_or_default();
-    if targets.len() != k + e {
-        return Err(format!(
-            "{} morph targets, but {k} correctives and {e} expressions",
-            targets.len()
-        ));
-    }
-    let list = |name: &str| -> Result<Vec<Value>, String> {
-        let v = correctives_ext[name]
-            .as_array()
-            .cloned()
-            .unwrap_or_default();
-        if v.len() == k {
-            Ok(v)
-        } else {
-            Err(format!(
-                "`{name}` lists {} accessors for {k} correctives",
-                v.len()
-            ))
-        }
+    let mut packed = match primitive.pointer(&format!("/extensions/{PACKED}")) {
+        Some(ext) => Some(Packed::read(&file, ext, n)?),
+        None => None,
     };
-    let (colour, log_scale, opacity_logit) =
-        (list("colour")?, list("logScale")?, list("opacityLogit")?);
-    let mut correctives = vec![0.0f32; k * n * CORRECTIVE_VALUES];
-    for c in 0..k {
-        let parts = [
-            (
-                sized(
-                    floats(&targets[c]["POSITION"], 3, "a corrective's POSITION")?,
-                    3,
-                    "a corrective",
-                )?,
-                0,
-                3,
-            ),
-            (sized(floats(&colour[c], 3, "colour")?, 3, "colour")?, 3, 3),
-            (
-                sized(floats(&log_scale[c], 3, "logScale")?, 3, "logScale")?,
-                6,
-                3,
-            ),
-            (
-                sized(
-                    floats(&opacity_logit[c], 1, "opacityLogit")?,
-                    1,
-                    "opacityLogit",
-                )?,
-                9,
-                1,
-            ),
-        ];
-        for (values, offset, width) in parts {
-            for g in 0..n {
-                let at = (c * n + g) * CORRECTIVE_VALUES + offset;
-                correctives[at..at + width].copy_from_slice(&values[g * width..(g + 1) * width]);
+    // Counts are checked against the arrays that hold them before anything is allocated.
+    let mut correctives: Vec<f32>;
+    let mut expression_names = Vec::new();
+    let mut expressions = Vec::new();
+    if let Some(packed) = &mut packed {
+        // Compressed: the correctives and expressions are packed arrays, in the file's order.
+        let names: Vec<String> = packed.names.clone();
+        let stored = names.iter().filter(|n| n.ends_with(":position")).count();
+        if stored != k {
+            return Err(format!(
+                "{PACKED} holds {stored} correctives, {CORRECTIVES}.count says {k}"
+            ));
+        }
+        correctives = vec![0.0f32; k * n * CORRECTIVE_VALUES];
+        for c in 0..k {
+            for (part, offset, width) in [
+                ("position", 0, 3),
+                ("colour", 3, 3),
+                ("logScale", 6, 3),
+                ("opacityLogit", 9, 1),
+            ] {
+                let values = packed.take(&format!("corrective_{c}:{part}"))?;
+                scatter(&mut correctives, &values, c * n, offset, width);
             }
         }
-    }
-    let names: Vec<String> = doc
-        .pointer("/meshes/0/extras/targetNames")
-        .and_then(|v| serde_json::from_value(v.clone()).ok())
-        .unwrap_or_default();
-    let mut expression_names = Vec::with_capacity(e);
-    let mut expressions = Vec::with_capacity(e * 3 * n);
-    for i in 0..e {
-        let name = names
-            .get(k + i)
-            .and_then(|n| n.strip_prefix("expression:"))
-            .ok_or_else(|| format!("morph target {} is not named `expression:…`", k + i))?;
-        expression_names.push(name.to_string());
-        expressions.extend(sized(
-            floats(&targets[k + i]["POSITION"], 3, "an expression's POSITION")?,
-            3,
-            name,
-        )?);
+        for name in names.iter().filter_map(|n| n.strip_prefix("expression:")) {
+            expressions.extend(packed.take(&format!("expression:{name}"))?);
+            expression_names.push(name.to_string());
+        }
+        if expression_names.len() != e {
+            return Err(format!(
+                "{PACKED} holds {} expressions, {CORRECTIVES} says {e}",
+                expression_names.len()
+            ));
+        }
+    } else {
+        let targets = primitive["targets"].as_array().cloned().unwrap_or_default();
+        if targets.len() != k + e {
+            return Err(format!(
+                "{} morph targets, but {k} correctives and {e} expressions",
+                targets.len()
+            ));
+        }
+        let list = |name: &str| -> Result<Vec<Value>, String> {
+            let v = correctives_ext[name]
+                .as_array()
+                .cloned()
+                .unwrap_or_default();
+            if v.len() == k {
+                Ok(v)
+            } else {
+                Err(format!(
+                    "`{name}` lists {} accessors for {k} correctives",
+                    v.len()
+                ))
+            }
+        };
+        let (colour, log_scale, opacity_logit) =
+            (list("colour")?, list("logScale")?, list("opacityLogit")?);
+        correctives = vec![0.0f32; k * n * CORRECTIVE_VALUES];
+        for c in 0..k {
+            let parts = [
+                (&targets[c]["POSITION"], "a corrective's POSITION", 0, 3),
+                (&colour[c], "colour", 3, 3),
+                (&log_scale[c], "logScale", 6, 3),
+                (&opacity_logit[c], "opacityLogit", 9, 1),
+            ];
+            for (accessor, what, offset, width) in parts {
+                let values = sized(finite(&file, accessor, width, what)?, width, what)?;
+                scatter(&mut correctives, &values, c * n, offset, width);
+            }
+        }
+        let names: Vec<String> = doc
+            .pointer("/meshes/0/extras/targetNames")
+            .and_then(|v| serde_json::from_value(v.clone()).ok())
+            .unwrap_or_default();
+        for i in 0..e {
+            let name = names
+                .get(k + i)
+                .and_then(|n| n.strip_prefix("expression:"))
+                .ok_or_else(|| format!("morph target {} is not named `expression:…`", k + i))?;
+            expression_names.push(name.to_string());
+            expressions.extend(sized(
+                finite(
+                    &file,
+                    &targets[k + i]["POSITION"],
+                    3,
+                    "an expression's POSITION",
+                )?,
+                3,
+                name,
+            )?);
+        }
     }
     let feature_joints: Vec<usize> =
         serde_json::from_value(correctives_ext["featureJoints"].clone())
@@ -624,7 +1030,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
             if used.iter().any(|&u| u >= 9 * feature_joints.len()) {
                 return Err("featureUsed names a feature beyond the feature joints'".into());
             }
-            let mean = floats(&correctives_ext["featureMean"], 1, "featureMean")?;
+            let mean = finite(&file, &correctives_ext["featureMean"], 1, "featureMean")?;
             if mean.len() != used.len() {
                 return Err("featureMean and featureUsed differ in length".into());
             }
@@ -633,7 +1039,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         None => (Vec::new(), Vec::new()),
     };
     let feature_map = match correctives_ext.get("featureMap") {
-        Some(v) => floats(v, 1, "featureMap")?,
+        Some(v) => finite(&file, v, 1, "featureMap")?,
         None => Vec::new(),
     };
     if feature_map.len() != k * feature_used.len() {
@@ -658,11 +1064,19 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
                         light["coefficients"]
                     )
                 })?;
-            let normals = sized(
-                floats(&light["normal"], 3, &format!("{SHADING}.normal"))?,
-                3,
-                &format!("{SHADING}.normal"),
-            )?;
+            let normals = match &mut packed {
+                // Quantised normals are unit again once normalised.
+                Some(packed) => packed
+                    .take("shading:normal")?
+                    .chunks_exact(3)
+                    .flat_map(|v| {
+                        let length = v.iter().map(|x| x * x).sum::<f32>().sqrt().max(1e-12);
+                        [v[0] / length, v[1] / length, v[2] / length]
+                    })
+                    .collect(),
+                None => finite(&file, &light["normal"], 3, &format!("{SHADING}.normal"))?,
+            };
+            let normals = sized(normals, 3, &format!("{SHADING}.normal"))?;
             in_range(
                 &normals,
                 3,
@@ -680,12 +1094,12 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         shading,
         rig,
         canonical,
-        means,
-        quats,
-        log_scales,
-        opacity_logits,
-        sh,
-        sh_degree: degree,
+        means: gaussians.means,
+        quats: gaussians.quats,
+        log_scales: gaussians.log_scales,
+        opacity_logits: gaussians.opacity_logits,
+        sh: gaussians.sh,
+        sh_degree: gaussians.sh_degree,
         skin_joints: joints
             .chunks_exact(4)
             .map(|c| [c[0], c[1], c[2], c[3]])

@@ -14,7 +14,8 @@
 //!   ([`f3g_data::crop::ViewClass`]: front within 45° of the posed head's facing direction,
 //!   back beyond 135°, side between), and head metrics are given per class beside the mean;
 //!   `comparison.png` shows the frontal head crops first (the most frontal first), then side
-//!   and back ones, then bodies.
+//!   and back ones, then bodies; `comparison.mp4` shows every image's body (ground truth |
+//!   render | error) in evaluation order.
 //!
 //! Renders and ground truths are rounded to 8 bits and written as PNG (`images/`: the body
 //! image, its LPIPS crop and the head crop, each with `_gt`), and the metrics are computed on
@@ -28,6 +29,7 @@ use serde::{Deserialize, Serialize};
 
 use super::TrainedAvatar;
 use super::report::{comparison_row, stack_rows};
+use super::video::VideoWriter;
 use crate::AvatarError;
 use crate::model::host_values;
 use f3g_data::Dataset;
@@ -41,6 +43,11 @@ use f3g_nets::metrics::{image_tensor, psnr, ssim_images, ssim_skimage};
 use f3g_nets::{Lpips, LpipsNet};
 use f3g_rig::RigParams;
 use f3g_splat::Camera;
+
+/// `comparison.mp4`: every evaluated image as ground truth | render | error, in evaluation
+/// order, this many a second, at most this wide.
+const VIDEO_FPS: f32 = 4.0;
+const VIDEO_WIDTH: usize = 1920;
 
 /// Side of the head crops unless asked otherwise: the paper's face resolution, cut from the
 /// full-resolution images whatever crop size the avatar was trained with, so runs trained at
@@ -603,6 +610,8 @@ pub fn evaluate_avatar(
     let rig = ds.rig()?;
     let mut images = Vec::new();
     let mut rows = ComparisonRows::default();
+    let mut video = VideoWriter::new(VIDEO_FPS).map_err(AvatarError::Invalid)?;
+    let mut video_size = None;
     for (i, &(c, f)) in pairs.iter().enumerate() {
         let cam = &ds.cameras[c];
         let full = ds.image(c, f)?;
@@ -673,7 +682,18 @@ pub fn evaluate_avatar(
         let name = format!("{}_{f:08}", cam.name);
         f3g_io::write_png(&out.file(&format!("images/{name}.png"))?, &render)?;
         f3g_io::write_png(&out.file(&format!("images/{name}_gt.png"))?, &gt)?;
-        rows.offer_body(|| comparison_row(&gt, &render));
+        let row = comparison_row(&gt, &render);
+        rows.offer_body(|| row.clone());
+        let (vw, vh) = *video_size.get_or_insert_with(|| {
+            let w = row.width.min(VIDEO_WIDTH);
+            (w, (row.height * w / row.width).max(1))
+        });
+        let row = if (row.width, row.height) == (vw, vh) {
+            row
+        } else {
+            resize(&row, vw, vh)
+        };
+        video.push(&row).map_err(AvatarError::Invalid)?;
         images.push(ImageScores {
             frame: f,
             camera: cam.name.clone(),
@@ -733,6 +753,9 @@ pub fn evaluate_avatar(
     if !grids.is_empty() {
         f3g_io::write_png(&out.file("comparison.png")?, &stack_rows(&grids))?;
     }
+    let path = out.file("comparison.mp4")?;
+    let bytes = video.finish().map_err(|e| AvatarError::file(&path, e))?;
+    f3g_io::write_atomic(&path, &bytes)?;
     out.finish()?;
     Ok(report)
 }
