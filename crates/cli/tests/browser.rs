@@ -1,6 +1,7 @@
 //! `f3g export-avatar` + `f3g view` in a real browser: Debian's headless Chromium (SwiftShader
-//! WebGL) driven by puppeteer-core (`tests/browser/shoot.mjs`), and the avatar file through
-//! the Khronos glTF validator (`tests/browser/validate.mjs`).
+//! WebGL) driven by puppeteer-core (`tests/browser/shoot.mjs`), the avatar file through the
+//! Khronos glTF validator (`tests/browser/validate.mjs`) and Babylon.js's glTF loader
+//! (`tests/browser/babylon.mjs`).
 //!
 //! The test that drives the browser needs `chromium`, `node` and `npm ci` in `tests/browser`,
 //! so it is ignored by default (the README's test command runs on machines without a
@@ -293,6 +294,43 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
     assert!(
         psnr >= 33.0,
         "the player's pictures of the compressed and float files differ: {psnr:.1} dB"
+    );
+
+    // Babylon.js 9.28's own glTF loader, as a user of that viewer opens the files: the float
+    // file loads as a Gaussian-splatting mesh and is drawn (unposed: Babylon reads no skin);
+    // the compressed one is refused for the SPZ extension it requires.
+    let babylon = |file: &str| -> serde_json::Value {
+        let (png, report) = (
+            d.join(format!("{file}.babylon.png")),
+            d.join(format!("{file}.babylon.json")),
+        );
+        ok(&Command::new("node")
+            .arg(scripts().join("babylon.mjs"))
+            .args([d.join(file), png.clone(), report.clone()])
+            .output()
+            .unwrap());
+        serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+    };
+    let float = babylon("k16.glb");
+    assert!(
+        float["meshes"]
+            .to_string()
+            .contains("GaussianSplattingMesh"),
+        "{float}"
+    );
+    let picture = f3g_io::read_rgb(&d.join("k16.glb.babylon.png")).unwrap();
+    let drawn = picture
+        .data
+        .chunks_exact(3)
+        .filter(|p| p.iter().any(|&v| v < 0.9))
+        .count();
+    assert!(drawn > 1000, "Babylon.js drew {drawn} pixels of the avatar");
+    let compressed = babylon("k16c.glb");
+    assert!(
+        compressed["error"]
+            .as_str()
+            .is_some_and(|e| e.contains("KHR_gaussian_splatting_compression_spz_2")),
+        "{compressed}"
     );
 
     // A pose far from training (a deep lunge, the arms overhead): the player poses the avatar

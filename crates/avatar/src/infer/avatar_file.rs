@@ -674,6 +674,18 @@ fn finite(file: &GlbFile, v: &Value, width: usize, what: &str) -> Result<Vec<f32
     }
 }
 
+/// `values` if they are `width` per Gaussian of `n`, else an error naming `what`.
+fn per_gaussian(values: Vec<f32>, width: usize, n: usize, what: &str) -> Result<Vec<f32>, String> {
+    if values.len() == width * n {
+        Ok(values)
+    } else {
+        Err(format!(
+            "{what} has {} values for {n} Gaussians",
+            values.len()
+        ))
+    }
+}
+
 /// Values out of range are refused, not clamped: the player would draw them as they are.
 fn in_range(
     values: &[f32],
@@ -698,16 +710,7 @@ fn float_gaussians_read(
 ) -> Result<f3g_splat::GaussianCloud, String> {
     let means = finite(file, &attributes["POSITION"], 3, "POSITION")?;
     let n = means.len() / 3;
-    let sized = |values: Vec<f32>, width: usize, what: &str| -> Result<Vec<f32>, String> {
-        if values.len() == width * n {
-            Ok(values)
-        } else {
-            Err(format!(
-                "{what} has {} values for {n} Gaussians",
-                values.len()
-            ))
-        }
-    };
+    let sized = |values, width, what: &str| per_gaussian(values, width, n, what);
     let rotation = format!("{SPLATS}:ROTATION");
     let rotations = sized(
         finite(file, &attributes[&rotation], 4, &rotation)?,
@@ -872,16 +875,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         None => float_gaussians_read(&file, attributes)?,
     };
     let n = gaussians.len();
-    let sized = |values: Vec<f32>, width: usize, what: &str| -> Result<Vec<f32>, String> {
-        if values.len() == width * n {
-            Ok(values)
-        } else {
-            Err(format!(
-                "{what} has {} values for {n} Gaussians",
-                values.len()
-            ))
-        }
-    };
+    let sized = |values, width, what: &str| per_gaussian(values, width, n, what);
     let joints_accessor = attribute("JOINTS_0")?;
     let joints: Vec<u16> = match file.component_type(joints_accessor) {
         Some(f3g_rig::glb::UNSIGNED_BYTE) => file
