@@ -112,16 +112,26 @@ const COLOURS: [[f32; 3]; 12] = [
     [0.1, 0.3, 0.4],
 ];
 
+/// The dashed lines where a training stage starts, and their labels.
+const STAGE_COLOUR: [f32; 3] = [0.35, 0.35, 0.8];
+
 /// Plots the loss terms of `log.jsonl` (moving average over 2% of the steps, log scale) to a
-/// PNG with axes, tick labels and a legend.
+/// PNG with axes, tick labels, a legend, and a dashed line and the stage's name where each
+/// training stage starts (the loss terms change there: the face's join at the joint stage).
 pub fn loss_curve(log: &Path, out: &Path) -> Result<(), AvatarError> {
     let text = std::fs::read_to_string(log).map_err(|e| AvatarError::file(log, e))?;
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+    let mut stages: Vec<(f64, String)> = Vec::new();
     for line in text.lines() {
         let Ok(v) = serde_json::from_str::<serde_json::Value>(line) else {
             continue;
         };
         let step = v["step"].as_f64().unwrap_or(0.0);
+        if let Some(stage) = v["stage"].as_str()
+            && stages.last().is_none_or(|(_, s)| s != stage)
+        {
+            stages.push((step, stage.to_string()));
+        }
         let mut entries = vec![("total".to_string(), v["total"].as_f64())];
         if let Some(terms) = v["losses"].as_array() {
             for t in terms {
@@ -179,6 +189,27 @@ pub fn loss_curve(log: &Path, out: &Path) -> Result<(), AvatarError> {
         );
     }
     draw_text(&mut img, "step", w / 2 - 100, h - 18, COLOURS[0]);
+    for (k, (step, name)) in stages.iter().enumerate() {
+        let x = px(*step);
+        let mut y = top;
+        while y < h as f32 - bottom {
+            draw_line(
+                &mut img,
+                (x, y),
+                (x, (y + 6.0).min(h as f32 - bottom)),
+                STAGE_COLOUR,
+            );
+            y += 12.0;
+        }
+        // Labels alternate between two rows, so that short stages do not overwrite each other.
+        draw_text(
+            &mut img,
+            name,
+            x as usize + 4,
+            top as usize + 4 + 16 * (k % 2),
+            STAGE_COLOUR,
+        );
+    }
     let window = (max_step / 50.0).max(1.0) as usize;
     for (k, (name, pts)) in series.iter().enumerate() {
         let colour = COLOURS[k % COLOURS.len()];
@@ -233,7 +264,8 @@ mod tests {
         let lines: String = (0..50)
             .map(|s| {
                 format!(
-                    "{{\"step\":{s},\"total\":{},\"losses\":[[\"l1\",{}]]}}\n",
+                    "{{\"step\":{s},\"stage\":\"{}\",\"total\":{},\"losses\":[[\"l1\",{}]]}}\n",
+                    if s < 25 { "body" } else { "joint" },
                     1.0 / (s + 1) as f64,
                     0.5 / (s + 1) as f64
                 )
@@ -249,5 +281,14 @@ mod tests {
                 .chunks_exact(3)
                 .any(|p| p[0] > 0.8 && p[1] < 0.3 && p[2] < 0.3)
         );
+        // The joint stage's dashed line stands where step 25 is: halfway along the axis.
+        let x = (90.0 + 25.0 / 49.0 * (900.0 - 90.0 - 220.0)) as usize;
+        let stage_pixels = (100..400)
+            .filter(|&y| {
+                let p = img.pixel(x, y);
+                (p[0] - STAGE_COLOUR[0]).abs() < 0.02 && (p[2] - STAGE_COLOUR[2]).abs() < 0.02
+            })
+            .count();
+        assert!(stage_pixels > 50, "{stage_pixels} pixels of the stage line");
     }
 }
