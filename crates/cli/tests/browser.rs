@@ -332,6 +332,27 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
             .is_some_and(|e| e.contains("KHR_gaussian_splatting_compression_spz_2")),
         "{compressed}"
     );
+    // A posed frame for it: `export-ply`'s standard 3DGS `.ply`, read by Babylon's splat loader.
+    ok(&f3g(
+        d,
+        &[
+            "export-ply",
+            "run",
+            "--out",
+            "frame.ply",
+            "--frame",
+            "3",
+            "--directions",
+            "16",
+        ],
+    ));
+    let frame = babylon("frame.ply");
+    assert!(
+        frame["meshes"]
+            .to_string()
+            .contains("GaussianSplattingMesh"),
+        "{frame}"
+    );
 
     // A pose far from training (a deep lunge, the arms overhead): the player poses the avatar
     // and adds its correctives there as f3g does, so what it shows is the avatar's own.
