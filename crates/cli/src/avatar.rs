@@ -451,6 +451,10 @@ pub struct AnimateArgs {
     /// Also write every frame's posed Gaussians as a 3DGS .ply.
     #[arg(long)]
     pub export_ply: bool,
+    /// Also write every frame's posed Gaussians as SPZ (`spz/frame_NNNNN.spz`, a tenth of the
+    /// size of the .ply).
+    #[arg(long)]
+    pub export_spz: bool,
     /// Image size of the orbit camera, WIDTHxHEIGHT (16–8192 pixels a side).
     #[arg(long, default_value = "384x512", value_parser = crate::bounds::image_size)]
     pub size: (u32, u32),
@@ -517,6 +521,7 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
         out: a.out.clone(),
         overwrite: a.overwrite,
         export_ply: a.export_ply,
+        export_spz: a.export_spz,
         fps: a.fps,
         use_pca: !a.no_pca,
         background: [1.0; 3],
@@ -536,11 +541,11 @@ pub fn animate(a: &AnimateArgs) -> Result<f3g_avatar::infer::animate::AnimateRep
         report.seconds_per_frame,
         report.gif.display(),
         report.video.display(),
-        if a.export_ply {
-            format!(" and {} .ply files", report.plys.len())
-        } else {
-            String::new()
-        }
+        [(report.plys.len(), ".ply"), (report.spzs.len(), ".spz")]
+            .iter()
+            .filter(|(n, _)| *n > 0)
+            .map(|(n, kind)| format!(" and {n} {kind} files"))
+            .collect::<String>()
     );
     Ok(report)
 }

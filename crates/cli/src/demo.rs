@@ -195,6 +195,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         // The demo's own subfolders: an earlier demo's (of any version) are written over.
         overwrite: true,
         export_ply: false,
+        export_spz: false,
         size: (288, 384),
         turns: 1.0,
         elevation: 5.0,

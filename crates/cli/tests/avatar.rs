@@ -133,6 +133,7 @@ fn train_resume_evaluate_animate_and_export() {
             "--out",
             "anim",
             "--export-ply",
+            "--export-spz",
             "--size",
             "48x64",
         ],
@@ -158,6 +159,9 @@ fn train_resume_evaluate_animate_and_export() {
     let corner = |img: &f3g_io::Image| img.data[3 * (63 * 48)];
     assert!(corner(&frame) < 0.95, "no floor: {}", corner(&frame));
     let cloud = f3g_splat::ply::read_ply(&d.join("anim/ply/frame_00004.ply")).unwrap();
+    let spz = f3g_splat::spz::decode(&std::fs::read(d.join("anim/spz/frame_00004.spz")).unwrap())
+        .unwrap();
+    assert_eq!(spz.len(), cloud.len());
 
     // The run folder works from anywhere: moved, it animates and exports as before. Into the
     // same folder, an animation removes what the earlier one wrote and this one does not (the

@@ -1,6 +1,6 @@
 //! Animation: a trained avatar driven by a pose sequence, seen by an orbiting or a fixed
 //! camera, written as PNG frames, an animated GIF, an H.264 video (`animation.mp4`) and
-//! optionally 3DGS `.ply` files.
+//! optionally the posed Gaussians of every frame as 3DGS `.ply` or SPZ files.
 
 use std::path::{Path, PathBuf};
 
@@ -34,6 +34,9 @@ pub struct AnimateOptions {
     /// Write into an `out` that holds files of someone else (same names replaced).
     pub overwrite: bool,
     pub export_ply: bool,
+    /// Every frame's posed Gaussians as SPZ too (`spz/frame_NNNNN.spz`: a tenth of the `.ply`,
+    /// for sequences on the web).
+    pub export_spz: bool,
     /// Frames per second of the GIF.
     pub fps: f32,
     /// Project poses onto the training poses' principal components (unseen poses).
@@ -51,6 +54,7 @@ pub struct AnimateReport {
     pub gif: PathBuf,
     pub video: PathBuf,
     pub plys: Vec<PathBuf>,
+    pub spzs: Vec<PathBuf>,
     pub seconds_per_frame: f64,
 }
 
@@ -172,7 +176,7 @@ pub fn animate(
     let mut out = f3g_io::OutputDir::open(&options.out, "animate", options.overwrite)?;
     let start = std::time::Instant::now();
     let mut images = Vec::new();
-    let mut plys = Vec::new();
+    let (mut plys, mut spzs) = (Vec::new(), Vec::new());
     // The posed mesh's bounds of every frame, posed once for what needs them: the orbit
     // camera's centre, the floor (the lowest point over the motion: where the feet stand,
     // retargeted motions putting it on the floor where the source's feet touch theirs).
@@ -216,11 +220,18 @@ pub fn animate(
             None => avatar.render(params, &camera, options.background, options.use_pca)?,
         };
         f3g_io::write_png(&out.file(&format!("frames/frame_{i:05}.png"))?, &img)?;
-        if options.export_ply {
+        if options.export_ply || options.export_spz {
             let cloud = avatar.posed_cloud(params, &camera, options.use_pca)?;
-            let path = out.file(&format!("ply/frame_{i:05}.ply"))?;
-            f3g_splat::ply::write_ply(&path, &cloud)?;
-            plys.push(path);
+            if options.export_ply {
+                let path = out.file(&format!("ply/frame_{i:05}.ply"))?;
+                f3g_splat::ply::write_ply(&path, &cloud)?;
+                plys.push(path);
+            }
+            if options.export_spz {
+                let path = out.file(&format!("spz/frame_{i:05}.spz"))?;
+                f3g_io::write_atomic(&path, &f3g_splat::spz::encode(&cloud)?)?;
+                spzs.push(path);
+            }
         }
         images.push(img);
         progress(i + 1, motion.len());
@@ -235,6 +246,7 @@ pub fn animate(
         gif,
         video,
         plys,
+        spzs,
         seconds_per_frame: start.elapsed().as_secs_f64() / motion.len().max(1) as f64,
     })
 }
