@@ -238,7 +238,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
         fps: 8.0,
         device,
     })?;
-    frontal_faces(
+    let faces = frontal_faces(
         &run.join("eval/novel-view"),
         &novel_view,
         &out.join("face_front.png"),
@@ -252,6 +252,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             &novel_view,
             &novel_pose,
             &fits,
+            faces,
             start.elapsed().as_secs_f64(),
         )?
         .as_bytes(),
@@ -266,8 +267,8 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
 
 /// The faces the evaluation saw from the front (`images/*_head[_gt].png` of the frontal view
 /// class, most frontal first, at most four), as rows of ground truth | render at the crops'
-/// size; nothing is written when no image was frontal.
-fn frontal_faces(eval: &Path, report: &EvalReport, out: &Path) -> Result<()> {
+/// size; returns whether there was one (nothing is written when no image was frontal).
+fn frontal_faces(eval: &Path, report: &EvalReport, out: &Path) -> Result<bool> {
     use f3g_data::crop::ViewClass;
     let mut front: Vec<_> = report
         .images
@@ -285,7 +286,7 @@ fn frontal_faces(eval: &Path, report: &EvalReport, out: &Path) -> Result<()> {
         rows.push([read("_gt")?, read("")?]);
     }
     let Some([first, _]) = rows.first() else {
-        return Ok(());
+        return Ok(false);
     };
     let (w, h, gap) = (first.width, first.height, 6);
     let mut sheet = f3g_io::Image::filled(2 * w + gap, rows.len() * (h + gap) - gap, 3, 1.0);
@@ -303,7 +304,8 @@ fn frontal_faces(eval: &Path, report: &EvalReport, out: &Path) -> Result<()> {
             }
         }
     }
-    Ok(f3g_io::write_png(out, &sheet)?)
+    f3g_io::write_png(out, &sheet)?;
+    Ok(true)
 }
 
 /// A file's size in MB (0 when it cannot be read).
@@ -360,6 +362,7 @@ fn html(
     nv: &EvalReport,
     np: &EvalReport,
     fits: &[f3g_data::check::CameraFit],
+    faces: bool,
     seconds: f64,
 ) -> Result<String> {
     let run = out.join("run");
@@ -462,7 +465,7 @@ static file server (browsers do not run it from <code>file://</code>).</p>
         np_row = row("novel pose", np),
         nv_md = rel(out, &run.join("eval/novel-view/metrics.md")),
         np_md = rel(out, &run.join("eval/novel-pose/metrics.md")),
-        faces = if out.join("face_front.png").exists() {
+        faces = if faces {
             img(
                 out.join("face_front.png"),
                 "the held-out views that see the face from the front (within 45°), most frontal \
