@@ -5,7 +5,7 @@
 // on a port.
 //
 //   node babylon.mjs FILE.glb|.ply|.spz OUT.png REPORT.json
-import puppeteer from "puppeteer-core";
+import { launchChromium } from "./chromium.mjs";
 import { readFileSync, writeFileSync } from "fs";
 import { createRequire } from "module";
 
@@ -36,15 +36,7 @@ const files = {
   ["/" + name]: ["application/octet-stream", readFileSync(avatar)],
 };
 const report = { errors: [], missing: [] };
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
-  headless: true,
-  args: [
-    "--no-sandbox", "--use-angle=swiftshader", "--use-gl=angle", "--enable-unsafe-swiftshader",
-    "--disable-dev-shm-usage", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-  ],
-});
+const browser = await launchChromium();
 try {
   const tab = await browser.newPage();
   tab.on("pageerror", (e) => report.errors.push(String(e)));

@@ -7,7 +7,7 @@
 //
 // `--corrupt-avatar` serves the page a truncated avatar.glb (request interception), to check
 // that the page shows the error.
-import puppeteer from "puppeteer-core";
+import { launchChromium } from "./chromium.mjs";
 import { writeFileSync } from "fs";
 
 const [url, out, reportPath, ...rest] = process.argv.slice(2);
@@ -17,15 +17,7 @@ const option = (name) => {
 };
 const report = { errors: [], ready: false };
 const started = Date.now();
-const browser = await puppeteer.launch({
-  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
-  headless: true,
-  args: [
-    "--no-sandbox", "--disable-gpu-sandbox", "--use-angle=swiftshader", "--use-gl=angle",
-    "--enable-unsafe-swiftshader", "--disable-dev-shm-usage", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-  ],
-});
+const browser = await launchChromium();
 try {
   const page = await browser.newPage();
   page.on("console", (m) => { if (m.type() === "error") report.errors.push(m.text()); });
