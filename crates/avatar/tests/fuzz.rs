@@ -560,6 +560,33 @@ fn the_compressed_small_avatar_file_reads_as_the_float_one() {
         "skin weights",
     );
     let file = f3g_rig::glb::GlbFile::parse(&bytes).unwrap();
+    // POSITION's bounds describe the positions as stored (glTF requires them exact).
+    let position = file.document["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+        .as_u64()
+        .unwrap() as usize;
+    for (c, bound) in ["min", "max"].into_iter().enumerate() {
+        let pick = |a: f32, b: f32| if c == 0 { a.min(b) } else { a.max(b) };
+        let expected: Vec<f64> = (0..3)
+            .map(|axis| {
+                let start = if c == 0 {
+                    f32::INFINITY
+                } else {
+                    f32::NEG_INFINITY
+                };
+                compressed
+                    .means
+                    .iter()
+                    .skip(axis)
+                    .step_by(3)
+                    .fold(start, |m, &v| pick(m, v)) as f64
+            })
+            .collect();
+        assert_eq!(
+            file.document["accessors"][position][bound],
+            serde_json::json!(expected),
+            "{bound}"
+        );
+    }
     assert_eq!(
         file.document["extensionsRequired"],
         serde_json::json!([

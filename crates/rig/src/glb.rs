@@ -102,17 +102,8 @@ impl GlbBuffer {
             "count": values.len() / width,
             "type": kind,
         });
-        if bounds && !values.is_empty() {
-            let mut min = vec![f64::INFINITY; width];
-            let mut max = vec![f64::NEG_INFINITY; width];
-            for row in values.chunks_exact(width) {
-                for (k, &v) in row.iter().enumerate() {
-                    min[k] = min[k].min(f64::from(v));
-                    max[k] = max[k].max(f64::from(v));
-                }
-            }
-            accessor["min"] = json!(min);
-            accessor["max"] = json!(max);
+        if bounds {
+            set_bounds(&mut accessor, values, width);
         }
         self.accessors.push(accessor);
         self.accessors.len() - 1
@@ -126,19 +117,14 @@ impl GlbBuffer {
         index
     }
 
-    /// An accessor of `count` float elements of `kind` without a buffer view: its values come
-    /// from an extension (a compressed payload), and a reader that knows none sees zeros.
-    /// `bounds` are the per-component `min` and `max` glTF requires of POSITION.
-    pub fn placeholder(
-        &mut self,
-        count: usize,
-        kind: &str,
-        bounds: Option<(Vec<f32>, Vec<f32>)>,
-    ) -> usize {
+    /// An accessor of `count` float elements of `kind` (3 components: `VEC3`) without a buffer
+    /// view: its values come from an extension (a compressed payload), and a reader that knows
+    /// none sees zeros. `bounds_of` are the values it stands for, whose per-component `min` and
+    /// `max` glTF requires of POSITION.
+    pub fn placeholder(&mut self, count: usize, kind: &str, bounds_of: Option<&[f32]>) -> usize {
         let mut accessor = json!({ "componentType": FLOAT, "count": count, "type": kind });
-        if let Some((min, max)) = bounds {
-            accessor["min"] = json!(min);
-            accessor["max"] = json!(max);
+        if let Some(values) = bounds_of {
+            set_bounds(&mut accessor, values, values.len() / count.max(1));
         }
         self.accessors.push(accessor);
         self.accessors.len() - 1
@@ -152,6 +138,27 @@ impl GlbBuffer {
         document["accessors"] = Value::Array(self.accessors);
         glb_bytes(&document, self.bin)
     }
+}
+
+/// Sets an accessor's per-component `min` and `max` over `values` (`width` per element);
+/// nothing for no values.
+fn set_bounds<T: Copy>(accessor: &mut Value, values: &[T], width: usize)
+where
+    f64: From<T>,
+{
+    if values.is_empty() || width == 0 {
+        return;
+    }
+    let mut min = vec![f64::INFINITY; width];
+    let mut max = vec![f64::NEG_INFINITY; width];
+    for row in values.chunks_exact(width) {
+        for (k, &v) in row.iter().enumerate() {
+            min[k] = min[k].min(f64::from(v));
+            max[k] = max[k].max(f64::from(v));
+        }
+    }
+    accessor["min"] = json!(min);
+    accessor["max"] = json!(max);
 }
 
 /// The `.glb` container of a document and its binary chunk (padded to 4 bytes).

@@ -47,6 +47,23 @@ const FLIP_SH: [f32; 15] = [
     -1.0, // y(3x²−y²), xyz, y(5z²−1), z(…), x(…), z(…), x(…)
 ];
 
+/// Steps per metre of the stored positions.
+const POSITION_UNIT: f32 = (1u32 << FRACTIONAL_BITS) as f32;
+
+/// The 24-bit fixed-point value stored for coordinate `x` (f3g's frame) on `axis`; 24 bits hold
+/// ±2048 m at this precision, beyond which the value is clamped.
+fn fixed_position(x: f32, axis: usize) -> i32 {
+    (FLIP_POSITION[axis] * x * POSITION_UNIT)
+        .round()
+        .clamp(-8_388_608.0, 8_388_607.0) as i32
+}
+
+/// Coordinate `x` on `axis` as [`decode`] reads it back from what [`encode`] stores: what a
+/// glTF `POSITION` accessor's bounds must describe, without decoding the payload.
+pub fn stored_position(x: f32, axis: usize) -> f32 {
+    FLIP_POSITION[axis] * fixed_position(x, axis) as f32 / POSITION_UNIT
+}
+
 fn to_byte(x: f32) -> u8 {
     x.round().clamp(0.0, 255.0) as u8
 }
@@ -80,13 +97,8 @@ pub fn encode(cloud: &GaussianCloud) -> Result<Vec<u8>, SplatError> {
     out.extend_from_slice(&3u32.to_le_bytes());
     out.extend_from_slice(&(n as u32).to_le_bytes());
     out.extend_from_slice(&[cloud.sh_degree as u8, FRACTIONAL_BITS, 0, 0]);
-    let unit = (1u32 << FRACTIONAL_BITS) as f32;
     for (i, &x) in cloud.means.iter().enumerate() {
-        // 24 bits hold ±2048 m at this precision; beyond, the value is clamped.
-        let fixed = (FLIP_POSITION[i % 3] * x * unit)
-            .round()
-            .clamp(-8_388_608.0, 8_388_607.0) as i32;
-        out.extend_from_slice(&fixed.to_le_bytes()[..3]);
+        out.extend_from_slice(&fixed_position(x, i % 3).to_le_bytes()[..3]);
     }
     out.extend(
         cloud
@@ -319,8 +331,9 @@ mod tests {
             let b = decode(&encode(&a).unwrap()).unwrap();
             assert_eq!(b.len(), a.len());
             assert_eq!(b.sh_degree, degree);
-            for (x, y) in a.means.iter().zip(&b.means) {
+            for (i, (x, y)) in a.means.iter().zip(&b.means).enumerate() {
                 assert!((x - y).abs() <= 0.5 / 4096.0 + 1e-6, "{x} {y}");
+                assert_eq!(stored_position(*x, i % 3), *y);
             }
             for (x, y) in a.log_scales.iter().zip(&b.log_scales) {
                 assert!((x - y).abs() <= 0.5 / 16.0 + 1e-5, "{x} {y}");

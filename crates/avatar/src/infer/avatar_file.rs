@@ -283,19 +283,15 @@ fn spz_gaussians(
     };
     let spz = f3g_splat::spz::encode(&cloud).map_err(|e| AvatarError::Invalid(e.to_string()))?;
     // POSITION's bounds are those of the positions as stored.
-    let stored = f3g_splat::spz::decode(&spz).map_err(AvatarError::Invalid)?;
-    let mut min = vec![f32::INFINITY; 3];
-    let mut max = vec![f32::NEG_INFINITY; 3];
-    for p in stored.means.chunks_exact(3) {
-        for c in 0..3 {
-            min[c] = min[c].min(p[c]);
-            max[c] = max[c].max(p[c]);
-        }
-    }
+    let stored: Vec<f32> = avatar
+        .means
+        .iter()
+        .enumerate()
+        .map(|(i, &x)| f3g_splat::spz::stored_position(x, i % 3))
+        .collect();
     let n = avatar.len();
-    let bounds = (n > 0).then_some((min, max));
     let mut attributes = json!({
-        "POSITION": buffer.placeholder(n, "VEC3", bounds),
+        "POSITION": buffer.placeholder(n, "VEC3", Some(&stored)),
         format!("{SPLATS}:ROTATION"): buffer.placeholder(n, "VEC4", None),
         format!("{SPLATS}:SCALE"): buffer.placeholder(n, "VEC3", None),
         format!("{SPLATS}:OPACITY"): buffer.placeholder(n, "SCALAR", None),
