@@ -82,6 +82,15 @@ const POSITION_BITS: u32 = 16;
 const APPEARANCE_BITS: u32 = 8;
 const NORMAL_BITS: u32 = 8;
 
+/// A corrective's parts in a compressed file: the packed array's name suffix, the columns of
+/// [`CORRECTIVE_VALUES`] it holds (first, width) and its bits.
+const CORRECTIVE_PARTS: [(&str, usize, usize, u32); 4] = [
+    ("position", 0, 3, POSITION_BITS),
+    ("colour", 3, 3, APPEARANCE_BITS),
+    ("logScale", 6, 3, APPEARANCE_BITS),
+    ("opacityLogit", 9, 1, APPEARANCE_BITS),
+];
+
 /// Quantised per-Gaussian arrays, stored component by component, then deflated as one.
 #[derive(Default)]
 struct Packer {
@@ -362,30 +371,10 @@ pub fn to_bytes(avatar: &BakedAvatar, encoding: Encoding) -> Result<Vec<u8>, Ava
                 .collect()
         };
         if compressed {
-            packer.push(
-                format!("corrective_{c}:position"),
-                &column(0..3),
-                3,
-                POSITION_BITS,
-            );
-            packer.push(
-                format!("corrective_{c}:colour"),
-                &column(3..6),
-                3,
-                APPEARANCE_BITS,
-            );
-            packer.push(
-                format!("corrective_{c}:logScale"),
-                &column(6..9),
-                3,
-                APPEARANCE_BITS,
-            );
-            packer.push(
-                format!("corrective_{c}:opacityLogit"),
-                &column(9..10),
-                1,
-                APPEARANCE_BITS,
-            );
+            for (part, offset, width, bits) in CORRECTIVE_PARTS {
+                let name = format!("corrective_{c}:{part}");
+                packer.push(name, &column(offset..offset + width), width, bits);
+            }
             continue;
         }
         targets.push(json!({ "POSITION": buffer.accessor(&column(0..3), "VEC3", true, VERTEX) }));
@@ -925,12 +914,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<BakedAvatar, String> {
         }
         correctives = vec![0.0f32; k * n * CORRECTIVE_VALUES];
         for c in 0..k {
-            for (part, offset, width) in [
-                ("position", 0, 3),
-                ("colour", 3, 3),
-                ("logScale", 6, 3),
-                ("opacityLogit", 9, 1),
-            ] {
+            for (part, offset, width, _) in CORRECTIVE_PARTS {
                 let values = packed.take(&format!("corrective_{c}:{part}"))?;
                 scatter(&mut correctives, &values, c * n, offset, width);
             }
