@@ -11,7 +11,7 @@ pub mod text;
 
 pub use outputs::{MANIFEST, OutputDir, remove_pending_temporaries};
 
-use std::io::{Cursor, Write};
+use std::io::{Cursor, Read, Write};
 use std::path::{Path, PathBuf};
 
 /// A file could not be read, decoded or written.
@@ -558,6 +558,16 @@ fn encode_npy<T: npyz::AutoSerialize + Copy>(
         .map_err(|e| e.to_string())?;
     writer.finish().map_err(|e| e.to_string())?;
     Ok(buf)
+}
+
+/// Reads `reader` to its end but no further than `expected + 1` bytes, the buffer grown as data
+/// come rather than reserved: a decompressor over damaged data stops one byte past what its
+/// header promised, and no size read from a file is allocated before the data bear it out. The
+/// caller compares the length with `expected`.
+pub fn read_at_most(reader: impl Read, expected: usize) -> std::io::Result<Vec<u8>> {
+    let mut bytes = Vec::new();
+    reader.take(expected as u64 + 1).read_to_end(&mut bytes)?;
+    Ok(bytes)
 }
 
 /// How the arrays of an `.npz` are stored in its zip archive.

@@ -179,12 +179,7 @@ pub fn decode(bytes: &[u8]) -> Result<GaussianCloud, String> {
     let k = sh::num_coeffs(degree);
     let rotation_bytes = if version >= 3 { 4 } else { 3 };
     let expected = n * (9 + 1 + 3 + 3 + rotation_bytes + 3 * (k - 1));
-    // Grown as the data come, not reserved: a damaged count must not allocate gigabytes.
-    let mut body = Vec::new();
-    (&mut gzip)
-        .take(expected as u64 + 1)
-        .read_to_end(&mut body)
-        .map_err(|e| format!("SPZ data: {e}"))?;
+    let body = f3g_io::read_at_most(&mut gzip, expected).map_err(|e| format!("SPZ data: {e}"))?;
     if body.len() != expected {
         return Err(format!(
             "SPZ data holds {} bytes after its header, {n} points of SH degree {degree} take {expected}",

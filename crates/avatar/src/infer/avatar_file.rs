@@ -46,7 +46,7 @@
 //! `expression:NAME`, `shading:normal`). No other glTF viewer animates the avatar's correctives
 //! or expressions, so nothing is lost to them that they used.
 
-use std::io::{Read, Write};
+use std::io::Write;
 use std::path::Path;
 
 use glam::Mat4;
@@ -179,11 +179,7 @@ impl Packed {
                 scale as f32,
             ));
         }
-        // Grown as the data come, not reserved: a damaged size must not allocate gigabytes.
-        let mut raw = Vec::new();
-        flate2::read::ZlibDecoder::new(view)
-            .take(total as u64 + 1)
-            .read_to_end(&mut raw)
+        let raw = f3g_io::read_at_most(flate2::read::ZlibDecoder::new(view), total)
             .map_err(|e| format!("{PACKED}: inflating: {e}"))?;
         if raw.len() != total {
             return Err(format!(
