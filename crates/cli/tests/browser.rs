@@ -185,23 +185,40 @@ fn avatar(d: &Path, k: &[usize]) {
         ],
     ));
     for k in k {
-        let (k, out) = (k.to_string(), format!("k{k}.glb"));
-        ok(&f3g(
-            d,
-            &[
-                "export-avatar",
-                "run",
-                "--out",
-                &out,
-                "--correctives",
-                &k,
-                "--perturbations",
-                "4",
-                "--directions",
-                "16",
-            ],
-        ));
+        export_avatar(d, &format!("k{k}.glb"), *k, &[]);
     }
+}
+
+/// The tiny run baked with `k` correctives into `out` (a small bake: 4 perturbations, 16
+/// directions), `extra` flags added.
+fn export_avatar(d: &Path, out: &str, k: usize, extra: &[&str]) {
+    let k = k.to_string();
+    let mut args = vec![
+        "export-avatar",
+        "run",
+        "--out",
+        out,
+        "--correctives",
+        &k,
+        "--perturbations",
+        "4",
+        "--directions",
+        "16",
+    ];
+    args.extend_from_slice(extra);
+    ok(&f3g(d, &args));
+}
+
+/// The Khronos glTF validator's report on `file` (`validate.mjs`), which fails on any error
+/// but the splat attribute names this validator does not know.
+fn validate(file: &Path) -> serde_json::Value {
+    let out = Command::new("node")
+        .arg(scripts().join("validate.mjs"))
+        .arg(file)
+        .output()
+        .unwrap();
+    ok(&out);
+    serde_json::from_slice(&out.stdout).unwrap()
 }
 
 #[test]
@@ -223,13 +240,7 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
             "poses.glb",
         ],
     ));
-    let out = Command::new("node")
-        .arg(scripts().join("validate.mjs"))
-        .arg(d.join("poses.glb"))
-        .output()
-        .unwrap();
-    ok(&out);
-    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let report = validate(&d.join("poses.glb"));
     assert_eq!(report["warnings"].as_array().unwrap().len(), 0, "{report}");
     let (eye, target, fov, w, h) = ([0.5, 0.4, 2.6], [0.0, 0.3, 0.0], 30.0, 320, 240);
     std::fs::write(d.join("cam.json"), camera_json(eye, target, fov, w, h)).unwrap();
@@ -239,12 +250,7 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
     );
     for k in ["k0", "k16"] {
         // The Khronos validator finds nothing but the extension it does not know.
-        let out = Command::new("node")
-            .arg(scripts().join("validate.mjs"))
-            .arg(d.join(format!("{k}.glb")))
-            .output()
-            .unwrap();
-        ok(&out);
+        validate(&d.join(format!("{k}.glb")));
         // The same frame, seen by the same camera, in the browser and by f3g's renderer.
         let psnr = player_against_f3g(d, &format!("{k}.glb"), "cap/body_params.npz", &view, 3, k);
         // 29.7 (k0) and 29.6 dB (k16) when written (2026-11-28); 30.4 and 30.2 with the file's
@@ -259,28 +265,8 @@ fn the_player_draws_the_avatar_where_f3g_does_and_the_server_serves_only_the_pla
     // The compressed file (SPZ Gaussians, packed correctives and expressions, byte weights):
     // the validator finds no error in it, and the player decodes it and draws what f3g draws
     // of it, and what it drew of the float file but for the quantisation.
-    ok(&f3g(
-        d,
-        &[
-            "export-avatar",
-            "run",
-            "--out",
-            "k16c.glb",
-            "--correctives",
-            "16",
-            "--perturbations",
-            "4",
-            "--directions",
-            "16",
-            "--compress",
-        ],
-    ));
-    let out = Command::new("node")
-        .arg(scripts().join("validate.mjs"))
-        .arg(d.join("k16c.glb"))
-        .output()
-        .unwrap();
-    ok(&out);
+    export_avatar(d, "k16c.glb", 16, &["--compress"]);
+    validate(&d.join("k16c.glb"));
     let psnr = player_against_f3g(d, "k16c.glb", "cap/body_params.npz", &view, 3, "k16c");
     // 28.5 dB when written (2026-11-28; the float file 29.6): f3g's renders of the two files
     // are 39.7 dB apart, the player's 35.0 — Spark stores what it is given in its own
