@@ -655,8 +655,7 @@ pub fn export_ply(a: &ExportPlyArgs) -> Result<()> {
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("spz"))
     {
-        let bytes = f3g_splat::spz::encode(&cloud).with_context(|| a.out.display().to_string())?;
-        f3g_io::write_atomic(&a.out, &bytes)?;
+        f3g_splat::spz::write_spz(&a.out, &cloud)?;
     } else {
         f3g_splat::ply::write_ply(&a.out, &cloud)?;
     }

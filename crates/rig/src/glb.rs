@@ -117,10 +117,10 @@ impl GlbBuffer {
         index
     }
 
-    /// An accessor of `count` float elements of `kind` (3 components: `VEC3`) without a buffer
-    /// view: its values come from an extension (a compressed payload), and a reader that knows
-    /// none sees zeros. `bounds_of` are the values it stands for, whose per-component `min` and
-    /// `max` glTF requires of POSITION.
+    /// An accessor of `count` float elements of `kind` without a buffer view: its values come
+    /// from an extension (a compressed payload), and a reader that knows none sees zeros.
+    /// `bounds_of` are the values it stands for (`count` elements), whose per-component `min`
+    /// and `max` glTF requires of POSITION.
     pub fn placeholder(&mut self, count: usize, kind: &str, bounds_of: Option<&[f32]>) -> usize {
         let mut accessor = json!({ "componentType": FLOAT, "count": count, "type": kind });
         if let Some(values) = bounds_of {

@@ -38,4 +38,7 @@ pub enum SplatError {
     /// A `.ply` file could not be read or written.
     #[error("{path}: {reason}")]
     Ply { path: PathBuf, reason: String },
+    /// An `.spz` file could not be written.
+    #[error("{path}: {reason}")]
+    Spz { path: PathBuf, reason: String },
 }

@@ -142,6 +142,16 @@ pub fn encode(cloud: &GaussianCloud) -> Result<Vec<u8>, SplatError> {
         })
 }
 
+/// Writes `cloud` as an `.spz` file, atomically (as [`crate::ply::write_ply`] writes `.ply`).
+pub fn write_spz(path: &std::path::Path, cloud: &GaussianCloud) -> Result<(), SplatError> {
+    let err = |reason: String| SplatError::Spz {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let bytes = encode(cloud).map_err(|e| err(e.to_string()))?;
+    f3g_io::write_atomic(path, &bytes).map_err(|e| err(e.reason))
+}
+
 /// Reads SPZ bytes (versions 2 and 3) into Gaussians in f3g's (glTF's) coordinates. Every
 /// size is checked against the header before anything is allocated for it.
 pub fn decode(bytes: &[u8]) -> Result<GaussianCloud, String> {

@@ -229,7 +229,7 @@ pub fn animate(
             }
             if options.export_spz {
                 let path = out.file(&format!("spz/frame_{i:05}.spz"))?;
-                f3g_io::write_atomic(&path, &f3g_splat::spz::encode(&cloud)?)?;
+                f3g_splat::spz::write_spz(&path, &cloud)?;
                 spzs.push(path);
             }
         }
