@@ -753,9 +753,7 @@ pub fn evaluate_avatar(
     if !grids.is_empty() {
         f3g_io::write_png(&out.file("comparison.png")?, &stack_rows(&grids))?;
     }
-    let path = out.file("comparison.mp4")?;
-    let bytes = video.finish().map_err(|e| AvatarError::file(&path, e))?;
-    f3g_io::write_atomic(&path, &bytes)?;
+    video.write(&out.file("comparison.mp4")?)?;
     out.finish()?;
     Ok(report)
 }

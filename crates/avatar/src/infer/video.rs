@@ -121,6 +121,12 @@ impl VideoWriter {
         Ok(())
     }
 
+    /// Writes the MP4 file to `path`, atomically.
+    pub fn write(self, path: &Path) -> Result<(), AvatarError> {
+        let bytes = self.finish().map_err(|e| AvatarError::file(path, e))?;
+        Ok(f3g_io::write_atomic(path, &bytes)?)
+    }
+
     /// The MP4 file's bytes.
     pub fn finish(self) -> Result<Vec<u8>, String> {
         let (Some((w, h)), (Some(sps), Some(pps))) = (self.size, self.parameter_sets) else {
@@ -175,19 +181,13 @@ impl VideoWriter {
     }
 }
 
-/// The MP4 bytes of `frames` (all of one size) at `fps`.
-pub fn mp4_bytes(frames: &[Image], fps: f32) -> Result<Vec<u8>, String> {
-    let mut video = VideoWriter::new(fps)?;
-    for frame in frames {
-        video.push(frame)?;
-    }
-    video.finish()
-}
-
 /// Writes `frames` as an H.264 MP4 video at `fps`, atomically.
 pub fn write_mp4(path: &Path, frames: &[Image], fps: f32) -> Result<(), AvatarError> {
-    let bytes = mp4_bytes(frames, fps).map_err(|e| AvatarError::file(path, e))?;
-    Ok(f3g_io::write_atomic(path, &bytes)?)
+    let mut video = VideoWriter::new(fps).map_err(|e| AvatarError::file(path, e))?;
+    for frame in frames {
+        video.push(frame).map_err(|e| AvatarError::file(path, e))?;
+    }
+    video.write(path)
 }
 
 /// Decodes an MP4 video's first H.264 track back into frames (RGB in [0, 1]) and its frame
@@ -266,6 +266,15 @@ pub fn read_mp4(bytes: &[u8]) -> Result<(Vec<Image>, f32), String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The MP4 bytes of `frames` (all of one size) at `fps`.
+    fn mp4_bytes(frames: &[Image], fps: f32) -> Result<Vec<u8>, String> {
+        let mut video = VideoWriter::new(fps)?;
+        for frame in frames {
+            video.push(frame)?;
+        }
+        video.finish()
+    }
 
     /// A moving gradient, odd-sized: what goes in comes out, frame by frame, within H.264's
     /// loss, at its frame rate; the odd size is padded by one pixel.
