@@ -825,6 +825,8 @@ def main(argv=None) -> int:
             body_gaussians=nb, face_gaussians=nf,
             intersections={"body": twin.hits[0], "head": twin.hits[1]},
             network_parameters=params, expected_network_parameters=expected,
+            discriminator_parameters=sum(p.numel() for p in twin.disc.parameters()),
+            loss_terms=values.tolist(),
             r1_timed_steps=[i for i in twin.r1_steps if i >= a.warmup],
             adam=a.adam, cudnn_benchmark=True,
             tf32={"matmul": torch.backends.cuda.matmul.allow_tf32,
