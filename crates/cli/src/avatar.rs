@@ -825,7 +825,10 @@ mod tests {
             ("--face-cm 2", &["face_net.channel_multiplier=2"]),
             ("--face-n-mlp 2", &["face_net.n_mlp=2"]),
             ("--seed 7", &["seed=7"]),
-            ("--no-adversarial --set adversarial=true", &[]),
+            (
+                "--no-adversarial --set adversarial=true",
+                &["adversarial=true"],
+            ),
         ];
         for (flags, keys) in cases {
             let config = config_of(&parse(flags).unwrap(), |_| {}).unwrap();
@@ -833,6 +836,12 @@ mod tests {
             let expected = TrainConfig::cpu().with_overrides(&keys).unwrap();
             assert_eq!(config, expected, "{flags}");
         }
+        // The `cpu` preset has no adversarial loss to drop; the `paper` preset has one.
+        let paper = |flags: &str| {
+            config_of(&parse(&format!("--preset paper {flags}")).unwrap(), |_| {}).unwrap()
+        };
+        assert!(paper("").adversarial);
+        assert!(!paper("--no-adversarial").adversarial);
     }
 
     #[test]

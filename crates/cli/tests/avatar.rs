@@ -403,7 +403,8 @@ fn data_parallel_training_and_the_training_step_bench() {
     assert!(!e.status.success());
     assert!(String::from_utf8_lossy(&e.stderr).contains("unknown device `gpu`"));
 
-    // The step bench: every phase timed, the phases add up to the step.
+    // The step bench: every phase timed (the discriminator's too: the paper's adversarial
+    // loss, which the `cpu` preset leaves out), the phases add up to the step.
     ok(&f3g(
         d,
         &[
@@ -415,6 +416,8 @@ fn data_parallel_training_and_the_training_step_bench() {
             "1",
             "--warmup",
             "1",
+            "--set",
+            "adversarial=true",
             "--json",
             "bench.json",
         ],

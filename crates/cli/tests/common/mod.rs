@@ -54,9 +54,10 @@ pub fn tiny_capture(d: &Path, steps: [u64; 5]) {
     std::fs::write(d.join("tiny.json"), tiny_config(steps, "")).unwrap();
 }
 
-/// The cpu preset shrunk so that a step takes a fraction of a second, with `steps` for
-/// pretrain, body, face_pretrain, joint and face_finetune, and `extra` keys (`"key": value`
-/// pairs, each preceded by a comma) appended.
+/// The cpu preset shrunk so that a step takes a fraction of a second, with the paper's
+/// adversarial loss (which the preset leaves out) so that runs go through the discriminator,
+/// `steps` for pretrain, body, face_pretrain, joint and face_finetune, and `extra` keys
+/// (`"key": value` pairs, each preceded by a comma) appended.
 pub fn tiny_config(steps: [u64; 5], extra: &str) -> String {
     let [pretrain, body, face_pretrain, joint, face_finetune] = steps;
     format!(
@@ -67,7 +68,7 @@ pub fn tiny_config(steps: [u64; 5], extra: &str) -> String {
                "style_dim": 16, "middle_size": 4}},
   "face_net": {{"input_size": 16, "output_size": 16, "max_channels": 16, "channel_base": 128,
                "style_dim": 16, "middle_size": 4}},
-  "face_crop_size": 32, "lpips_size": 32, "face_init_frames": 2,
+  "face_crop_size": 32, "lpips_size": 32, "face_init_frames": 2, "adversarial": true,
   "discriminator": {{"resolution": 32, "max_channels": 16, "channel_base": 128}},
   "steps": {{"pretrain": {pretrain}, "body": {body}, "face_pretrain": {face_pretrain},
             "joint": {joint}, "face_finetune": {face_finetune}}}{extra}

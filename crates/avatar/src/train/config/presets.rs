@@ -58,10 +58,16 @@ impl TrainConfig {
                 r1_gamma: 1.0,
                 r1_interval: 16,
             },
-            adversarial: true,
+            // No adversarial loss on the CPU (the paper has one; `paper` keeps it): the
+            // discriminator's step and the generator's adversarial term take 16 % of a joint
+            // step and changed nothing beyond the seeds' spread at 730, 930 and 2 950 steps;
+            // 100 more joint steps in their time give the demo's head +0.28 dB, +0.004 SSIM,
+            // −0.010 LPIPS and its body +0.19 dB over three seeds (BENCHMARKS, "The
+            // discriminator's time spent on joint steps", 2026-11-28).
+            adversarial: false,
             discriminator: DiscriminatorConfig::cpu(256),
             discriminator_weights: None,
-            // 730 steps, most of them joint steps: the face learns only there, and the paper
+            // 830 steps, most of them joint steps: the face learns only there, and the paper
             // has no body-only stage (pretraining, then joint optimisation). 50 body steps
             // give the canonical face model the body's head colours instead of the pretrained
             // grey. Against 250 body + 250 joint steps: head LPIPS −0.027, +0.7 dB for +74 s of
@@ -70,7 +76,7 @@ impl TrainConfig {
                 pretrain: 100,
                 body: 50,
                 face_pretrain: 30,
-                joint: 450,
+                joint: 550,
                 face_finetune: 100,
             },
             face_init_frames: 8,
@@ -86,10 +92,11 @@ impl TrainConfig {
         }
     }
 
-    /// The `cpu` preset trained longer, for `f3g demo --quality` (the whole demo 25.6 minutes on
-    /// two CPU cores, measured 2026-11-26; the steps have been faster since): 3.5× the
-    /// rendering steps, most of them in the body and joint stages, whose losses are still
-    /// falling when the demo stops.
+    /// The `cpu` preset trained longer, for `f3g demo --quality`: 4× the rendering steps, most
+    /// of them in the body and joint stages, whose losses are still falling when the demo
+    /// stops. Without the adversarial loss too: at this length it changes the head by less
+    /// than the seeds do (two seeds) and costs 2 minutes (BENCHMARKS, "The discriminator's
+    /// time spent on joint steps").
     pub fn cpu_long() -> Self {
         Self {
             preset: "cpu-long".into(),
@@ -141,6 +148,8 @@ impl TrainConfig {
                 face_l1: 1.0,
                 ..cpu.losses.clone()
             },
+            // The paper's face adversarial loss (the `cpu` preset leaves it out).
+            adversarial: true,
             discriminator: DiscriminatorConfig::paper(512),
             steps: Stages {
                 pretrain: 5000,
@@ -196,5 +205,7 @@ mod tests {
             ..long
         };
         assert_eq!(same, cpu);
+        // The paper's method has its adversarial loss whatever the `cpu` preset leaves out.
+        assert!(TrainConfig::paper().adversarial);
     }
 }
