@@ -95,8 +95,9 @@ impl TrainConfig {
     /// The `cpu` preset trained longer, for `f3g demo --quality`: 4× the rendering steps, most
     /// of them in the body and joint stages, whose losses are still falling when the demo
     /// stops. Without the adversarial loss too: at this length it changes the head by less
-    /// than the seeds do (two seeds) and costs 2 minutes (BENCHMARKS, "The discriminator's
-    /// time spent on joint steps").
+    /// than the seeds do (three seeds: −0.18 dB on average without it) and costs 2 minutes,
+    /// which `--quality`'s 20 would not hold (BENCHMARKS, "The discriminator's time spent on
+    /// joint steps").
     pub fn cpu_long() -> Self {
         Self {
             preset: "cpu-long".into(),
