@@ -366,10 +366,14 @@ fn html(
     seconds: f64,
 ) -> Result<String> {
     let run = out.join("run");
-    let config = std::fs::read_to_string(run.join("config.json"))?;
-    // The `cpu` presets leave the paper's adversarial loss out (at their lengths its time buys
+    let config_path = run.join("config.json");
+    let config = std::fs::read_to_string(&config_path)?;
+    // The file the run wrote holds every key: its text, shown below, parses as it is. The
+    // `cpu` presets leave the paper's adversarial loss out (at their lengths its time buys
     // more in joint steps).
-    let adversarial = TrainConfig::from_file(&run.join("config.json"))?.adversarial;
+    let adversarial = serde_json::from_str::<TrainConfig>(&config)
+        .with_context(|| format!("reading {}", config_path.display()))?
+        .adversarial;
     let face_losses = if adversarial {
         "region-aware losses, adversarial face loss"
     } else {
@@ -541,5 +545,19 @@ mod tests {
         );
         assert_eq!(body_scale(&["--resolution", "300"]), 1.0);
         assert_eq!(body_scale(&["--set", "body_scale=0.5"]), 0.5);
+    }
+
+    /// The report parses the run's `config.json` as it is (not over a preset): the file a run
+    /// writes holds every key, whichever preset it came from.
+    #[test]
+    fn a_runs_config_file_parses_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let run = f3g_avatar::infer::Run::new(dir.path());
+        for preset in ["cpu", "cpu-long", "paper"] {
+            let config = TrainConfig::preset(preset).unwrap();
+            run.write_config(&config).unwrap();
+            let text = std::fs::read_to_string(dir.path().join("config.json")).unwrap();
+            assert_eq!(serde_json::from_str::<TrainConfig>(&text).unwrap(), config);
+        }
     }
 }
