@@ -7,7 +7,8 @@
 #   tools/cuda-offline.sh test  [DIR]     # setup, then the checks: every splat kernel through
 #                                         # NVRTC and ptxas (crates/splat/tests/cuda_kernels.rs),
 #                                         # a training step on the offline driver, cold then from
-#                                         # the kernel cache (crates/cli/tests/cuda_offline.rs)
+#                                         # the kernel cache (crates/cli/tests/cuda_offline.rs);
+#                                         # F3G_GPU_CARGO_CONFIG=FILE: cargo --config for its build
 #   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
 #                                         # the offline driver, e.g. `bench train --device cuda`
 #   tools/cuda-offline.sh features        # every GPU feature of the crates with GPU tests
@@ -78,8 +79,10 @@ test)
     export F3G_OFFLINE_CUDA_DRIVER=$driver
     # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
     # it all of Burn) when CUDA_PATH changes. The packages and features of CI's GPU build
-    # (`ci-features`), so .ci/run's lavapipe tests and these share one build of Burn.
-    tests=$( (env -u CUDA_PATH cargo test --release --locked -p f3g-cli -p f3g-nets -p f3g-splat \
+    # (`ci-features`), so .ci/run's lavapipe tests and these share one build of Burn; with
+    # F3G_GPU_CARGO_CONFIG (a cargo `--config` file) as that build had it (CI's: .ci/gpu-build.toml).
+    tests=$( (env -u CUDA_PATH cargo test ${F3G_GPU_CARGO_CONFIG:+--config "$F3G_GPU_CARGO_CONFIG"} \
+        --release --locked -p f3g-cli -p f3g-nets -p f3g-splat \
         --features "$CI_FEATURES" --test cuda_offline --test cuda_kernels --no-run \
         --message-format=json-render-diagnostics) | python3 -c '
 import json, sys
@@ -93,7 +96,7 @@ for line in sys.stdin:
     done
     ;;
 *)
-    sed -n '2,23p' "$0"
+    sed -n '2,24p' "$0"
     exit 2
     ;;
 esac
