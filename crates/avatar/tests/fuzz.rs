@@ -6,12 +6,13 @@
 //! the file or key — no panic, no single allocation above 256 MiB. (Module files are fuzzed in
 //! `f3g-nets`.)
 
-use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::optim::GradientsParams;
 use burn::tensor::Device;
 use f3g_avatar::infer::{Run, load_face_base, read_state};
 use f3g_avatar::model::Setup;
 use f3g_avatar::train::{TrainConfig, load_optim};
 use f3g_nets::StyleUNetConfig;
+use f3g_nets::adam::{FusedAdam, ModuleAdam};
 use f3g_testkit::{
     AllocationGuard, Array, config, mutated, mutated_arrays, mutated_text, read_arrays,
     write_arrays,
@@ -107,7 +108,7 @@ fn net_of_width(device: &Device, namespace: u64, channels: usize) -> f3g_nets::D
 }
 
 fn step(
-    optim: &mut ModuleOptimizer,
+    optim: &mut ModuleAdam,
     net: f3g_nets::DualStyleUNet,
     device: &Device,
 ) -> f3g_nets::DualStyleUNet {
@@ -123,10 +124,20 @@ fn step(
     optim.step(1e-3, net, grads)
 }
 
+/// The trainer's optimiser (Burn's `Adam` with PyTorch's ε, its records Burn's).
+fn adam() -> ModuleAdam {
+    FusedAdam {
+        beta_1: 0.9,
+        beta_2: 0.999,
+        epsilon: 1e-8,
+    }
+    .init()
+}
+
 /// Adam's state after two steps of `small_net(_, 1)` (moments for every parameter).
 static OPTIM_SEED: std::sync::LazyLock<Vec<u8>> = std::sync::LazyLock::new(|| {
     let device = Device::flex().autodiff();
-    let mut optim = AdamConfig::new().init();
+    let mut optim = adam();
     let net = step(&mut optim, small_net(&device, 1), &device);
     step(&mut optim, net, &device);
     optim.to_record().into_bytes().unwrap().to_vec()
@@ -185,21 +196,15 @@ fn the_valid_checkpoint_seeds_read() {
     let path = dir.path().join("optim.bpk");
     std::fs::write(&path, &*OPTIM_SEED).unwrap();
     let net = small_net(&device, 1);
-    let mut optim = load_optim(AdamConfig::new().init(), &path, &net).unwrap();
+    let mut optim = load_optim(adam(), &path, &net).unwrap();
     step(&mut optim, net, &device);
     // The state of another network (different parameter ids) is refused.
     let other = small_net(&device, 2);
-    let e = load_optim(AdamConfig::new().init(), &path, &other)
-        .err()
-        .unwrap()
-        .to_string();
+    let e = load_optim(adam(), &path, &other).err().unwrap().to_string();
     assert!(e.contains("optim.bpk") && e.contains("no parameter"), "{e}");
     // A wider network with the same ids: Burn would load the state and panic at the next step.
     let wider = net_of_width(&device, 1, 8);
-    let e = load_optim(AdamConfig::new().init(), &path, &wider)
-        .err()
-        .unwrap()
-        .to_string();
+    let e = load_optim(adam(), &path, &wider).err().unwrap().to_string();
     assert!(
         e.contains("optim.bpk") && e.contains("its parameter is F32"),
         "{e}"
@@ -289,7 +294,7 @@ proptest! {
         let path = dir.path().join("optim.bpk");
         std::fs::write(&path, &bytes).unwrap();
         let net = small_net(&device, 1);
-        match load_optim(AdamConfig::new().init(), &path, &net) {
+        match load_optim(adam(), &path, &net) {
             Ok(mut optim) => {
                 step(&mut optim, net, &device);
             }

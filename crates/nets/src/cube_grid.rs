@@ -1,7 +1,7 @@
 //! The launch shape of the crate's element-wise CubeCL kernels (`conv::bands`, `adam`, `fused`): one
 //! thread per value, [`UNITS`] per cube, on a 2-D grid because wgpu allows at most 65 535 cubes
-//! per dimension. The last row runs past the work: every kernel ignores the units past its
-//! tensor's length.
+//! per dimension (and a third dimension for kernels that treat several tensors, one per layer).
+//! The last row runs past the work: every kernel ignores the units past its tensor's length.
 
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
@@ -17,4 +17,15 @@ pub(crate) fn one_thread_per_value(values: usize) -> (CubeCount, CubeDim) {
         CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
         CubeDim::new_1d(UNITS),
     )
+}
+
+/// [`one_thread_per_value`] for the longest of `layers` tensors, one grid layer (`CUBE_POS_Z`)
+/// each; a unit's position in its tensor is `(CUBE_POS_Y · CUBE_COUNT_X + CUBE_POS_X) · UNITS +
+/// UNIT_POS_X`.
+pub(crate) fn one_thread_per_value_in_layers(values: usize, layers: usize) -> (CubeCount, CubeDim) {
+    let (cubes, cube) = one_thread_per_value(values);
+    let CubeCount::Static(x, y, _) = cubes else {
+        unreachable!("one_thread_per_value counts statically")
+    };
+    (CubeCount::Static(x, y, layers as u32), cube)
 }

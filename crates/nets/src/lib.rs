@@ -14,7 +14,8 @@
 //!   blur, Haar) and modulated weights, each one pass (a loop on the CPU, a kernel on a GPU)
 //!   where it can run, else Burn's tensor ops ([`fused::portable`]).
 //! - [`resample`]: bilinear resizing to any size.
-//! - [`adam`]: Adam with each parameter's update as one pass (one kernel on a GPU).
+//! - [`adam`]: Adam with each parameter's update as one pass (on a GPU, one kernel for up to 16
+//!   parameters).
 //! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
 //!
 //! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host

@@ -411,6 +411,57 @@ fn adam_in_one_pass_matches_the_cpu() {
     }
 }
 
+/// [`f3g_nets::adam::ModuleAdam`] on the device launches the updates of up to `MAX_PER_LAUNCH`
+/// parameters per kernel (one grid layer each, sorted by size): three steps of a module with
+/// more parameters than two launches hold, of many sizes, equal the CPU's one-by-one updates.
+#[test]
+fn adam_over_a_module_in_shared_launches_matches_the_cpu() {
+    use burn::module::Param;
+    use burn::optim::GradientsParams;
+    use f3g_nets::adam::{FusedAdam, MAX_PER_LAUNCH};
+
+    #[derive(Module, Debug)]
+    struct Many {
+        rows: Vec<Param<Tensor<4>>>,
+    }
+    let sizes: Vec<usize> = (0..2 * MAX_PER_LAUNCH + 5)
+        .map(|i| 1 + (i * i * 37) % 3001 + if i == 7 { 90_000 } else { 0 })
+        .collect();
+    let run = |device: &Device| {
+        let device = device.clone().autodiff();
+        let mut many = Many {
+            rows: sizes
+                .iter()
+                .map(|&n| Param::from_tensor(ramp([1, 1, 1, n], &device)))
+                .collect(),
+        };
+        let mut adam = FusedAdam {
+            beta_1: 0.9,
+            beta_2: 0.999,
+            epsilon: 1e-8,
+        }
+        .init();
+        for step in 0..3 {
+            let loss = many
+                .rows
+                .iter()
+                .enumerate()
+                .map(|(i, p)| (p.val() * (step + i % 5) as f32).sin().sum())
+                .reduce(|a, b| a + b)
+                .unwrap();
+            let grads = GradientsParams::from_grads(loss.backward(), &many);
+            many = adam.step(1e-2, many, grads);
+        }
+        many.rows
+            .iter()
+            .flat_map(|p| values(p.val().inner()))
+            .collect::<Vec<_>>()
+    };
+    let gpu = run(&test_device());
+    let cpu = run(&Device::flex());
+    assert_close(&gpu, &cpu, 1e-5, "parameters");
+}
+
 /// Reductions with few outputs over long axes — a bias gradient (autodiff sums `[B, C, H, W]`
 /// over `B·H·W` in one folded axis), a loss's mean, a sum along rows — against the CPU: on
 /// GPUs they run the cube and plane routines of the patched `burn-cubecl`

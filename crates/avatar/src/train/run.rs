@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 
 use burn::module::Module;
-use burn::optim::{ModuleOptimizer, OptimizerRecord};
+use burn::optim::OptimizerRecord;
 use burn::tensor::Bytes;
 use serde::Serialize;
 
@@ -17,6 +17,7 @@ use super::config::TrainConfig;
 use crate::AvatarError;
 use crate::infer::run::{RUN_FORMAT, Run, RunInfo, TrainState};
 use crate::model::FaceBase;
+use f3g_nets::adam::ModuleAdam;
 use f3g_template::PosePca;
 
 fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<(), AvatarError> {
@@ -81,9 +82,9 @@ impl Run {
         &self,
         state: &TrainState,
         nets: &N,
-        optim_body: &ModuleOptimizer,
-        optim_face: Option<&ModuleOptimizer>,
-        disc: Option<(&D, &ModuleOptimizer)>,
+        optim_body: &ModuleAdam,
+        optim_face: Option<&ModuleAdam>,
+        disc: Option<(&D, &ModuleAdam)>,
         face_base: Option<&FaceBase>,
     ) -> Result<PathBuf, AvatarError> {
         let name = format!("step-{:09}", state.step);
@@ -136,7 +137,7 @@ impl Run {
     }
 }
 
-fn save_optim(optim: &ModuleOptimizer, path: &Path) -> Result<(), AvatarError> {
+fn save_optim(optim: &ModuleAdam, path: &Path) -> Result<(), AvatarError> {
     let bytes = optim
         .to_record()
         .into_bytes()
@@ -149,10 +150,10 @@ fn save_optim(optim: &ModuleOptimizer, path: &Path) -> Result<(), AvatarError> {
 /// Loads an optimiser's state saved with a checkpoint for the module it steps (checked
 /// against it first: Burn's loader trusts the file).
 pub fn load_optim<M: Module>(
-    optim: ModuleOptimizer,
+    optim: ModuleAdam,
     path: &Path,
     module: &M,
-) -> Result<ModuleOptimizer, AvatarError> {
+) -> Result<ModuleAdam, AvatarError> {
     let bytes = Bytes::from_bytes_vec(std::fs::read(path).map_err(|e| AvatarError::file(path, e))?);
     f3g_nets::checkpoint::check_optimiser_state(&bytes, module)
         .map_err(|e| AvatarError::file(path, format!("not this run's optimiser state: {e}")))?;

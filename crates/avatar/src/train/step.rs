@@ -13,7 +13,7 @@
 //! the loader's worker thread ([`super::sample`]).
 
 use burn::module::{Module, ModuleVisitor, Param};
-use burn::optim::{GradientsParams, ModuleOptimizer};
+use burn::optim::GradientsParams;
 use burn::tensor::distributed::{ReduceOperation, all_reduce};
 use burn::tensor::{Device, Tensor};
 
@@ -24,12 +24,13 @@ use super::sample::DeviceSample;
 use super::schedule::Stage;
 use crate::AvatarError;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
-use f3g_nets::adam::FusedAdam;
+use f3g_nets::adam::{FusedAdam, ModuleAdam};
 use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
 use f3g_nets::{Discriminator, Lpips};
 
-/// Adam of the avatar's networks (Burn's defaults for the betas), one pass per parameter.
-pub fn adam(epsilon: f32) -> ModuleOptimizer {
+/// Adam of the avatar's networks (Burn's defaults for the betas), one pass per parameter
+/// (several parameters per kernel on GPUs).
+pub fn adam(epsilon: f32) -> ModuleAdam {
     FusedAdam {
         beta_1: 0.9,
         beta_2: 0.999,
@@ -39,7 +40,7 @@ pub fn adam(epsilon: f32) -> ModuleOptimizer {
 }
 
 /// Adam of the discriminator (StyleGAN2's betas; Burn's default ε).
-pub fn adam_disc() -> ModuleOptimizer {
+pub fn adam_disc() -> ModuleAdam {
     FusedAdam {
         beta_1: 0.0,
         beta_2: 0.99,
@@ -52,9 +53,9 @@ pub fn adam_disc() -> ModuleOptimizer {
 /// one), and the discriminator's.
 #[derive(Clone)]
 pub struct Optimisers {
-    pub body: ModuleOptimizer,
-    pub face: Option<ModuleOptimizer>,
-    pub disc: Option<ModuleOptimizer>,
+    pub body: ModuleAdam,
+    pub face: Option<ModuleAdam>,
+    pub disc: Option<ModuleAdam>,
 }
 
 /// A copy of everything trainable, and what the losses read, on one device.

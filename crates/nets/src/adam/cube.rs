@@ -1,16 +1,29 @@
-//! `impl AdamBackend for CubeBackend` (wgpu, CUDA without fusion): one kernel per parameter.
-//! Inputs are read row-major after `into_contiguous`; outputs are allocated contiguous (CUDA
-//! pitches Burn's ordinary allocations: `f3g_splat::cube`'s module doc).
+//! Adam on `CubeBackend` (wgpu, CUDA without fusion): `impl AdamBackend` (one kernel per
+//! parameter) and the batched path of [`super::ModuleAdam`] ([`AdamManyBackend`]: the updates of
+//! up to [`MAX_PER_LAUNCH`] parameters in one kernel, one grid layer each). Inputs are read
+//! row-major after `into_contiguous`; outputs are allocated contiguous (CUDA pitches Burn's
+//! ordinary allocations: `f3g_splat::cube`'s module doc).
+//!
+//! Batching: while [`batched`] runs a module's step on this thread, [`defer`] gives each
+//! parameter freshly allocated outputs (its new value and moments, which Burn's optimiser
+//! stores as usual) and queues the update; [`batched`] launches the queue when every parameter
+//! has been visited, before anything can read the outputs (one stream per device: the launches
+//! run before any later kernel that reads them).
 
-use burn::backend::TensorMetadata;
+use std::cell::RefCell;
+
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::DType;
+use burn::backend::{Backend, Dispatch, DispatchDevice, TensorMetadata, backend_extension};
+use burn::tensor::{DType, Device, Tensor};
 use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::client::Client;
+use burn_cubecl::cubecl::prelude::SequenceArg;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+use burn_cubecl::tensor::CubeTensor;
 
-use super::{AdamBackend, AdamCoefficients};
-use crate::cube_grid::one_thread_per_value;
+use super::{AdamBackend, AdamCoefficients, MAX_PER_LAUNCH};
+use crate::cube_grid::{one_thread_per_value, one_thread_per_value_in_layers};
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -45,6 +58,42 @@ mod kernels {
         moment_1_out[i] = m;
         moment_2_out[i] = v;
         param_out[i] = param[i] - m * moment_scale / (f32::sqrt(v) + epsilon) * learning_rate;
+    }
+
+    /// [`adam_update`] for several parameters: layer `CUBE_POS_Z` of the grid updates parameter
+    /// `t`, whose `(param, grad, m, v)` are `inputs[4t..4t + 4]` and new `(param, m, v)`
+    /// `outputs[3t..3t + 3]`.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn adam_update_many(
+        inputs: &Sequence<OwnedTensor<f32>>,
+        outputs: &mut Sequence<OwnedTensor<f32>>,
+        beta_1: f32,
+        one_minus_beta_1: f32,
+        beta_2: f32,
+        one_minus_beta_2: f32,
+        moment_scale: f32,
+        epsilon: f32,
+        learning_rate: f32,
+        #[comptime] count: usize,
+    ) {
+        let layer = CUBE_POS_Z as usize;
+        let i = ((CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X) * CUBE_DIM_X + UNIT_POS_X) as usize;
+        #[unroll]
+        for t in 0..count {
+            if layer == t {
+                let param = inputs.index(4 * t);
+                if i < param.len() {
+                    let g = inputs.index(4 * t + 1)[i];
+                    let m = inputs.index(4 * t + 2)[i] * beta_1 + g * one_minus_beta_1;
+                    let v = inputs.index(4 * t + 3)[i] * beta_2 + g * g * one_minus_beta_2;
+                    let p = param[i] - m * moment_scale / (f32::sqrt(v) + epsilon) * learning_rate;
+                    outputs.index_mut(3 * t)[i] = p;
+                    outputs.index_mut(3 * t + 1)[i] = m;
+                    outputs.index_mut(3 * t + 2)[i] = v;
+                }
+            }
+        }
     }
 }
 
@@ -89,4 +138,180 @@ impl AdamBackend for CubeBackend {
         }
         (param_out, m_out, v_out)
     }
+}
+
+/// The batched update's two halves as backend ops (unfused `Cube` devices only).
+#[backend_extension(Cube)]
+pub trait AdamManyBackend: Backend {
+    /// Queues the update of one parameter on this thread and returns its new value and
+    /// moments: allocated now, written by [`Self::adam_launch_queued`].
+    fn adam_queue(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        moment_1: FloatTensor<Self>,
+        moment_2: FloatTensor<Self>,
+        coefficients: AdamCoefficients,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+
+    /// Launches the updates queued on this thread, [`MAX_PER_LAUNCH`] parameters at most per
+    /// kernel; `route` (any tensor of the device) selects the backend and is returned.
+    fn adam_launch_queued(route: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+/// A queued update: `(param, grad, m, v)`, then the outputs `(param, m, v)`.
+struct Queued {
+    tensors: [CubeTensor; 7],
+    coefficients: AdamCoefficients,
+}
+
+thread_local! {
+    /// Updates queued by `adam_queue`, launched by `adam_launch_queued`.
+    static QUEUE: RefCell<Vec<Queued>> = const { RefCell::new(Vec::new()) };
+    /// While [`batched`] runs on this thread: `Some`, with one of the queued updates' outputs
+    /// once there is one (the route of the launch).
+    static BATCH: RefCell<Option<Option<FloatTensor<Dispatch>>>> = const { RefCell::new(None) };
+}
+
+/// Runs `step` (one module's optimiser step) with the updates of `Cube` devices queued, then
+/// launches them, several parameters per kernel. Not re-entrant (one module at a time).
+pub(super) fn batched<T>(step: impl FnOnce() -> T) -> T {
+    /// Stops queueing however `step` ends, and launches the queue unless it is unwinding (a
+    /// launch that panicked then would abort; a later step launches the leftovers, whose outputs
+    /// nothing reads).
+    struct Launch;
+    impl Drop for Launch {
+        fn drop(&mut self) {
+            let route = BATCH.with(|b| b.borrow_mut().take()).flatten();
+            if let Some(route) = route.filter(|_| !std::thread::panicking()) {
+                <Dispatch as AdamManyBackend>::adam_launch_queued(route);
+            }
+        }
+    }
+    BATCH.with(|b| *b.borrow_mut() = Some(None));
+    let _launch = Launch;
+    step()
+}
+
+/// Whether [`defer`] queues updates on `device` now.
+pub(super) fn deferring(device: &Device) -> bool {
+    matches!(device.as_dispatch(), DispatchDevice::Cube(_)) && BATCH.with(|b| b.borrow().is_some())
+}
+
+/// Queues the update of one parameter (see [`deferring`]) and returns its outputs, written
+/// when [`batched`] ends.
+pub(super) fn defer<const D: usize>(
+    param: Tensor<D>,
+    grad: Tensor<D>,
+    moment_1: Tensor<D>,
+    moment_2: Tensor<D>,
+    coefficients: AdamCoefficients,
+) -> (Tensor<D>, Tensor<D>, Tensor<D>) {
+    let (p, m, v) = <Dispatch as AdamManyBackend>::adam_queue(
+        param.into_dispatch(),
+        grad.into_dispatch(),
+        moment_1.into_dispatch(),
+        moment_2.into_dispatch(),
+        coefficients,
+    );
+    BATCH.with(|b| {
+        if let Some(route) = b.borrow_mut().as_mut() {
+            route.get_or_insert_with(|| v.clone());
+        }
+    });
+    (
+        Tensor::from_dispatch(p),
+        Tensor::from_dispatch(m),
+        Tensor::from_dispatch(v),
+    )
+}
+
+impl AdamManyBackend for CubeBackend {
+    fn adam_queue(
+        param: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        moment_1: FloatTensor<Self>,
+        moment_2: FloatTensor<Self>,
+        coefficients: AdamCoefficients,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let shape = param.shape();
+        let (client, device) = (param.client.clone(), param.device.clone());
+        let empty = || {
+            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.clone(), DType::F32)
+        };
+        let (p, m, v) = (empty(), empty(), empty());
+        let tensors = [
+            param,
+            grad,
+            moment_1,
+            moment_2,
+            p.clone(),
+            m.clone(),
+            v.clone(),
+        ];
+        QUEUE.with(|q| {
+            q.borrow_mut().push(Queued {
+                tensors,
+                coefficients,
+            })
+        });
+        (p, m, v)
+    }
+
+    fn adam_launch_queued(route: FloatTensor<Self>) -> FloatTensor<Self> {
+        let mut queue = QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
+        let client = route.client.clone();
+        let per_launch =
+            (client.properties().hardware.max_bindings as usize / 7).clamp(1, MAX_PER_LAUNCH);
+        // Neighbours in size share a grid with little to spare; a launch shares one step's
+        // coefficients (every parameter's moments are as old, except after a stage adds a
+        // network).
+        queue.sort_by_key(|q| q.tensors[0].shape().num_elements());
+        while let Some(first) = queue.first() {
+            let c = first.coefficients;
+            let (same, rest): (Vec<_>, Vec<_>) =
+                queue.into_iter().partition(|q| q.coefficients == c);
+            for chunk in same.chunks(per_launch) {
+                launch(&client, chunk, c);
+            }
+            queue = rest;
+        }
+        route
+    }
+}
+
+/// One kernel for the updates of `chunk`, one grid layer each.
+fn launch(client: &Client, chunk: &[Queued], c: AdamCoefficients) {
+    let longest = chunk
+        .iter()
+        .map(|q| q.tensors[0].shape().num_elements())
+        .max()
+        .unwrap_or(0);
+    if longest == 0 {
+        return;
+    }
+    let (mut inputs, mut outputs) = (SequenceArg::new(), SequenceArg::new());
+    for q in chunk {
+        for input in &q.tensors[..4] {
+            inputs.push(into_contiguous(input.clone()).into_tensor_arg());
+        }
+        for output in &q.tensors[4..] {
+            outputs.push(output.clone().into_tensor_arg());
+        }
+    }
+    let (cubes, cube) = one_thread_per_value_in_layers(longest, chunk.len());
+    kernels::adam_update_many::launch(
+        client,
+        cubes,
+        cube,
+        inputs,
+        outputs,
+        c.beta_1,
+        c.one_minus_beta_1,
+        c.beta_2,
+        c.one_minus_beta_2,
+        c.moment_scale,
+        c.epsilon,
+        c.learning_rate,
+        chunk.len(),
+    );
 }
