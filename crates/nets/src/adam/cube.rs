@@ -1,8 +1,9 @@
-//! Adam on `CubeBackend` (wgpu, CUDA without fusion): `impl AdamBackend` (one kernel per
-//! parameter) and the batched path of [`super::ModuleAdam`] ([`AdamManyBackend`]: the updates of
-//! up to [`MAX_PER_LAUNCH`] parameters in one kernel, one grid layer each). Inputs are read
-//! row-major after `into_contiguous`; outputs are allocated contiguous (CUDA pitches Burn's
-//! ordinary allocations: `f3g_splat::cube`'s module doc).
+//! Adam on `CubeBackend` (wgpu, CUDA without fusion): one kernel, `adam_update_many`, updates
+//! up to [`MAX_PER_LAUNCH`] parameters, one grid layer each — one parameter for `impl
+//! AdamBackend`, a queue of them for the batched path of [`super::ModuleAdam`]
+//! ([`AdamManyBackend`]). Inputs are read row-major after `into_contiguous`; outputs are
+//! allocated contiguous (CUDA pitches Burn's ordinary allocations: `f3g_splat::cube`'s module
+//! doc).
 //!
 //! Batching: while [`batched`] runs a module's step on this thread, [`defer`] gives each
 //! parameter freshly allocated outputs (its new value and moments, which Burn's optimiser
@@ -23,46 +24,15 @@ use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_cubecl::tensor::CubeTensor;
 
 use super::{AdamBackend, AdamCoefficients, MAX_PER_LAUNCH};
-use crate::cube_grid::{one_thread_per_value, one_thread_per_value_in_layers};
+use crate::cube_grid::one_thread_per_value_in_layers;
 
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    /// One element of `super::super::update_one`, at `ABSOLUTE_POS`.
-    #[allow(clippy::too_many_arguments)]
-    #[cube(launch)]
-    pub fn adam_update(
-        param: &Tensor<f32>,
-        grad: &Tensor<f32>,
-        moment_1: &Tensor<f32>,
-        moment_2: &Tensor<f32>,
-        param_out: &mut Tensor<f32>,
-        moment_1_out: &mut Tensor<f32>,
-        moment_2_out: &mut Tensor<f32>,
-        beta_1: f32,
-        one_minus_beta_1: f32,
-        beta_2: f32,
-        one_minus_beta_2: f32,
-        moment_scale: f32,
-        epsilon: f32,
-        learning_rate: f32,
-    ) {
-        let i = ABSOLUTE_POS;
-        if i >= param.len() {
-            terminate!();
-        }
-        let g = grad[i];
-        let m = moment_1[i] * beta_1 + g * one_minus_beta_1;
-        let v = moment_2[i] * beta_2 + g * g * one_minus_beta_2;
-        moment_1_out[i] = m;
-        moment_2_out[i] = v;
-        param_out[i] = param[i] - m * moment_scale / (f32::sqrt(v) + epsilon) * learning_rate;
-    }
-
-    /// [`adam_update`] for several parameters: layer `CUBE_POS_Z` of the grid updates parameter
-    /// `t`, whose `(param, grad, m, v)` are `inputs[4t..4t + 4]` and new `(param, m, v)`
-    /// `outputs[3t..3t + 3]`.
+    /// `super::super::update_one` for several parameters: layer `CUBE_POS_Z` of the grid
+    /// updates parameter `t`, whose `(param, grad, m, v)` are `inputs[4t..4t + 4]` and new
+    /// `(param, m, v)` `outputs[3t..3t + 3]`.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn adam_update_many(
@@ -105,38 +75,9 @@ impl AdamBackend for CubeBackend {
         moment_2: FloatTensor<Self>,
         c: AdamCoefficients,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let shape = param.shape();
-        let n = shape.num_elements();
-        let [param, grad, moment_1, moment_2] =
-            [param, grad, moment_1, moment_2].map(into_contiguous);
-        let (client, device) = (param.client.clone(), param.device.clone());
-        let empty = || {
-            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.clone(), DType::F32)
-        };
-        let (param_out, m_out, v_out) = (empty(), empty(), empty());
-        if n > 0 {
-            let (cubes, cube) = one_thread_per_value(n);
-            kernels::adam_update::launch(
-                &client,
-                cubes,
-                cube,
-                param.into_tensor_arg(),
-                grad.into_tensor_arg(),
-                moment_1.into_tensor_arg(),
-                moment_2.into_tensor_arg(),
-                param_out.clone().into_tensor_arg(),
-                m_out.clone().into_tensor_arg(),
-                v_out.clone().into_tensor_arg(),
-                c.beta_1,
-                c.one_minus_beta_1,
-                c.beta_2,
-                c.one_minus_beta_2,
-                c.moment_scale,
-                c.epsilon,
-                c.learning_rate,
-            );
-        }
-        (param_out, m_out, v_out)
+        let update = Queued::new(param, grad, moment_1, moment_2, c);
+        launch(&update.tensors[0].client, std::slice::from_ref(&update), c);
+        update.outputs()
     }
 }
 
@@ -162,6 +103,34 @@ pub trait AdamManyBackend: Backend {
 struct Queued {
     tensors: [CubeTensor; 7],
     coefficients: AdamCoefficients,
+}
+
+impl Queued {
+    /// The update of one parameter, its outputs allocated (contiguous) and not yet written.
+    fn new(
+        param: CubeTensor,
+        grad: CubeTensor,
+        moment_1: CubeTensor,
+        moment_2: CubeTensor,
+        coefficients: AdamCoefficients,
+    ) -> Self {
+        let shape = param.shape();
+        let (client, device) = (param.client.clone(), param.device.clone());
+        let empty = || {
+            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.clone(), DType::F32)
+        };
+        let (p, m, v) = (empty(), empty(), empty());
+        Self {
+            tensors: [param, grad, moment_1, moment_2, p, m, v],
+            coefficients,
+        }
+    }
+
+    /// The new value and moments.
+    fn outputs(&self) -> (CubeTensor, CubeTensor, CubeTensor) {
+        let [.., p, m, v] = &self.tensors;
+        (p.clone(), m.clone(), v.clone())
+    }
 }
 
 thread_local! {
@@ -233,28 +202,10 @@ impl AdamManyBackend for CubeBackend {
         moment_2: FloatTensor<Self>,
         coefficients: AdamCoefficients,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let shape = param.shape();
-        let (client, device) = (param.client.clone(), param.device.clone());
-        let empty = || {
-            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.clone(), DType::F32)
-        };
-        let (p, m, v) = (empty(), empty(), empty());
-        let tensors = [
-            param,
-            grad,
-            moment_1,
-            moment_2,
-            p.clone(),
-            m.clone(),
-            v.clone(),
-        ];
-        QUEUE.with(|q| {
-            q.borrow_mut().push(Queued {
-                tensors,
-                coefficients,
-            })
-        });
-        (p, m, v)
+        let update = Queued::new(param, grad, moment_1, moment_2, coefficients);
+        let outputs = update.outputs();
+        QUEUE.with(|q| q.borrow_mut().push(update));
+        outputs
     }
 
     fn adam_launch_queued(route: FloatTensor<Self>) -> FloatTensor<Self> {
