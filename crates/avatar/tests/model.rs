@@ -2,10 +2,13 @@
 //! device equal the host's reading of the method (skinning with `f3g_rig`, maps reduced texel
 //! by texel), the camera reaches colours only (with the split and three-network layouts, not
 //! with the single network kept for comparison), and the networks do not see finger
-//! articulation.
+//! articulation; another view of a pose from the view-free outputs equals the whole forward.
 
 use burn::tensor::{Device, Tensor};
-use f3g_avatar::model::{AvatarNets, BodyLayout, Canonical, Constants, Setup, canonical};
+use f3g_avatar::model::{
+    AvatarNets, BodyLayout, Canonical, Constants, FaceBase, Setup, canonical, canonical_seen,
+    view_free,
+};
 use f3g_avatar::train::TrainConfig;
 use f3g_rig::RigParams;
 use f3g_splat::Camera;
@@ -85,6 +88,62 @@ fn the_camera_changes_colours_only() {
     // The single view-conditioned network (the old design) lets the camera move everything.
     let (geometry, _) = camera_effect(BodyLayout::Single);
     assert!(geometry > 1e-4, "{geometry}");
+}
+
+/// A canonical face model of grey, small, half-opaque Gaussians at the head maps' points.
+fn face_base(setup: &Setup) -> FaceBase {
+    let n_face = setup.face_count();
+    FaceBase {
+        positions: vec![0.0; 3 * n_face],
+        colours: vec![0.5; 3 * n_face],
+        opacity_logits: vec![0.0; n_face],
+        log_scales: vec![-4.0; 3 * n_face],
+        quats: [1.0, 0.0, 0.0, 0.0].repeat(n_face),
+    }
+}
+
+#[test]
+fn another_view_of_a_pose_from_the_view_free_outputs_equals_the_whole_forward() {
+    for layout in [BodyLayout::Split, BodyLayout::Three, BodyLayout::Single] {
+        let mut config = small(layout);
+        config.model.face_branch = true;
+        let face = &mut config.model.face_net;
+        (face.input_size, face.output_size, face.max_channels) = (16, 16, 8);
+        let device = Device::flex();
+        let rig = f3g_rig::ModelSpec::Builtin.load().unwrap();
+        let setup = Setup::new("builtin", &rig.zero_params().identity, &config.model).unwrap();
+        let nets = AvatarNets::new(&config.model, config.seed, &setup, &device).unwrap();
+        let constants = Constants::new(&setup, &config.model, Some(&face_base(&setup)), &device);
+        let pose = setup.pose(&rig.zero_params()).unwrap().upload(&device);
+        let seen_from = |yaw| constants.inputs(&pose, &camera(yaw), None, None).unwrap();
+        let (first, second) = (seen_from(0.0), seen_from(2.0));
+        let free = view_free(&nets, &constants, &first).unwrap();
+        let again = canonical_seen(&nets, &constants, &second, &free).unwrap();
+        let whole = canonical(&nets, &constants, &second).unwrap();
+        let fields = |c: Canonical| {
+            [
+                host(c.means),
+                host(c.log_scales),
+                host(c.quats),
+                host(c.opacity_logits),
+                host(c.colours),
+            ]
+        };
+        let n = setup.body_count() + setup.face_count();
+        let (again, whole) = (fields(again), fields(whole));
+        assert_eq!(
+            again[0].len(),
+            3 * n,
+            "{layout:?}: the face Gaussians are there"
+        );
+        assert_eq!(again, whole, "{layout:?}");
+        // The second view's colours, not the first's.
+        let first_colours = host(canonical(&nets, &constants, &first).unwrap().colours);
+        assert!(
+            max_difference(first_colours, whole[4].clone()) > 1e-4,
+            "{layout:?}"
+        );
+    }
 }
 
 #[test]
@@ -190,15 +249,7 @@ fn device_inputs_equal_the_host_reference() {
     let cam = camera(0.7);
     let pose = setup.pose(&params).unwrap();
     // With a face model: the face inputs too.
-    let n_face = setup.face_count();
-    let base = f3g_avatar::model::FaceBase {
-        positions: vec![0.0; 3 * n_face],
-        colours: vec![0.5; 3 * n_face],
-        opacity_logits: vec![0.0; n_face],
-        log_scales: vec![-4.0; 3 * n_face],
-        quats: [1.0, 0.0, 0.0, 0.0].repeat(n_face),
-    };
-    let constants = Constants::new(&setup, &config.model, Some(&base), &device);
+    let constants = Constants::new(&setup, &config.model, Some(&face_base(&setup)), &device);
     let inputs = constants
         .inputs(&pose.upload(&device), &cam, None, None)
         .unwrap();

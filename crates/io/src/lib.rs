@@ -50,6 +50,15 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
+    if !dir.is_dir() {
+        return Err(IoError::new(
+            path,
+            format!(
+                "cannot be written: the folder {} does not exist",
+                dir.display()
+            ),
+        ));
+    }
     outputs::sweep_stale_temporaries(dir);
     let prefix = outputs::temporary_prefix();
     let mut builder = tempfile::Builder::new();
@@ -223,11 +232,12 @@ pub fn write_png(path: &Path, img: &Image) -> Result<(), IoError> {
     write_atomic(path, &bytes)
 }
 
-/// Writes a JPEG (quality 0–100), atomically. Used for capture images, as real datasets do.
+/// Writes a JPEG (quality 1–100, 4:4:4 from 90 up), atomically. Used for capture images, as
+/// real datasets do.
 pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> {
     let color = match img.channels {
-        1 => image::ExtendedColorType::L8,
-        3 => image::ExtendedColorType::Rgb8,
+        1 => jpeg_encoder::ColorType::Luma,
+        3 => jpeg_encoder::ColorType::Rgb,
         c => {
             return Err(IoError::new(
                 path,
@@ -235,17 +245,21 @@ pub fn write_jpeg(path: &Path, img: &Image, quality: u8) -> Result<(), IoError> 
             ));
         }
     };
+    let side = |n: usize, what: &str| {
+        u16::try_from(n).map_err(|_| {
+            IoError::new(
+                path,
+                format!("a JPEG's {what} is at most 65 535 pixels, not {n}"),
+            )
+        })
+    };
+    let (width, height) = (side(img.width, "width")?, side(img.height, "height")?);
     let bytes: Vec<u8> = img.data.iter().map(|&v| to_u8(v)).collect();
-    let mut out = Cursor::new(Vec::new());
-    image::ImageEncoder::write_image(
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, quality),
-        &bytes,
-        img.width as u32,
-        img.height as u32,
-        color,
-    )
-    .map_err(|e| IoError::new(path, e))?;
-    write_atomic(path, &out.into_inner())
+    let mut out = Vec::new();
+    jpeg_encoder::Encoder::new(&mut out, quality)
+        .encode(&bytes, width, height, color)
+        .map_err(|e| IoError::new(path, e))?;
+    write_atomic(path, &out)
 }
 
 /// Removes the entries of `dir` whose names `owned` accepts (`is_dir` tells folders, removed
@@ -716,6 +730,48 @@ mod tests {
     }
 
     #[test]
+    fn jpeg_round_trip_is_close_and_too_wide_an_image_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        // A smooth colour gradient (what JPEG keeps well) of a size that is not a multiple of
+        // the 8 × 8 blocks.
+        let (w, h) = (37, 21);
+        let data: Vec<f32> = (0..w * h * 3)
+            .map(|i| {
+                let (x, y, c) = ((i / 3) % w, (i / 3) / w, i % 3);
+                (x as f32 / w as f32 + y as f32 / h as f32 + c as f32 * 0.3).fract()
+            })
+            .collect();
+        let img = Image::from_vec(w, h, 3, data).unwrap();
+        for channels in [3, 1] {
+            let img = if channels == 1 {
+                Image::from_vec(w, h, 1, img.data.iter().step_by(3).copied().collect()).unwrap()
+            } else {
+                img.clone()
+            };
+            let path = dir.path().join(format!("a{channels}.jpg"));
+            write_jpeg(&path, &img, 95).unwrap();
+            let back = if channels == 1 {
+                read_gray(&path).unwrap()
+            } else {
+                read_rgb(&path).unwrap()
+            };
+            assert_eq!((back.width, back.height, back.channels), (w, h, channels));
+            let mean_error = back
+                .data
+                .iter()
+                .zip(&img.data)
+                .map(|(a, b)| (a - b).abs())
+                .sum::<f32>()
+                / img.data.len() as f32;
+            assert!(mean_error < 0.02, "{channels} channels: {mean_error}");
+        }
+        let wide = Image::filled(70_000, 1, 1, 0.5);
+        let error = write_jpeg(&dir.path().join("wide.jpg"), &wide, 95).unwrap_err();
+        assert!(error.to_string().contains("65 535"), "{error}");
+        assert!(!dir.path().join("wide.jpg").exists());
+    }
+
+    #[test]
     fn npy_round_trip() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("a.npy");
@@ -786,6 +842,19 @@ mod tests {
             .collect();
         assert_eq!(left, ["notes.txt"]);
         assert_eq!(clear_outputs(&dir.path().join("none"), owned).unwrap(), 0);
+    }
+
+    #[test]
+    fn an_atomic_write_into_a_missing_folder_names_the_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("not-made");
+        let error = write_atomic(&missing.join("a.glb"), b"x").unwrap_err();
+        let message = error.to_string();
+        assert!(message.contains("a.glb"), "{message}");
+        assert!(
+            message.contains(&format!("the folder {} does not exist", missing.display())),
+            "{message}"
+        );
     }
 
     #[test]

@@ -117,17 +117,18 @@ pub fn export_cloud(
             num_coeffs(options.degree)
         )));
     }
-    // Geometry does not depend on the camera (the colour network alone sees it).
-    let front = distant_camera(DVec3::ZERO, DVec3::Z);
-    let (c, transforms) = avatar.canonical_for(params, &front, use_pca)?;
-    let (means, quats) = pose(&c, &transforms);
+    // Geometry does not depend on the camera (the colour networks alone see it): those run
+    // for each direction, the others once.
+    let views = avatar.views_of(params, use_pca)?;
+    let (c, inputs) = views.seen_from(&distant_camera(DVec3::ZERO, DVec3::Z))?;
+    let (means, quats) = pose(&c, &inputs.skinning);
     let (means, quats) = (host_values(means), host_values(quats));
     let n = means.len() / 3;
     let centre = means.chunks_exact(3).fold(DVec3::ZERO, |a, m| {
         a + DVec3::new(m[0] as f64, m[1] as f64, m[2] as f64)
     }) / n.max(1) as f64;
     let colours_from = |dir: DVec3| -> Result<Vec<f32>, AvatarError> {
-        let (c, _) = avatar.canonical_for(params, &distant_camera(centre, dir), use_pca)?;
+        let (c, _) = views.seen_from(&distant_camera(centre, dir))?;
         Ok(host_values(if options.lit {
             c.lit_colours()
         } else {

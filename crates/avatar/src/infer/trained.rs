@@ -14,7 +14,9 @@ use crate::model::posing::Skinning;
 use crate::model::{
     AvatarNets, Canonical, Constants, FaceBase, STORED_SETUP, Setup, canonical, pose, render_posed,
 };
-use crate::model::{NetInputs, PcaTensors, host_values, shading};
+use crate::model::{
+    NetInputs, PcaTensors, PoseTensors, ViewFree, canonical_seen, host_values, shading, view_free,
+};
 use f3g_io::Image;
 use f3g_rig::RigParams;
 use f3g_splat::{Camera, GaussianCloud};
@@ -157,6 +159,28 @@ impl TrainedAvatar {
         Ok((c, inputs))
     }
 
+    /// One pose to be seen from several views ([`PoseViews::seen_from`]): the networks that
+    /// do not see the camera run here, once.
+    pub(crate) fn views_of(
+        &self,
+        params: &RigParams,
+        use_pca: bool,
+    ) -> Result<PoseViews<'_>, AvatarError> {
+        self.setup.check_params(params, "pose")?;
+        let pca = if use_pca { self.pca.as_ref() } else { None };
+        let pose = self.setup.pose(params)?.upload(&self.device);
+        // Any camera: the view-free networks do not read the view maps.
+        let anywhere = Camera::look_at([0.0, 0.0, 1e3], [0.0; 3], [0.0, 1.0, 0.0], 500.0, 64, 64);
+        let inputs = self.constants.inputs(&pose, &anywhere, None, pca)?;
+        let free = view_free(&self.nets, &self.constants, &inputs)?;
+        Ok(PoseViews {
+            avatar: self,
+            pose,
+            pca,
+            free,
+        })
+    }
+
     /// The head maps of the face Gaussians when they are rendered (the face branch and its
     /// canonical face model exist): their tables follow the body's.
     fn rendered_head(&self) -> Option<&f3g_template::HeadMaps> {
@@ -248,5 +272,25 @@ impl TrainedAvatar {
             sh_degree: 0,
         }
         .padded_to_degree(3))
+    }
+}
+
+/// One pose of a [`TrainedAvatar`] with the outputs of its networks that do not see the camera
+/// ([`TrainedAvatar::views_of`]).
+pub(crate) struct PoseViews<'a> {
+    avatar: &'a TrainedAvatar,
+    pose: PoseTensors,
+    pca: Option<&'a PcaTensors>,
+    free: ViewFree,
+}
+
+impl PoseViews<'_> {
+    /// The canonical Gaussians of the pose seen from `camera` and the networks' inputs, as
+    /// [`TrainedAvatar::canonical_with_inputs`] gives them, running only the colour networks.
+    pub(crate) fn seen_from(&self, camera: &Camera) -> Result<(Canonical, NetInputs), AvatarError> {
+        let a = self.avatar;
+        let inputs = a.constants.inputs(&self.pose, camera, None, self.pca)?;
+        let c = canonical_seen(&a.nets, &a.constants, &inputs, &self.free)?;
+        Ok((c, inputs))
     }
 }

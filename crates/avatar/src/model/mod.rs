@@ -11,7 +11,8 @@
 //! - [`posing`]: linear blend skinning as tensor operations.
 //! - `nets.rs`: the body and face networks ([`AvatarNets`]), the canonical face model
 //!   ([`FaceBase`]), the setup's tensors ([`Constants`]), fusion into canonical Gaussians
-//!   ([`canonical`]), posing and rendering them ([`render_posed`]).
+//!   ([`canonical`]; a pose seen from several views runs the networks that do not see the
+//!   camera once, [`view_free`]), posing and rendering them ([`render_posed`]).
 //! - [`shading`]: the light fixed in the world (`world_shading`).
 //!
 //! Conventions: metres, +Y up, the body facing +Z; Gaussian order body then face.
@@ -29,7 +30,8 @@ pub use config::{BodyLayout, ColourActivation, ModelConfig, TemplateChoice};
 pub(crate) use inputs::GaussianTables;
 pub use inputs::{NetInputs, PcaTensors, PoseTensors};
 pub use nets::{
-    AvatarNets, BodyNets, Canonical, Constants, FaceBase, FaceNets, canonical, render_posed,
+    AvatarNets, BodyNets, Canonical, Constants, FaceBase, FaceNets, ViewFree, canonical,
+    canonical_seen, render_posed, view_free,
 };
 pub(crate) use nets::{
     DISCRIMINATOR_PARAM_IDS, body_attributes_host, body_outputs, logit, nchw, pose,

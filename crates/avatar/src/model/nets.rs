@@ -352,6 +352,75 @@ fn cols(t: &Tensor<2>, a: usize, b: usize) -> Tensor<2> {
     t.clone().slice([0..n, a..b])
 }
 
+/// The networks' outputs that do not depend on the camera, for seeing one pose from several
+/// views ([`canonical_seen`]): with the `Split` and `Three` body layouts only the colour
+/// networks read the view maps, and in the face branch only its colour network, so another
+/// view of the same pose needs only those (baking and the SH fit of an export evaluate a pose
+/// from 4 to 97 directions).
+pub struct ViewFree {
+    /// The body's gathered view-free outputs: the geometry network's `[N_b, 11]` (`Split`) or
+    /// its position `[N_b, 3]` and the other network's `[N_b, 8]` (`Three`); `None` for the
+    /// `Single` layout, whose one network sees the view.
+    body: Option<(Tensor<2>, Option<Tensor<2>>)>,
+    /// The face branch's gathered position `[N_f, 3]` and aux `[N_f, 8]` outputs and the
+    /// colour network's input (the offset head map).
+    face: Option<(Tensor<2>, Tensor<2>, Tensor<4>)>,
+}
+
+/// Reads `[1, C, r, r]` front and back outputs of a body network (resized to the map
+/// resolution when the network's output is smaller) at the body's texels: `[N_b, C]`.
+fn read_body(
+    net: &DualStyleUNet,
+    constants: &Constants,
+    inputs: &NetInputs,
+    view: bool,
+) -> Result<Tensor<2>, AvatarError> {
+    let r = constants.map_resolution;
+    let full = |t: Tensor<4>| {
+        if t.dims()[2] == r { t } else { resize(t, r, r) }
+    };
+    let view = view.then(|| (inputs.body_view.0.clone(), inputs.body_view.1.clone()));
+    let out = net.forward(inputs.body_map.clone(), view)?;
+    Ok(gather(
+        full(out.front),
+        full(out.back),
+        &constants.body_pixels,
+    ))
+}
+
+/// Runs the networks that do not see the camera (`inputs`' view maps are not read).
+pub fn view_free(
+    nets: &AvatarNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+) -> Result<ViewFree, AvatarError> {
+    let face = match (&nets.face, &constants.face) {
+        (Some(face), Some(fc)) => Some(face_view_free(face, fc, inputs)?),
+        _ => None,
+    };
+    Ok(ViewFree {
+        body: body_view_free(&nets.body, constants, inputs)?,
+        face,
+    })
+}
+
+/// The body networks that do not see the camera ([`ViewFree::body`]).
+#[allow(clippy::type_complexity)]
+fn body_view_free(
+    body: &BodyNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+) -> Result<Option<(Tensor<2>, Option<Tensor<2>>)>, AvatarError> {
+    Ok(match (&body.colour, &body.other) {
+        (None, _) => None,
+        (Some(_), None) => Some((read_body(&body.net, constants, inputs, false)?, None)),
+        (Some(_), Some(other)) => Some((
+            read_body(&body.net, constants, inputs, false)?,
+            Some(read_body(other, constants, inputs, false)?),
+        )),
+    })
+}
+
 /// The body branch alone: per-Gaussian raw outputs `[N_b, 14]` (offset 3, colour 3, opacity
 /// 1, scale 3, rotation 4), whatever the layout.
 pub fn body_outputs(
@@ -359,37 +428,27 @@ pub fn body_outputs(
     constants: &Constants,
     inputs: &NetInputs,
 ) -> Result<Tensor<2>, AvatarError> {
-    let body = &nets.body;
-    let view = || Some((inputs.body_view.0.clone(), inputs.body_view.1.clone()));
-    let r = constants.map_resolution;
-    let full = |t: Tensor<4>| {
-        if t.dims()[2] == r { t } else { resize(t, r, r) }
-    };
-    let read = |net: &DualStyleUNet, view: Option<(Tensor<4>, Tensor<4>)>| {
-        net.forward(inputs.body_map.clone(), view)
-            .map(|out| gather(full(out.front), full(out.back), &constants.body_pixels))
-    };
-    let raw = match (&body.colour, &body.other) {
-        (None, _) => read(&body.net, view())?,
-        (Some(colour), None) => {
-            let geometry = read(&body.net, None)?;
-            Tensor::cat(
-                vec![
-                    cols(&geometry, 0, 3),
-                    read(colour, view())?,
-                    cols(&geometry, 3, 11),
-                ],
-                1,
-            )
+    let free = body_view_free(&nets.body, constants, inputs)?;
+    body_outputs_seen(&nets.body, constants, inputs, free.as_ref())
+}
+
+/// [`body_outputs`] from the body's view-free outputs of the same pose and `inputs`' view
+/// maps.
+fn body_outputs_seen(
+    body: &BodyNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+    free: Option<&(Tensor<2>, Option<Tensor<2>>)>,
+) -> Result<Tensor<2>, AvatarError> {
+    let raw = match (&body.colour, free) {
+        (Some(colour), Some((geometry, other))) => {
+            let colour = read_body(colour, constants, inputs, true)?;
+            match other {
+                None => Tensor::cat(vec![cols(geometry, 0, 3), colour, cols(geometry, 3, 11)], 1),
+                Some(other) => Tensor::cat(vec![geometry.clone(), colour, other.clone()], 1),
+            }
         }
-        (Some(colour), Some(other)) => Tensor::cat(
-            vec![
-                read(&body.net, None)?,
-                read(colour, view())?,
-                read(other, None)?,
-            ],
-            1,
-        ),
+        _ => read_body(&body.net, constants, inputs, true)?,
     };
     Ok(match &body.canonical {
         Some(p) => raw + canonical_delta(p, constants.canonical_scale),
@@ -437,37 +496,45 @@ pub fn body_attributes_host(raw: &Tensor<2>, constants: &Constants) -> BodyAttri
     }
 }
 
-/// The face networks' raw per-Gaussian outputs `[N_f, 14]` (position 3, colour 3, aux 8).
-fn face_outputs(
+/// Gathers `[1, C, r, r]` front and back outputs of a face network at the face Gaussians'
+/// texels of the head maps: `[N_f, C]`.
+fn read_face(fc: &FaceConstants, out: f3g_nets::DualOutput) -> Tensor<2> {
+    let s = fc.size;
+    gather(resize(out.front, s, s), resize(out.back, s, s), &fc.pixels)
+}
+
+/// The face networks that do not see the camera: the gathered position and aux outputs and
+/// the colour network's input.
+fn face_view_free(
     face: &FaceNets,
     fc: &FaceConstants,
     inputs: &NetInputs,
-    scale: f32,
-) -> Result<Tensor<2>, AvatarError> {
+) -> Result<(Tensor<2>, Tensor<2>, Tensor<4>), AvatarError> {
     let map = inputs
         .face_map
         .clone()
         .ok_or_else(|| AvatarError::Invalid("the face branch needs its head map".into()))?;
+    let p = face.position.forward(map.clone(), None)?;
+    let p_hat = map + Tensor::cat(vec![p.front.clone(), p.back.clone()], 1) * OFFSET_SCALE;
+    let a = face.aux.forward(p_hat.clone(), None)?;
+    Ok((read_face(fc, p), read_face(fc, a), p_hat))
+}
+
+/// The face networks' raw per-Gaussian outputs `[N_f, 14]` (position 3, colour 3, aux 8) from
+/// their view-free outputs and `inputs`' view maps.
+fn face_outputs_seen(
+    face: &FaceNets,
+    fc: &FaceConstants,
+    inputs: &NetInputs,
+    (position, aux, p_hat): &(Tensor<2>, Tensor<2>, Tensor<4>),
+    scale: f32,
+) -> Result<Tensor<2>, AvatarError> {
     let view = inputs
         .face_view
         .clone()
         .ok_or_else(|| AvatarError::Invalid("the face branch needs its view maps".into()))?;
-    let p = face.position.forward(map.clone(), None)?;
-    let p_hat = map + Tensor::cat(vec![p.front.clone(), p.back.clone()], 1) * OFFSET_SCALE;
     let c = face.colour.forward(p_hat.clone(), Some(view))?;
-    let a = face.aux.forward(p_hat, None)?;
-    let s = fc.size;
-    let side = |front: Tensor<4>, back: Tensor<4>| {
-        gather(resize(front, s, s), resize(back, s, s), &fc.pixels)
-    };
-    let raw = Tensor::cat(
-        vec![
-            side(p.front, p.back),
-            side(c.front, c.back),
-            side(a.front, a.back),
-        ],
-        1,
-    );
+    let raw = Tensor::cat(vec![position.clone(), read_face(fc, c), aux.clone()], 1);
     Ok(match &face.canonical {
         Some(p) => raw + canonical_delta(p, scale),
         None => raw,
@@ -480,7 +547,23 @@ pub fn canonical(
     constants: &Constants,
     inputs: &NetInputs,
 ) -> Result<Canonical, AvatarError> {
-    let raw = body_outputs(nets, constants, inputs)?;
+    canonical_seen(
+        nets,
+        constants,
+        inputs,
+        &view_free(nets, constants, inputs)?,
+    )
+}
+
+/// [`canonical`] from the view-free outputs of the same pose ([`view_free`]) and `inputs`'
+/// view maps: equal to it, running only the networks that see the camera.
+pub fn canonical_seen(
+    nets: &AvatarNets,
+    constants: &Constants,
+    inputs: &NetInputs,
+    free: &ViewFree,
+) -> Result<Canonical, AvatarError> {
+    let raw = body_outputs_seen(&nets.body, constants, inputs, free.body.as_ref())?;
     let (means, colours, opacity, log_scales, quats, body_offsets) =
         body_attributes(&raw, constants);
     let nb = means.dims()[0];
@@ -497,8 +580,8 @@ pub fn canonical(
         face_offsets: None,
         face_residuals: None,
     };
-    if let (Some(face), Some(fc)) = (&nets.face, &constants.face) {
-        let r = face_outputs(face, fc, inputs, constants.canonical_scale)?;
+    if let (Some(face), Some(fc), Some(face_free)) = (&nets.face, &constants.face, &free.face) {
+        let r = face_outputs_seen(face, fc, inputs, face_free, constants.canonical_scale)?;
         let n = r.dims()[0];
         let offsets = cols(&r, 0, 3) * OFFSET_SCALE;
         let means = fc.positions.clone()

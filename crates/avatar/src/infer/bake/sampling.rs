@@ -98,8 +98,9 @@ pub(super) fn sample_outputs(
     for params in samples {
         let mut colour = vec![0.0f32; 3 * n];
         let mut row = vec![0.0f32; CORRECTIVE_VALUES * n];
+        let pose_views = avatar.views_of(params, false)?;
         for (v, camera) in views.iter().enumerate() {
-            let (c, inputs) = avatar.canonical_with_inputs(params, camera, false)?;
+            let (c, inputs) = pose_views.seen_from(camera)?;
             for (acc, x) in colour.iter_mut().zip(host_values(c.colours)) {
                 *acc += x / views.len() as f32;
             }

@@ -100,10 +100,8 @@ pub struct ModelConfig {
     pub face_crop_size: usize,
     /// Face crop box enlargement around the projected head.
     pub face_padding: f32,
-    /// Face Gaussians per head texel of the body maps, along each axis (the reference: 2).
-    /// 4 (four times the face Gaussians) measured no better at the 730-step schedule of
-    /// 2026-11-26, but on today's `cpu` preset lowers the head's LPIPS by 0.016 (three seeds)
-    /// for ≈ 10–20 % more time per face step (BENCHMARKS, "Four times the face Gaussians").
+    /// Face Gaussians per head texel of the body maps, along each axis (the reference and the
+    /// `paper` preset: 2; the `cpu` presets: 4, see there).
     #[serde(default = "reference_face_density")]
     pub face_density: usize,
     /// Initial thickness of the Gaussians: the scale along the surface normal relative to the
