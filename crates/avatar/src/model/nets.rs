@@ -361,11 +361,16 @@ pub struct ViewFree {
     /// The body's gathered view-free outputs: the geometry network's `[N_b, 11]` (`Split`) or
     /// its position `[N_b, 3]` and the other network's `[N_b, 8]` (`Three`); `None` for the
     /// `Single` layout, whose one network sees the view.
-    body: Option<(Tensor<2>, Option<Tensor<2>>)>,
+    body: Option<BodyViewFree>,
     /// The face branch's gathered position `[N_f, 3]` and aux `[N_f, 8]` outputs and the
     /// colour network's input (the offset head map).
-    face: Option<(Tensor<2>, Tensor<2>, Tensor<4>)>,
+    face: Option<FaceViewFree>,
 }
+
+/// [`ViewFree::body`]: the geometry network's outputs and the other network's, if any.
+type BodyViewFree = (Tensor<2>, Option<Tensor<2>>);
+/// [`ViewFree::face`]: position outputs, aux outputs, the colour network's input.
+type FaceViewFree = (Tensor<2>, Tensor<2>, Tensor<4>);
 
 /// Reads `[1, C, r, r]` front and back outputs of a body network (resized to the map
 /// resolution when the network's output is smaller) at the body's texels: `[N_b, C]`.
@@ -405,12 +410,11 @@ pub fn view_free(
 }
 
 /// The body networks that do not see the camera ([`ViewFree::body`]).
-#[allow(clippy::type_complexity)]
 fn body_view_free(
     body: &BodyNets,
     constants: &Constants,
     inputs: &NetInputs,
-) -> Result<Option<(Tensor<2>, Option<Tensor<2>>)>, AvatarError> {
+) -> Result<Option<BodyViewFree>, AvatarError> {
     Ok(match (&body.colour, &body.other) {
         (None, _) => None,
         (Some(_), None) => Some((read_body(&body.net, constants, inputs, false)?, None)),
@@ -438,7 +442,7 @@ fn body_outputs_seen(
     body: &BodyNets,
     constants: &Constants,
     inputs: &NetInputs,
-    free: Option<&(Tensor<2>, Option<Tensor<2>>)>,
+    free: Option<&BodyViewFree>,
 ) -> Result<Tensor<2>, AvatarError> {
     let raw = match (&body.colour, free) {
         (Some(colour), Some((geometry, other))) => {
@@ -509,7 +513,7 @@ fn face_view_free(
     face: &FaceNets,
     fc: &FaceConstants,
     inputs: &NetInputs,
-) -> Result<(Tensor<2>, Tensor<2>, Tensor<4>), AvatarError> {
+) -> Result<FaceViewFree, AvatarError> {
     let map = inputs
         .face_map
         .clone()
@@ -526,7 +530,7 @@ fn face_outputs_seen(
     face: &FaceNets,
     fc: &FaceConstants,
     inputs: &NetInputs,
-    (position, aux, p_hat): &(Tensor<2>, Tensor<2>, Tensor<4>),
+    (position, aux, p_hat): &FaceViewFree,
     scale: f32,
 ) -> Result<Tensor<2>, AvatarError> {
     let view = inputs
