@@ -151,12 +151,22 @@ impl TrainedAvatar {
         camera: &Camera,
         use_pca: bool,
     ) -> Result<(Canonical, NetInputs), AvatarError> {
-        self.setup.check_params(params, "pose")?;
-        let pca = if use_pca { self.pca.as_ref() } else { None };
-        let pose = self.setup.pose(params)?.upload(&self.device);
+        let (pose, pca) = self.pose_tensors(params, use_pca)?;
         let inputs = self.constants.inputs(&pose, camera, None, pca)?;
         let c = canonical(&self.nets, &self.constants, &inputs)?;
         Ok((c, inputs))
+    }
+
+    /// `params` checked and on the device, with the PCA its body map is projected onto when
+    /// `use_pca` (unseen poses).
+    fn pose_tensors(
+        &self,
+        params: &RigParams,
+        use_pca: bool,
+    ) -> Result<(PoseTensors, Option<&PcaTensors>), AvatarError> {
+        self.setup.check_params(params, "pose")?;
+        let pca = if use_pca { self.pca.as_ref() } else { None };
+        Ok((self.setup.pose(params)?.upload(&self.device), pca))
     }
 
     /// One pose to be seen from several views ([`PoseViews::seen_from`]): the networks that
@@ -166,9 +176,7 @@ impl TrainedAvatar {
         params: &RigParams,
         use_pca: bool,
     ) -> Result<PoseViews<'_>, AvatarError> {
-        self.setup.check_params(params, "pose")?;
-        let pca = if use_pca { self.pca.as_ref() } else { None };
-        let pose = self.setup.pose(params)?.upload(&self.device);
+        let (pose, pca) = self.pose_tensors(params, use_pca)?;
         // Any camera: the view-free networks do not read the view maps.
         let anywhere = Camera::look_at([0.0, 0.0, 1e3], [0.0; 3], [0.0, 1.0, 0.0], 500.0, 64, 64);
         let inputs = self.constants.inputs(&pose, &anywhere, None, pca)?;
