@@ -679,6 +679,16 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
         .unwrap()
         .to_string();
     assert!(e.contains("not a training run"), "{e}");
+    // Nothing there (a mistyped avatar file or run folder).
+    let missing = dir.path().join("avatar.glb");
+    let e = TrainedAvatar::load(&missing, &Device::flex())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        e.contains("avatar.glb") && e.contains("no such file or folder"),
+        "{e}"
+    );
 }
 
 /// Renders a `.ply`-style cloud with the reference CPU renderer (what `f3g render-ply` does).
@@ -781,8 +791,10 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     // The run keeps its training poses.
     let poses = avatar.training_poses().unwrap();
     assert_eq!(poses.len(), avatar.info.train_frames.len());
+    // Degree 3 (not the default 0), so that the file's SH layout is read back too.
     let options = BakeOptions {
         correctives: 3,
+        sh_degree: 3,
         directions: 16,
         poses: 4,
         perturbations: 1,

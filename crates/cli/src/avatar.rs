@@ -685,10 +685,12 @@ pub struct ExportAvatarArgs {
     /// Pose correctives K, 0–256 (0: plain linear blend skinning of the mean avatar).
     #[arg(long, default_value_t = 16, value_parser = crate::bounds::size::<0, 256>)]
     pub correctives: usize,
-    /// SH degree fitted to the colour network at the canonical pose.
-    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u8).range(0..=3))]
+    /// SH degree of the view-dependent colour, fitted to the colour network at the canonical
+    /// pose (0: none, each pose's colour averaged over four views; measured better at the
+    /// poses an avatar is played in than 1–3, see BENCHMARKS).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
     pub sh_degree: u8,
-    /// View directions of the SH fit, 1–1024.
+    /// View directions of the SH fit (with `--sh-degree` above 0), 1–1024.
     #[arg(long, default_value_t = 48, value_parser = crate::bounds::size::<1, 1024>)]
     pub directions: usize,
     /// Training poses the correctives are fitted on, 1–10000 (spread evenly over the run's).

@@ -212,7 +212,7 @@ pub fn demo(a: &DemoArgs) -> Result<()> {
             run: run.clone(),
             out: glb.clone(),
             correctives: 16,
-            sh_degree: 3,
+            sh_degree: 0,
             directions: 48,
             poses: 60,
             perturbations: 3,

@@ -101,8 +101,12 @@ impl Run {
         self.dir.join("run.json")
     }
 
-    /// The error of a folder that holds no run.
+    /// The error of a folder that holds no run (or of a path that names nothing: a mistyped
+    /// avatar file reaches here too).
     pub(crate) fn not_a_run(&self) -> AvatarError {
+        if !self.dir.exists() {
+            return AvatarError::file(&self.dir, "no such file or folder");
+        }
         AvatarError::file(
             &self.dir,
             "not a training run (no config.json): train one with `f3g train`",

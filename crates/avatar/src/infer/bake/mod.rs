@@ -60,7 +60,11 @@ pub const MAX_CORRECTIVES: usize = 256;
 pub struct BakeOptions {
     /// Pose correctives `K` (0: plain LBS of the mean avatar).
     pub correctives: usize,
-    /// SH degree of the colour, 0..=3.
+    /// SH degree of the colour, 0..=3: above 0 the view-dependent part is fitted to the colour
+    /// network at the canonical pose, a pose no training frame shows. Measured, that part
+    /// costs the poses an avatar is played in more than it gives (BENCHMARKS, "The baked
+    /// avatar's view-dependent colour"), so the default is 0: each pose's colour averaged over
+    /// four views, as the correctives carry it.
     pub sh_degree: usize,
     /// View directions of the SH fit.
     pub directions: usize,
@@ -81,7 +85,7 @@ impl Default for BakeOptions {
     fn default() -> Self {
         Self {
             correctives: 16,
-            sh_degree: 3,
+            sh_degree: 0,
             directions: 48,
             poses: 60,
             perturbations: 3,
