@@ -10,8 +10,11 @@
 //!    and, for each, [`BakeOptions::perturbations`] copies with every joint parameter that is
 //!    neither the root's nor a finger's moved by `N(0, σ²)` (σ = [`BakeOptions::spread_deg`]).
 //! 2. For each pose, the networks' canonical outputs per Gaussian — position without the
-//!    body model's displacement (3), colour averaged over four horizontal views (3), log-scale
-//!    (3), opacity logit (1) — as one vector of `10·N` values.
+//!    body model's displacement (3), colour averaged over four horizontal views (3), each view
+//!    weighted by how much of the Gaussian it shows at the canonical pose (so a face's colour
+//!    is its colour seen from the front, not blended with what the networks give for it seen
+//!    from behind the head), log-scale (3), opacity logit (1) — as one vector of `10·N`
+//!    values.
 //! 3. PCA of those vectors, each attribute divided by its spread over all samples first (so
 //!    metres, colours and logits weigh alike): the mean is the baked avatar, the first `K`
 //!    components (scaled back to their units) its correctives.
@@ -46,7 +49,7 @@ use correctives::{corrective_pca, ridge_map};
 use f3g_rig::{Posed, Rig, RigParams, SkinWeights};
 use f3g_splat::{Camera, GaussianCloud};
 use influences::four_influences;
-use sampling::{horizontal_views, sample_outputs, sample_poses};
+use sampling::{horizontal_views, sample_outputs, sample_poses, view_weights};
 
 /// Values per Gaussian in a corrective: position (3), colour (3), log-scale (3), opacity (1).
 pub const CORRECTIVE_VALUES: usize = 10;
@@ -63,8 +66,8 @@ pub struct BakeOptions {
     /// SH degree of the colour, 0..=3: above 0 the view-dependent part is fitted to the colour
     /// network at the canonical pose, a pose no training frame shows. Measured, that part
     /// costs the poses an avatar is played in more than it gives (BENCHMARKS, "The baked
-    /// avatar's view-dependent colour"), so the default is 0: each pose's colour averaged over
-    /// four views, as the correctives carry it.
+    /// avatar's view-dependent colour"), so the default is 0: each pose's colour from the
+    /// views that show each Gaussian (module docs, step 2), as the correctives carry it.
     pub sh_degree: usize,
     /// View directions of the SH fit.
     pub directions: usize,
@@ -405,7 +408,8 @@ impl BakedAvatar {
         )?;
         let views = horizontal_views();
         let feature_joints = feature_joints(rig)?;
-        let outputs = sample_outputs(avatar, &samples, &views, n, &feature_joints)?;
+        let weights = view_weights(&reference)?;
+        let outputs = sample_outputs(avatar, &samples, &views, &weights, n, &feature_joints)?;
         let pca = corrective_pca(outputs.rows, n, options.correctives)?;
         let ridge = ridge_map(&outputs.features, &pca.weights, options.ridge)?;
         let mean = mean_gaussians(&pca.mean, &reference, options.sh_degree);
