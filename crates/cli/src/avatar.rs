@@ -686,8 +686,8 @@ pub struct ExportAvatarArgs {
     #[arg(long, default_value_t = 16, value_parser = crate::bounds::size::<0, 256>)]
     pub correctives: usize,
     /// SH degree of the view-dependent colour, fitted to the colour network at the canonical
-    /// pose (0: none, each pose's colour averaged over four views; measured better at the
-    /// poses an avatar is played in than 1–3, see BENCHMARKS).
+    /// pose (0: none, each pose's colour from the views that see each Gaussian; measured
+    /// better at the poses an avatar is played in than 1–3, see BENCHMARKS).
     #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=3))]
     pub sh_degree: u8,
     /// View directions of the SH fit (with `--sh-degree` above 0), 1–1024.
