@@ -163,8 +163,8 @@ pub(super) struct SampleOutputs {
 }
 
 /// The outputs of `avatar` (`n` Gaussians) at every sample pose, seen from `views` (the
-/// first view's geometry; the colour the views' average with `view_weights`, `[views][n]`),
-/// with the pose features of `feature_joints`.
+/// first view's geometry; the colour averaged over the views with `view_weights`,
+/// `[views][n]`), with the pose features of `feature_joints`.
 pub(super) fn sample_outputs(
     avatar: &TrainedAvatar,
     samples: &[RigParams],
