@@ -673,18 +673,17 @@ fn bad_runs_fail_clearly_and_keep_what_was_written() {
     std::fs::write(&cfg, r#"{"losses": {"l1": -1}}"#).unwrap();
     let e = TrainConfig::from_file(&cfg).unwrap_err().to_string();
     assert!(e.contains("losses.l1"), "{e}");
+    let load_error = |path: &std::path::Path| {
+        TrainedAvatar::load(path, &Device::flex())
+            .err()
+            .unwrap()
+            .to_string()
+    };
     // Not a run at all.
-    let e = TrainedAvatar::load(&cap, &Device::flex())
-        .err()
-        .unwrap()
-        .to_string();
+    let e = load_error(&cap);
     assert!(e.contains("not a training run"), "{e}");
     // Nothing there (a mistyped avatar file or run folder).
-    let missing = dir.path().join("avatar.glb");
-    let e = TrainedAvatar::load(&missing, &Device::flex())
-        .err()
-        .unwrap()
-        .to_string();
+    let e = load_error(&dir.path().join("avatar.glb"));
     assert!(
         e.contains("avatar.glb") && e.contains("no such file or folder"),
         "{e}"

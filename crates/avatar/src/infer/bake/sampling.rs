@@ -135,19 +135,16 @@ pub(super) fn view_weights(cloud: &GaussianCloud) -> Result<Vec<Vec<f32>>, Avata
     let mut weights = vec![vec![0.0f32; n]; seen.len()];
     for g in 0..n {
         let most = seen.iter().map(|v| v[g]).fold(0.0f32, f32::max);
-        let raw: Vec<f32> = seen
-            .iter()
-            .map(|v| {
-                if most > 0.0 {
-                    v[g] / most + HIDDEN_WEIGHT
-                } else {
-                    1.0
-                }
-            })
-            .collect();
-        let total: f32 = raw.iter().sum();
-        for (w, r) in weights.iter_mut().zip(raw) {
-            w[g] = r / total;
+        let raw = |v: &Vec<f32>| {
+            if most > 0.0 {
+                v[g] / most + HIDDEN_WEIGHT
+            } else {
+                1.0
+            }
+        };
+        let total: f32 = seen.iter().map(raw).sum();
+        for (w, v) in weights.iter_mut().zip(&seen) {
+            w[g] = raw(v) / total;
         }
     }
     Ok(weights)
