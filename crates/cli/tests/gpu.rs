@@ -357,3 +357,62 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
             .fold(0f32, f32::max);
     assert!(worst < 1e-3, "SH coefficients differ by {worst}");
 }
+
+/// The skinning kernel of unfused GPU devices (`f3g_avatar::model::posing`'s `cube`) against
+/// the CPU's loop: the built-in human's vertices under a pose with bent joints (two to eight
+/// influences each), turned as a whole by nothing and by 170° about each axis so that each of
+/// Shepperd's four pivots is taken; every output (blend, nearest rotation, quaternion) within
+/// float rounding.
+#[cfg(not(feature = "fusion"))]
+#[test]
+fn skinning_on_the_gpu_matches_the_cpu() {
+    use burn::tensor::{Device, Tensor};
+    use f3g_avatar::model::posing::{Skinning, Taps, affine_tensor};
+    use glam::{Affine3A, Quat};
+    let human = f3g_rig::builtin::load().unwrap();
+    let rig = &human.rig;
+    let mut params = rig.zero_params();
+    for (i, p) in params.pose.iter_mut().enumerate() {
+        *p = 0.4 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
+    }
+    let posed = rig.pose(&params).unwrap();
+    let values = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+    let gpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+    let half_turn = 170f32.to_radians();
+    for turn in [
+        Quat::IDENTITY,
+        Quat::from_rotation_x(half_turn),
+        Quat::from_rotation_y(half_turn),
+        Quat::from_rotation_z(half_turn),
+    ] {
+        let joints: Vec<Affine3A> = posed
+            .skinning
+            .iter()
+            .map(|a| Affine3A::from_quat(turn) * *a)
+            .collect();
+        let run = |device: &Device| {
+            let skin = Taps::skin(&rig.skin, device);
+            let s = Skinning::new(&affine_tensor(&joints, device), &skin);
+            let n = s.translation.dims()[0];
+            let mut out = vec![
+                values(s.linear.reshape([n, 9])),
+                values(s.translation),
+                values(s.quaternion),
+            ];
+            out.extend(s.rotation.into_iter().map(values));
+            out
+        };
+        let (got, expected) = (run(&gpu), run(&Device::flex()));
+        let names = ["linear", "translation", "quaternion"];
+        for (k, (g, e)) in got.iter().zip(&expected).enumerate() {
+            let what = names.get(k).copied().unwrap_or("rotation column");
+            assert_eq!(g.len(), e.len(), "{what}");
+            let worst = g
+                .iter()
+                .zip(e)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max);
+            assert!(worst < 2e-5, "{what} under {turn:?} differs by {worst}");
+        }
+    }
+}

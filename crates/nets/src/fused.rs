@@ -29,14 +29,14 @@ mod flex;
 pub mod portable;
 
 /// Whether `x` lives on the CPU backend (with or without autodiff).
-pub fn on_flex(x: &Tensor<4>) -> bool {
+pub fn on_flex<const D: usize>(x: &Tensor<D>) -> bool {
     x.device().without_autodiff() == Device::flex()
 }
 
 /// Whether a fused op on `x` runs as one op here: on the CPU, and on unfused `Cube` devices
 /// where none of the op's tensors has 2³² values or more (`largest`: the most any of them has,
 /// forward or backward), since their kernels index with 32 bits.
-pub fn runs(x: &Tensor<4>, largest: usize) -> bool {
+pub fn runs<const D: usize>(x: &Tensor<D>, largest: usize) -> bool {
     if on_flex(x) {
         return true;
     }
@@ -144,6 +144,57 @@ pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: boo
     }
 }
 
+/// The scalars of [`scaled_linear`]: `gain · leaky_relu(x · (weight · weight_scale)ᵀ + bias ·
+/// bias_scale, slope)`; slope 1 and gain 1 leave the affine map alone ([`LinearScales::affine`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LinearScales {
+    pub weight_scale: f32,
+    pub bias_scale: f32,
+    /// Leaky ReLU's slope below zero, not negative (the backward reads it from the output's
+    /// sign, as [`bias_leaky_relu`]'s).
+    pub slope: f32,
+    /// Positive.
+    pub gain: f32,
+}
+
+impl LinearScales {
+    /// No activation.
+    pub fn affine(weight_scale: f32, bias_scale: f32) -> Self {
+        Self {
+            weight_scale,
+            bias_scale,
+            slope: 1.0,
+            gain: 1.0,
+        }
+    }
+}
+
+/// A linear layer with scaled weight and bias and an optional leaky ReLU ([`LinearScales`]):
+/// `x` `[B, in]`, `weight` `[out, in]`, `bias` `[out]` → `[B, out]`. One op where it [`runs`],
+/// [`portable::linear`] elsewhere.
+///
+/// Why one op: the StyleUNets' modulations are such layers on one style vector, two of them per
+/// styled convolution; as Burn's ops (two scalings, a transpose, a matmul, a broadcast add,
+/// and their backwards) they were about a fifth of a `paper` step's kernel launches on a GPU.
+pub fn scaled_linear(
+    x: Tensor<2>,
+    weight: Tensor<2>,
+    bias: Tensor<1>,
+    scales: LinearScales,
+) -> Tensor<2> {
+    let largest = weight.shape().num_elements() + x.shape().num_elements() + bias.dims()[0];
+    if runs(&x, largest) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::scaled_linear(
+            x.into_dispatch(),
+            weight.into_dispatch(),
+            bias.into_dispatch(),
+            scales,
+        ))
+    } else {
+        portable::scaled_linear(x, weight, bias, scales)
+    }
+}
+
 /// The fused ops and the backward passes their autodiff nodes call.
 #[backend_extension(
     Autodiff,
@@ -216,6 +267,26 @@ pub trait FusedBackend: Backend {
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
+    /// [`scaled_linear`]: `[B, in] → [B, out]`.
+    fn scaled_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> FloatTensor<Self>;
+
+    /// The gradients of `x`, `weight` and `bias` from the op's `output` and the output gradient
+    /// `grad`: with `g` the activation's gradient (as [`FusedBackend::bias_leaky_relu_grad`]'s),
+    /// `∂x = weight_scale · g · weight`, `∂weight = weight_scale · gᵀ · x` and
+    /// `∂bias = bias_scale · Σ_batch g`.
+    fn scaled_linear_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
 }
 
 /// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).

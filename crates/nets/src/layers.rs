@@ -20,7 +20,9 @@ use burn::tensor::activation::leaky_relu;
 use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
-use crate::fused::{bias_leaky_relu, blur, haar, inverse_haar, modulate, upsample2};
+use crate::fused::{
+    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, scaled_linear, upsample2,
+};
 use crate::init::Init;
 
 /// [`crate::resample::resize`], at the path `f3g-avatar` imports it from.
@@ -117,16 +119,19 @@ impl EqualLinear {
         }
     }
 
-    /// `[B, in] → [B, out]`.
+    /// `[B, in] → [B, out]`, one op ([`scaled_linear`]).
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        let cout = self.bias.dims()[0];
-        let y = x.matmul((self.weight.val() * self.scale).transpose())
-            + (self.bias.val() * self.lr_mul).reshape([1, cout]);
-        if self.activate {
-            leaky_relu(y, LRELU_SLOPE) * LRELU_GAIN
+        let scales = if self.activate {
+            LinearScales {
+                weight_scale: self.scale,
+                bias_scale: self.lr_mul,
+                slope: LRELU_SLOPE as f32,
+                gain: LRELU_GAIN,
+            }
         } else {
-            y
-        }
+            LinearScales::affine(self.scale, self.lr_mul)
+        };
+        scaled_linear(x, self.weight.val(), self.bias.val(), scales)
     }
 }
 

@@ -293,3 +293,128 @@ fn the_modulations_backward_matches_central_differences() {
         );
     }
 }
+
+/// A `[rows, columns]` input of distinct values in `[-0.5, 0.5)`.
+fn matrix(rows: usize, columns: usize, device: &Device) -> Tensor<2> {
+    ramp([1, 1, rows, columns], device).reshape([rows, columns])
+}
+
+/// The scalars of a linear layer: an equalised modulation (no activation), the mapping
+/// network's layers (StyleGAN2's leaky ReLU) and a ReLU.
+const LINEAR_SCALES: [fused::LinearScales; 3] = [
+    fused::LinearScales {
+        weight_scale: 0.125,
+        bias_scale: 1.0,
+        slope: 1.0,
+        gain: 1.0,
+    },
+    fused::LinearScales {
+        weight_scale: 0.03,
+        bias_scale: 0.01,
+        slope: 0.2,
+        gain: std::f32::consts::SQRT_2,
+    },
+    fused::LinearScales {
+        weight_scale: 0.7,
+        bias_scale: 2.0,
+        slope: 0.0,
+        gain: 1.5,
+    },
+];
+
+/// The output and the gradients of `x`, `weight` and `bias` of `sum(op(x, w, b) · r)`.
+fn linear_run(
+    op: fn(Tensor<2>, Tensor<2>, Tensor<1>, fused::LinearScales) -> Tensor<2>,
+    [batch, inputs, outputs]: [usize; 3],
+    scales: fused::LinearScales,
+) -> [Vec<f32>; 4] {
+    let device = Device::flex().autodiff();
+    let x = (matrix(batch, inputs, &device) * 3.0).require_grad();
+    let weight = matrix(outputs, inputs, &device).flip([1]).require_grad();
+    let bias = bias(outputs, &device).require_grad();
+    let y = op(x.clone(), weight.clone(), bias.clone(), scales);
+    let r = weights([1, 1, batch, outputs], &device).reshape([batch, outputs]);
+    let grads = (y.clone() * r).sum().backward();
+    [
+        values(y),
+        values(x.grad(&grads).unwrap()),
+        values(weight.grad(&grads).unwrap()),
+        values(bias.grad(&grads).unwrap()),
+    ]
+}
+
+#[test]
+fn linear_matches_the_tensor_ops() {
+    // A style vector through a modulation of the paper's width, a discriminator head's few
+    // rows, and the smallest layer.
+    for dims in [[1, 512, 64], [3, 17, 4], [2, 1, 1]] {
+        for scales in LINEAR_SCALES {
+            let ours = linear_run(fused::scaled_linear, dims, scales);
+            let theirs = linear_run(portable::scaled_linear, dims, scales);
+            for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "dw", "db"]) {
+                assert_close(got, expected, &format!("{what} of {dims:?}, {scales:?}"));
+            }
+        }
+    }
+}
+
+#[test]
+fn the_linear_layers_backward_matches_central_differences() {
+    let device = Device::flex().autodiff();
+    let squared = |y: Tensor<2>| {
+        let [rows, columns] = y.dims();
+        let r = weights([1, 1, rows, columns], &y.device()).reshape([rows, columns]) * 0.1 + 0.05;
+        (y.clone() * y * r).sum()
+    };
+    let (batch, inputs, outputs) = (2, 5, 3);
+    let x = matrix(batch, inputs, &device) * 3.0;
+    let weight = matrix(outputs, inputs, &device).flip([1]);
+    let b = bias(outputs, &device);
+    // The affine map and StyleGAN2's leaky ReLU; no pre-activation lies within the step's
+    // reach of the kink (checked below), so the differences see one slope.
+    for scales in &LINEAR_SCALES[..2] {
+        let pre = portable::scaled_linear(
+            x.clone(),
+            weight.clone(),
+            b.clone(),
+            fused::LinearScales::affine(scales.weight_scale, scales.bias_scale),
+        );
+        let nearest = values(pre).iter().fold(f32::MAX, |m, v| m.min(v.abs()));
+        let eps = 1e-3;
+        // A step moves a pre-activation by at most eps times its largest factor (|x| ≤ 1.5,
+        // |w| ≤ 0.5, one bias).
+        let reach = eps * (scales.weight_scale * 1.5).max(scales.bias_scale);
+        assert!(
+            nearest > 10.0 * reach,
+            "a pre-activation {nearest} near the kink"
+        );
+        let what = |name: &str| format!("{name} of linear ({scales:?})");
+        central_differences::check(
+            &|x4| {
+                let x = x4.reshape([batch, inputs]);
+                squared(fused::scaled_linear(x, weight.clone(), b.clone(), *scales))
+            },
+            x.clone().reshape([1, 1, batch, inputs]),
+            eps,
+            &what("dx"),
+        );
+        central_differences::check(
+            &|w4| {
+                let w = w4.reshape([outputs, inputs]);
+                squared(fused::scaled_linear(x.clone(), w, b.clone(), *scales))
+            },
+            weight.clone().reshape([1, 1, outputs, inputs]),
+            eps,
+            &what("dw"),
+        );
+        central_differences::check(
+            &|b4| {
+                let b = b4.reshape([outputs]);
+                squared(fused::scaled_linear(x.clone(), weight.clone(), b, *scales))
+            },
+            b.clone().reshape([1, 1, 1, outputs]),
+            eps,
+            &what("db"),
+        );
+    }
+}

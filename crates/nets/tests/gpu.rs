@@ -598,18 +598,21 @@ fn the_fused_ops_match_the_cpu() {
         }
     }
     // The modulated weight, both gradients: a 3×3 layer of the paper's widths (4 608 values per
-    // output channel, 18 per cube unit), a 1×1 ToRGB, and fewer values than a cube has units.
-    for (shape, demodulate) in [
-        ([16, 512, 3, 3], true),
-        ([12, 64, 1, 1], false),
-        ([3, 5, 3, 3], true),
+    // output channel, 18 per cube unit), a 1×1 ToRGB, and fewer values than a cube has units;
+    // the output gradient row-major, and channels-last as the weight-gradient GEMM gives it.
+    for (shape, demodulate, r_last) in [
+        ([16, 512, 3, 3], true, false),
+        ([16, 512, 3, 3], true, true),
+        ([12, 64, 1, 1], false, false),
+        ([3, 5, 3, 3], true, true),
+        ([3, 5, 3, 3], false, true),
     ] {
         let run = |device: &Device| {
             let weight = ramp(shape, device).require_grad();
             let style =
                 (ramp([1, 1, 1, shape[1]], device).reshape([shape[1]]) * 3.0 + 1.0).require_grad();
             let y = fused::modulate(weight.clone(), style.clone(), 0.05, demodulate);
-            let r = (ramp(shape, device) * 37.0).sin();
+            let r = (laid_out(shape, device, r_last) * 37.0).sin();
             let grads = (y.clone() * r).sum().backward();
             [
                 values(y),
@@ -626,8 +629,96 @@ fn the_fused_ops_match_the_cpu() {
                 g,
                 e,
                 1e-5,
-                &format!("modulate {shape:?} ({demodulate}): {what}"),
+                &format!(
+                    "modulate {shape:?} ({demodulate}, gradient channels-last {r_last}): {what}"
+                ),
             );
+        }
+    }
+    // The backward op itself with a channels-last gradient (Burn's weight-gradient GEMMs hand
+    // theirs back so; the autodiff runs above may not reach that layout).
+    {
+        use burn::backend::Dispatch;
+        use f3g_nets::fused::FusedBackend;
+        let shape = [6, 7, 3, 3];
+        let grads = |device: &Device| {
+            let weight = ramp(shape, device);
+            let style = ramp([1, 1, 1, shape[1]], device).reshape([shape[1]]) * 3.0 + 1.0;
+            let grad = (laid_out(shape, device, true) * 37.0).sin();
+            let (d_weight, d_style) = <Dispatch as FusedBackend>::modulate_grad(
+                weight.into_dispatch(),
+                style.into_dispatch(),
+                grad.into_dispatch(),
+                0.05,
+                true,
+            );
+            [
+                values(Tensor::<4>::from_dispatch(d_weight)),
+                values(Tensor::<1>::from_dispatch(d_style)),
+            ]
+        };
+        let expected = grads(&Device::flex());
+        let got = grads(&test_device());
+        assert_close(
+            &got[0],
+            &expected[0],
+            1e-5,
+            "modulate_grad, channels-last: weight",
+        );
+        assert_close(
+            &got[1],
+            &expected[1],
+            1e-5,
+            "modulate_grad, channels-last: style",
+        );
+    }
+    // The scaled linear layer, its three gradients: a modulation of the paper's widths (a style
+    // vector of 512 to 256 input channels), a mapping layer's leaky ReLU on a few rows, a ReLU.
+    for ([batch, inputs, outputs], scales) in [
+        ([1, 512, 256], fused::LinearScales::affine(0.044, 1.0)),
+        (
+            [3, 33, 7],
+            fused::LinearScales {
+                weight_scale: 0.03,
+                bias_scale: 0.01,
+                slope: 0.2,
+                gain: std::f32::consts::SQRT_2,
+            },
+        ),
+        (
+            [2, 5, 3],
+            fused::LinearScales {
+                weight_scale: 0.7,
+                bias_scale: 2.0,
+                slope: 0.0,
+                gain: 1.5,
+            },
+        ),
+    ] {
+        let matrix = |rows: usize, columns: usize, device: &Device| {
+            ramp([1, 1, rows, columns], device).reshape([rows, columns])
+        };
+        let run = |device: &Device| {
+            let x = (matrix(batch, inputs, device) * 3.0).require_grad();
+            let weight = matrix(outputs, inputs, device).flip([1]).require_grad();
+            let bias = (matrix(1, outputs, device).reshape([outputs]) + 0.1).require_grad();
+            let y = fused::scaled_linear(x.clone(), weight.clone(), bias.clone(), scales);
+            let r = (matrix(batch, outputs, device) * 37.0).sin();
+            let grads = (y.clone() * r).sum().backward();
+            [
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(weight.grad(&grads).unwrap()),
+                values(bias.grad(&grads).unwrap()),
+            ]
+        };
+        let (got, expected) = (run(&gpu), run(&cpu));
+        for (what, (g, e)) in ["output", "dx", "weight gradient", "bias gradient"]
+            .iter()
+            .zip(got.iter().zip(&expected))
+        {
+            let dims = [batch, inputs, outputs];
+            assert_close(g, e, 1e-5, &format!("scaled_linear {dims:?}: {what}"));
         }
     }
     for shape in [[1, 1, 2, 2], [2, 3, 4, 6], [1, 3, 16, 16]] {

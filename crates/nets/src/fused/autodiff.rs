@@ -10,7 +10,7 @@ use burn::backend::autodiff::{
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{AutodiffBackend, Backend, TensorMetadata};
 
-use super::FusedBackend;
+use super::{FusedBackend, LinearScales};
 
 #[derive(Debug)]
 struct BiasLeakyReluBackward;
@@ -153,6 +153,32 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
     }
 }
 
+#[derive(Debug)]
+struct LinearBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 3> for LinearBackward {
+    /// The input, the weight, the op's output (its sign gives the activation's slope) and the
+    /// scalars.
+    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>, LinearScales);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, weight, output, scales) = ops.state;
+        let (d_x, d_weight, d_bias) = B::scaled_linear_grad(x, weight, output, grad, scales);
+        let [x_node, weight_node, bias_node] = ops.parents;
+        for (node, d) in [(x_node, d_x), (weight_node, d_weight), (bias_node, d_bias)] {
+            if let Some(node) = node {
+                grads.register::<B>(node.id, d);
+            }
+        }
+    }
+}
+
 impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff<B, C> {
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
@@ -280,6 +306,46 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         (
             Autodiff::<B, C>::from_inner(d_weight),
             Autodiff::<B, C>::from_inner(d_style),
+        )
+    }
+
+    fn scaled_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), weight.node(), bias.node()];
+        let (x, weight) = (x.into_primitive(), weight.into_primitive());
+        let out = B::scaled_linear(x.clone(), weight.clone(), bias.into_primitive(), scales);
+        match LinearBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((x, weight, out.clone(), scales), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn scaled_linear_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let (d_x, d_weight, d_bias) = B::scaled_linear_grad(
+            x.into_primitive(),
+            weight.into_primitive(),
+            output.into_primitive(),
+            grad.into_primitive(),
+            scales,
+        );
+        (
+            Autodiff::<B, C>::from_inner(d_x),
+            Autodiff::<B, C>::from_inner(d_weight),
+            Autodiff::<B, C>::from_inner(d_bias),
         )
     }
 }

@@ -22,13 +22,14 @@ use burn::backend::tensor::FloatTensor;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
-use super::FusedBackend;
+use super::{FusedBackend, LinearScales};
 use crate::cube_grid::one_thread_per_value;
 
 mod bias_leaky_relu;
 mod blur;
 mod downsample;
 mod haar;
+mod linear;
 mod modulate;
 mod position;
 mod upsample;
@@ -126,5 +127,24 @@ impl FusedBackend for CubeBackend {
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         modulate::modulate_grad(weight, style, grad, scale, demodulate)
+    }
+
+    fn scaled_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> FloatTensor<Self> {
+        linear::scaled_linear(x, weight, bias, scales)
+    }
+
+    fn scaled_linear_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        linear::scaled_linear_grad(x, weight, output, grad, scales)
     }
 }

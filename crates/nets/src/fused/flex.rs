@@ -6,7 +6,7 @@ use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
-use super::{DEMODULATION_EPSILON, FusedBackend};
+use super::{DEMODULATION_EPSILON, FusedBackend, LinearScales};
 use crate::host::{from_values, host_f32};
 
 /// The blur's taps.
@@ -315,6 +315,88 @@ impl FusedBackend for Flex {
             from_values(d_style, vec![c_in]),
         )
     }
+
+    fn scaled_linear(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> FloatTensor<Self> {
+        let (batch, inputs, outputs) = linear_dims(&x, &weight);
+        let (x, weight, bias) = (host_f32(&x), host_f32(&weight), host_f32(&bias));
+        assert_eq!(bias.len(), outputs, "one bias per output");
+        let mut out = vec![0.0f32; batch * outputs];
+        out.par_iter_mut()
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(k, y)| {
+                let (b, o) = (k / outputs, k % outputs);
+                let row = &x[b * inputs..(b + 1) * inputs];
+                let w = &weight[o * inputs..(o + 1) * inputs];
+                let dot = row.iter().zip(w).fold(0.0f32, |sum, (a, b)| sum + a * b);
+                let pre = dot * scales.weight_scale + bias[o] * scales.bias_scale;
+                *y = scales.gain * if pre > 0.0 { pre } else { scales.slope * pre };
+            });
+        from_values(out, vec![batch, outputs])
+    }
+
+    fn scaled_linear_grad(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        scales: LinearScales,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let (batch, inputs, outputs) = linear_dims(&x, &weight);
+        let (x, weight) = (host_f32(&x), host_f32(&weight));
+        let (output, grad) = (host_f32(&output), host_f32(&grad));
+        assert_eq!(grad.len(), batch * outputs, "gradient shape");
+        assert_eq!(output.len(), grad.len(), "output and gradient shapes");
+        // The gradient before the activation, `[B, out]`.
+        let g: Vec<f32> = grad
+            .iter()
+            .zip(output.iter())
+            .map(|(&d, &y)| leaky_relu_grad(d, y, scales.slope, scales.gain))
+            .collect();
+        let at = |b: usize, o: usize| g[b * outputs + o];
+        // Each sum runs in the order of the GPU kernel's (`fused::cube`'s `scaled_linear_grad`).
+        let mut d_weight = vec![0.0f32; outputs * inputs];
+        d_weight
+            .par_iter_mut()
+            .with_min_len(256)
+            .enumerate()
+            .for_each(|(t, d)| {
+                let (o, i) = (t / inputs, t % inputs);
+                let sum = (0..batch).fold(0.0f32, |sum, b| sum + at(b, o) * x[b * inputs + i]);
+                *d = sum * scales.weight_scale;
+            });
+        let mut d_x = vec![0.0f32; batch * inputs];
+        d_x.par_iter_mut()
+            .with_min_len(64)
+            .enumerate()
+            .for_each(|(t, d)| {
+                let (b, i) = (t / inputs, t % inputs);
+                let sum =
+                    (0..outputs).fold(0.0f32, |sum, o| sum + at(b, o) * weight[o * inputs + i]);
+                *d = sum * scales.weight_scale;
+            });
+        let d_bias = (0..outputs)
+            .map(|o| (0..batch).fold(0.0f32, |sum, b| sum + at(b, o)) * scales.bias_scale)
+            .collect();
+        (
+            from_values(d_x, vec![batch, inputs]),
+            from_values(d_weight, vec![outputs, inputs]),
+            from_values(d_bias, vec![outputs]),
+        )
+    }
+}
+
+/// `(batch, inputs, outputs)` of a linear layer's input `[B, in]` and weight `[out, in]`.
+fn linear_dims(x: &FloatTensor<Flex>, weight: &FloatTensor<Flex>) -> (usize, usize, usize) {
+    let [batch, inputs] = x.shape().dims();
+    let [outputs, weight_inputs] = weight.shape().dims();
+    assert_eq!(weight_inputs, inputs, "the weight's inputs are the input's");
+    (batch, inputs, outputs)
 }
 
 /// `(Σ u² + 10⁻⁸)^(−½)` over one output channel's modulated weights.

@@ -8,7 +8,7 @@ use burn::tensor::activation::{leaky_relu, relu};
 use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 
-use super::DEMODULATION_EPSILON;
+use super::{DEMODULATION_EPSILON, LinearScales};
 
 /// `gain · leaky_relu(x + bias, slope)` with a per-channel bias; with slope 0 Burn's `relu`,
 /// whose backward selects (a non-finite gradient where the output is zero does not pass;
@@ -20,6 +20,27 @@ pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> 
         relu(pre) * gain
     } else {
         leaky_relu(pre, slope) * gain
+    }
+}
+
+/// A linear layer with scaled weight and bias and an optional leaky ReLU (slope 0: Burn's
+/// `relu`, as [`bias_leaky_relu`]).
+pub fn scaled_linear(
+    x: Tensor<2>,
+    weight: Tensor<2>,
+    bias: Tensor<1>,
+    scales: LinearScales,
+) -> Tensor<2> {
+    let outputs = bias.dims()[0];
+    let y = x.matmul((weight * scales.weight_scale).transpose())
+        + (bias * scales.bias_scale).reshape([1, outputs]);
+    let LinearScales { slope, gain, .. } = scales;
+    if slope == 1.0 && gain == 1.0 {
+        y
+    } else if slope == 0.0 {
+        relu(y) * gain
+    } else {
+        leaky_relu(y, f64::from(slope)) * gain
     }
 }
 

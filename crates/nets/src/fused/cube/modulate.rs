@@ -1,6 +1,11 @@
 //! StyleGAN2's modulated weight and its gradients: one cube per output channel, which sums the
 //! demodulation's squares (and, backward, its projection) in shared memory; the style's gradient
 //! a second kernel's sums over output channels.
+//!
+//! The modulated weight is written channels-last (`[C_out, kh, kw, C_in]` in memory), the layout
+//! Burn's implicit-GEMM convolution reads its weight in, forward and for the input gradient:
+//! written row-major, each of those copied it first. Its gradient, which the weight-gradient
+//! GEMM hands back channels-last, is read as it comes.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
@@ -13,7 +18,7 @@ use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use super::{dims, u32_of};
 use crate::cube_grid::{UNITS, one_thread_per_value};
-use crate::cube_layout::empty_in_layout;
+use crate::cube_layout::{empty_in_layout, readable};
 use crate::fused::DEMODULATION_EPSILON;
 
 mod kernels {
@@ -36,9 +41,20 @@ mod kernels {
         }
     }
 
+    /// The buffer offset of value `j = i · taps + k` (input channel `i`, tap `k`) of the output
+    /// channel at `base`: `base + j` row-major, `base + k · inputs + i` channels-last.
+    #[cube]
+    fn offset(base: u32, j: u32, taps: u32, inputs: u32, #[comptime] channels_last: bool) -> u32 {
+        let mut at = base + j;
+        if comptime![channels_last] {
+            at = base + (j % taps) * inputs + j / taps;
+        }
+        at
+    }
+
     /// One cube per output channel `o` (`CUBE_POS_X`): `out[o, j] = weight[o, j] · style[j /
     /// taps] · scale`, times `(Σ_j (weight · style · scale)² + epsilon)^(−½)` if `demodulate`
-    /// (`j` over the channel's `per_output` values).
+    /// (`j` over the channel's `per_output` values); `out` channels-last.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn modulate(
@@ -52,6 +68,7 @@ mod kernels {
         #[comptime] demodulate: bool,
         #[comptime] units: u32,
     ) {
+        let inputs = per_output / taps;
         let t = UNIT_POS;
         let base = CUBE_POS_X * per_output;
         let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
@@ -71,14 +88,14 @@ mod kernels {
         let mut j = t;
         while j < per_output {
             let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
-            out[(base + j) as usize] = u * d;
+            out[offset(base, j, taps, inputs, true) as usize] = u * d;
             j += units;
         }
     }
 
     /// The backward of [`modulate`], one cube per output channel: `d_weight` and
     /// `terms = ∂u · weight · scale`, whose sums over output channels and taps are the style's
-    /// gradient ([`style_grad`]).
+    /// gradient ([`style_grad`]); `grad` row-major or, with `grad_last`, channels-last.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn modulate_grad(
@@ -92,8 +109,10 @@ mod kernels {
         scale: f32,
         epsilon: f32,
         #[comptime] demodulate: bool,
+        #[comptime] grad_last: bool,
         #[comptime] units: u32,
     ) {
+        let inputs = per_output / taps;
         let t = UNIT_POS;
         let base = CUBE_POS_X * per_output;
         let mut squares = Shared::<[f32]>::new_slice(comptime![units as usize]);
@@ -107,7 +126,7 @@ mod kernels {
             while j < per_output {
                 let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
                 uu += u * u;
-                gu += grad[(base + j) as usize] * u;
+                gu += grad[offset(base, j, taps, inputs, grad_last) as usize] * u;
                 j += units;
             }
             squares[t as usize] = uu;
@@ -122,7 +141,8 @@ mod kernels {
             let s = style[(j / taps) as usize];
             let w = weight[(base + j) as usize];
             let u = w * s * scale;
-            let d_u = d * (grad[(base + j) as usize] - u * projection);
+            let g = grad[offset(base, j, taps, inputs, grad_last) as usize];
+            let d_u = d * (g - u * projection);
             d_weight[(base + j) as usize] = d_u * s * scale;
             terms[(base + j) as usize] = d_u * w * scale;
             j += units;
@@ -154,7 +174,7 @@ mod kernels {
 }
 
 /// One cube per output channel ([`per_output_channel`]), on the weight and style made
-/// row-major.
+/// row-major; the output channels-last.
 pub(super) fn modulate(
     weight: FloatTensor<CubeBackend>,
     style: FloatTensor<CubeBackend>,
@@ -168,7 +188,7 @@ pub(super) fn modulate(
         "one style value per input"
     );
     let (weight, style) = (into_contiguous(weight), into_contiguous(style));
-    let out = empty_in_layout(&weight, shape, false);
+    let out = empty_in_layout(&weight, shape, true);
     if let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) {
         kernels::modulate::launch(
             &weight.client,
@@ -189,7 +209,7 @@ pub(super) fn modulate(
 }
 
 /// [`kernels::modulate_grad`] per output channel, then [`kernels::style_grad`]'s sums, on the
-/// inputs made row-major.
+/// weight and style made row-major and the gradient as it comes if channels-last.
 pub(super) fn modulate_grad(
     weight: FloatTensor<CubeBackend>,
     style: FloatTensor<CubeBackend>,
@@ -199,7 +219,8 @@ pub(super) fn modulate_grad(
 ) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
     let shape = dims(&weight);
     assert_eq!(dims(&grad), shape, "weight and gradient shapes");
-    let [weight, style, grad] = [weight, style, grad].map(into_contiguous);
+    let [weight, style] = [weight, style].map(into_contiguous);
+    let (grad, grad_last) = readable(grad);
     let d_weight = empty_in_layout(&weight, shape, false);
     let terms = empty_in_layout(&weight, shape, false);
     let d_style = empty_device_contiguous_dtype(
@@ -228,6 +249,7 @@ pub(super) fn modulate_grad(
         scale,
         DEMODULATION_EPSILON,
         demodulate,
+        grad_last,
         UNITS,
     );
     let (cubes, cube) = one_thread_per_value(shape[1]);

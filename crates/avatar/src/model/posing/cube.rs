@@ -1,0 +1,267 @@
+//! [`Skinning`](super::Skinning) on unfused `Cube` devices (wgpu, CUDA): the blend, the polar
+//! iteration and Shepperd's quaternion of every point in one kernel, one thread per point.
+//!
+//! Why: as tensor operations on `[N, 1]` columns ([`super::Skinning::from_tensors`]) the
+//! skinning of a `paper` step's body and face Gaussians launched about 1 300 kernels (the offline
+//! driver's count, `tools/launch_sites.sh`), each a fixed cost on the host. The arithmetic is
+//! the tensor path's, term by term (the same cofactors, fixed iteration count, guard and pivot
+//! choice), so the two agree to float rounding.
+
+use burn::backend::tensor::{FloatTensor, IntTensor};
+use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
+use burn::tensor::{DType, Int, IntDType, Shape, Tensor};
+use burn_cubecl::CubeBackend;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+
+use super::POLAR_ITERATIONS;
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    /// Point `i` (`ABSOLUTE_POS`): the blend `m = Σ_k weight[k, i] · joints[index[k, i]]`
+    /// (`[3, 4]` row-major), its linear part and translation, the nearest rotation of the linear
+    /// part after `iterations` Newton steps `X ← ½(γX + X⁻ᵀ/γ)`, `γ = |det X|^(-1/3)` (stored as
+    /// nine columns, `rotation[k, i]`), and that rotation's unit quaternion (w, x, y, z).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn skinning(
+        joints: &Tensor<f32>,
+        index: &Tensor<i32>,
+        weight: &Tensor<f32>,
+        linear: &mut Tensor<f32>,
+        translation: &mut Tensor<f32>,
+        rotation: &mut Tensor<f32>,
+        quaternion: &mut Tensor<f32>,
+        rows: u32,
+        width: u32,
+        #[comptime] iterations: u32,
+    ) {
+        let i = ABSOLUTE_POS as u32;
+        if i >= rows {
+            terminate!();
+        }
+        let mut m = Array::<f32>::new(12usize);
+        for c in 0..12usize {
+            m[c] = 0.0f32;
+        }
+        for k in 0..width {
+            let tap = (k * rows + i) as usize;
+            let j = u32::cast_from(index[tap]);
+            let w = weight[tap];
+            for c in 0..12u32 {
+                m[c as usize] += w * joints[(j * 12 + c) as usize];
+            }
+        }
+        let mut x = Array::<f32>::new(9usize);
+        for r in 0..3u32 {
+            for c in 0..3u32 {
+                let value = m[(4 * r + c) as usize];
+                x[(3 * r + c) as usize] = value;
+                linear[(9 * i + 3 * r + c) as usize] = value;
+            }
+            translation[(3 * i + r) as usize] = m[(4 * r + 3) as usize];
+        }
+        for _ in 0..comptime![iterations] {
+            let c0 = x[4] * x[8] - x[5] * x[7];
+            let c1 = x[5] * x[6] - x[3] * x[8];
+            let c2 = x[3] * x[7] - x[4] * x[6];
+            let c3 = x[7] * x[2] - x[1] * x[8];
+            let c4 = x[8] * x[0] - x[6] * x[2];
+            let c5 = x[6] * x[1] - x[7] * x[0];
+            let c6 = x[1] * x[5] - x[2] * x[4];
+            let c7 = x[2] * x[3] - x[0] * x[5];
+            let c8 = x[0] * x[4] - x[1] * x[3];
+            let mut det = x[0] * c0 + x[1] * c1 + x[2] * c2;
+            // A degenerate blend has no nearest rotation: kept finite, as the tensor path does.
+            if f32::abs(det) < 1e-20f32 {
+                det = 1e-20f32;
+            }
+            let gamma = f32::powf(f32::abs(det), -1.0f32 / 3.0f32);
+            let g = gamma * 0.5f32;
+            let h = (1.0f32 / (gamma * det)) * 0.5f32;
+            x[0] = x[0] * g + c0 * h;
+            x[1] = x[1] * g + c1 * h;
+            x[2] = x[2] * g + c2 * h;
+            x[3] = x[3] * g + c3 * h;
+            x[4] = x[4] * g + c4 * h;
+            x[5] = x[5] * g + c5 * h;
+            x[6] = x[6] * g + c6 * h;
+            x[7] = x[7] * g + c7 * h;
+            x[8] = x[8] * g + c8 * h;
+        }
+        for k in 0..9u32 {
+            rotation[(k * rows + i) as usize] = x[k as usize];
+        }
+        // Shepperd's pivots and candidates, the first largest pivot's candidate kept.
+        let s01 = x[1] + x[3];
+        let s02 = x[2] + x[6];
+        let s12 = x[5] + x[7];
+        let d10 = x[3] - x[1];
+        let d02 = x[2] - x[6];
+        let d21 = x[7] - x[5];
+        let t0 = (x[0] + x[4] + x[8]) + 1.0f32;
+        let t1 = (x[0] - x[4] - x[8]) + 1.0f32;
+        let t2 = (-x[0] + x[4] - x[8]) + 1.0f32;
+        let t3 = (-x[0] - x[4] + x[8]) + 1.0f32;
+        let mut q = Array::<f32>::new(4usize);
+        q[0] = t0;
+        q[1] = d21;
+        q[2] = d02;
+        q[3] = d10;
+        let mut best = t0;
+        if t1 > best {
+            q[0] = d21;
+            q[1] = t1;
+            q[2] = s01;
+            q[3] = s02;
+        }
+        best = f32::max(best, t1);
+        if t2 > best {
+            q[0] = d02;
+            q[1] = s01;
+            q[2] = t2;
+            q[3] = s12;
+        }
+        best = f32::max(best, t2);
+        if t3 > best {
+            q[0] = d10;
+            q[1] = s02;
+            q[2] = s12;
+            q[3] = t3;
+        }
+        let norm = f32::max(
+            f32::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]),
+            1e-12f32,
+        );
+        for c in 0..4u32 {
+            quaternion[(4 * i + c) as usize] = q[c as usize] / norm;
+        }
+    }
+}
+
+/// The skinning kernel as a backend op, so that `Dispatch` routes it to the `Cube` backend.
+#[backend_extension(Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion"))))]
+pub trait SkinningBackend: Backend {
+    /// `joints` `[J, 3, 4]`, taps tap-major (`index` `[width · rows]`, `weight` `[width, rows,
+    /// 1]`) → linear parts `[rows, 9]`, translations `[rows, 3]`, nearest rotations as nine
+    /// columns `[9, rows]`, quaternions `[rows, 4]`.
+    fn skinning(
+        joints: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> (
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+    );
+}
+
+impl SkinningBackend for CubeBackend {
+    fn skinning(
+        joints: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> (
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+        FloatTensor<Self>,
+    ) {
+        use burn::backend::ops::IntTensorOps;
+        let [width, rows, _] = weight.shape().dims();
+        let index = if index.dtype == DType::I32 {
+            into_contiguous(index)
+        } else {
+            into_contiguous(CubeBackend::int_cast(index, IntDType::I32))
+        };
+        let [joints, weight] = [joints, weight].map(into_contiguous);
+        let empty = |shape: [usize; 2]| {
+            empty_device_contiguous_dtype(
+                joints.client.clone(),
+                joints.device.clone(),
+                Shape::new(shape),
+                DType::F32,
+            )
+        };
+        let (linear, translation) = (empty([rows, 9]), empty([rows, 3]));
+        let (rotation, quaternion) = (empty([9, rows]), empty([rows, 4]));
+        if rows > 0 {
+            let (cubes, cube) = one_thread_per_row(rows);
+            let rows = u32::try_from(rows).expect("fewer than 2^32 skinned points");
+            kernels::skinning::launch(
+                &joints.client,
+                cubes,
+                cube,
+                joints.clone().into_tensor_arg(),
+                index.into_tensor_arg(),
+                weight.into_tensor_arg(),
+                linear.clone().into_tensor_arg(),
+                translation.clone().into_tensor_arg(),
+                rotation.clone().into_tensor_arg(),
+                quaternion.clone().into_tensor_arg(),
+                rows,
+                u32::try_from(width).expect("a few taps per point"),
+                POLAR_ITERATIONS as u32,
+            );
+        }
+        (linear, translation, rotation, quaternion)
+    }
+}
+
+/// One thread per row, 256 per cube, on a 2-D grid (wgpu allows 65 535 cubes per dimension).
+fn one_thread_per_row(
+    rows: usize,
+) -> (burn_cubecl::cubecl::CubeCount, burn_cubecl::cubecl::CubeDim) {
+    const UNITS: u32 = 256;
+    const MAX_ROW: u32 = 65_535;
+    let cubes = rows.div_ceil(UNITS as usize).max(1) as u32;
+    (
+        burn_cubecl::cubecl::CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
+        burn_cubecl::cubecl::CubeDim::new_1d(UNITS),
+    )
+}
+
+/// The kernel's outputs as [`super::Skinning`]'s tensors, or `None` off unfused `Cube` devices.
+pub(super) fn skinning(
+    joints: &Tensor<3>,
+    index: &Tensor<1, Int>,
+    weight: &Tensor<3>,
+) -> Option<super::Skinning> {
+    let device = joints.device();
+    if !matches!(
+        device.clone().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    ) {
+        return None;
+    }
+    let (linear, translation, rotation, quaternion) = <Dispatch as SkinningBackend>::skinning(
+        joints.clone().without_autodiff().into_dispatch(),
+        index.clone().without_autodiff().into_dispatch(),
+        weight.clone().without_autodiff().into_dispatch(),
+    );
+    // Back on the joints' device (with autodiff if it has it), as constants.
+    let on_device = |t: Tensor<2>| {
+        if device.is_autodiff() {
+            t.autodiff()
+        } else {
+            t
+        }
+    };
+    let linear = on_device(Tensor::<2>::from_dispatch(linear));
+    let rows = linear.dims()[0];
+    let rotation = on_device(Tensor::<2>::from_dispatch(rotation));
+    Some(super::Skinning {
+        linear: linear.reshape([rows, 3, 3]),
+        translation: on_device(Tensor::from_dispatch(translation)),
+        rotation: std::array::from_fn(|k| {
+            rotation
+                .clone()
+                .slice([k..k + 1, 0..rows])
+                .reshape([rows, 1])
+        }),
+        quaternion: on_device(Tensor::from_dispatch(quaternion)),
+    })
+}
