@@ -144,6 +144,22 @@ pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: boo
     }
 }
 
+/// `weight · scale` for a convolution weight `[C_out, C_in, kh, kw]` (an equalised
+/// convolution's): one op where it [`runs`], Burn's scaling elsewhere. On unfused `Cube`
+/// devices the result is stored channels-last, the layout Burn's implicit-GEMM convolution
+/// reads its weight in: stored row-major, as Burn's scaling leaves it, it was copied before the
+/// convolution and again before its input gradient.
+pub fn scale_weight(weight: Tensor<4>, scale: f32) -> Tensor<4> {
+    if runs(&weight, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::scale_weight(
+            weight.into_dispatch(),
+            scale,
+        ))
+    } else {
+        weight * scale
+    }
+}
+
 /// The scalars of [`scaled_linear`]: `gain · leaky_relu(x · (weight · weight_scale)ᵀ + bias ·
 /// bias_scale, slope)`; slope 1 and gain 1 leave the affine map alone ([`LinearScales::affine`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -267,6 +283,13 @@ pub trait FusedBackend: Backend {
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
+    /// [`scale_weight`]: `weight · scale`, in the layout the backend's convolutions read.
+    fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self>;
+
+    /// The gradient of [`FusedBackend::scale_weight`]'s input: `grad · scale`, row-major (the
+    /// weight's layout).
+    fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self>;
 
     /// [`scaled_linear`]: `[B, in] → [B, out]`.
     fn scaled_linear(

@@ -21,7 +21,8 @@ use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, scaled_linear, upsample2,
+    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, scale_weight, scaled_linear,
+    upsample2,
 };
 use crate::init::Init;
 
@@ -70,7 +71,7 @@ impl EqualConv2d {
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         conv2d(
             x,
-            self.weight.val() * self.scale,
+            scale_weight(self.weight.val(), self.scale),
             self.bias.as_ref().map(Param::val),
             self.options(),
         )
@@ -79,7 +80,8 @@ impl EqualConv2d {
     /// The convolution, then `leaky_relu(·, slope)` with the bias added in the activation's
     /// single pass ([`bias_leaky_relu`]).
     pub fn forward_leaky_relu(&self, x: Tensor<4>, slope: f64) -> Tensor<4> {
-        let y = conv2d(x, self.weight.val() * self.scale, None, self.options());
+        let weight = scale_weight(self.weight.val(), self.scale);
+        let y = conv2d(x, weight, None, self.options());
         match &self.bias {
             Some(bias) => bias_leaky_relu(y, bias.val(), slope, 1.0),
             None => leaky_relu(y, slope),

@@ -418,3 +418,30 @@ fn the_linear_layers_backward_matches_central_differences() {
         );
     }
 }
+
+#[test]
+fn scale_weight_matches_the_tensor_ops_and_central_differences() {
+    let device = Device::flex().autodiff();
+    let shape = [4, 3, 3, 3];
+    let run = |op: &dyn Fn(Tensor<4>) -> Tensor<4>| {
+        let w = ramp(shape, &device).require_grad();
+        let y = op(w.clone());
+        let grads = (y.clone() * weights(shape, &device)).sum().backward();
+        [values(y), values(w.grad(&grads).unwrap())]
+    };
+    let ours = run(&|w| fused::scale_weight(w, 0.19));
+    let theirs = run(&|w| w * 0.19);
+    for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dw"]) {
+        assert_close(got, expected, &format!("{what} of scale_weight"));
+    }
+    let squared = |y: Tensor<4>| {
+        let r = weights(y.dims(), &y.device()) * 0.1 + 0.05;
+        (y.clone() * y * r).sum()
+    };
+    central_differences::check(
+        &|w| squared(fused::scale_weight(w, 0.19)),
+        ramp(shape, &device),
+        1e-2,
+        "dw of scale_weight",
+    );
+}

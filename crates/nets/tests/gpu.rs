@@ -671,6 +671,31 @@ fn the_fused_ops_match_the_cpu() {
             1e-5,
             "modulate_grad, channels-last: style",
         );
+        // An equalised convolution's scaled weight, its gradient from either layout.
+        for (shape, grad_last) in [
+            ([6, 7, 3, 3], false),
+            ([6, 7, 3, 3], true),
+            ([5, 3, 1, 1], true),
+        ] {
+            let scaled = |device: &Device| {
+                let weight = ramp(shape, device).require_grad();
+                let y = fused::scale_weight(weight.clone(), 0.3);
+                let r = (laid_out(shape, device, grad_last) * 37.0).sin();
+                let grads = (y.clone() * r).sum().backward();
+                [values(y), values(weight.grad(&grads).unwrap())]
+            };
+            let (got, expected) = (scaled(&gpu), scaled(&cpu));
+            let what = format!("scale_weight {shape:?}, gradient channels-last {grad_last}");
+            assert_close(&got[0], &expected[0], 1e-6, &format!("{what}: output"));
+            assert_close(&got[1], &expected[1], 1e-6, &format!("{what}: gradient"));
+            let direct = |device: &Device| {
+                let grad = (laid_out(shape, device, grad_last) * 37.0).sin();
+                let d = <Dispatch as FusedBackend>::scale_weight_grad(grad.into_dispatch(), 0.3);
+                values(Tensor::<4>::from_dispatch(d))
+            };
+            let (got, expected) = (direct(&test_device()), direct(&Device::flex()));
+            assert_close(&got, &expected, 1e-6, &format!("{what}: the backward op"));
+        }
     }
     // The scaled linear layer, its three gradients: a modulation of the paper's widths (a style
     // vector of 512 to 256 input channels), a mapping layer's leaky ReLU on a few rows, a ReLU.

@@ -154,6 +154,26 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
 }
 
 #[derive(Debug)]
+struct ScaleWeightBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for ScaleWeightBackward {
+    /// The scale.
+    type State = f32;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, B::scale_weight_grad(grad, ops.state));
+        }
+    }
+}
+
+#[derive(Debug)]
 struct LinearBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 3> for LinearBackward {
@@ -307,6 +327,23 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             Autodiff::<B, C>::from_inner(d_weight),
             Autodiff::<B, C>::from_inner(d_style),
         )
+    }
+
+    fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        let nodes = [weight.node()];
+        let out = B::scale_weight(weight.into_primitive(), scale);
+        match ScaleWeightBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(scale, out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::scale_weight_grad(grad.into_primitive(), scale))
     }
 
     fn scaled_linear(

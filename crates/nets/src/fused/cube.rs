@@ -129,6 +129,14 @@ impl FusedBackend for CubeBackend {
         modulate::modulate_grad(weight, style, grad, scale, demodulate)
     }
 
+    fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        modulate::scale_weight(weight, scale)
+    }
+
+    fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        modulate::scale_weight_grad(grad, scale)
+    }
+
     fn scaled_linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,

@@ -316,6 +316,14 @@ impl FusedBackend for Flex {
         )
     }
 
+    fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        scaled(&weight, scale)
+    }
+
+    fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
+        scaled(&grad, scale)
+    }
+
     fn scaled_linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -389,6 +397,16 @@ impl FusedBackend for Flex {
             from_values(d_bias, vec![outputs]),
         )
     }
+}
+
+/// `t · scale`, row-major.
+fn scaled(t: &FloatTensor<Flex>, scale: f32) -> FloatTensor<Flex> {
+    let mut values = host_f32(t).into_owned();
+    values
+        .par_iter_mut()
+        .with_min_len(1 << 14)
+        .for_each(|v| *v *= scale);
+    from_values(values, t.shape().dims::<4>().to_vec())
 }
 
 /// `(batch, inputs, outputs)` of a linear layer's input `[B, in]` and weight `[out, in]`.

@@ -2,7 +2,8 @@
 //! demodulation's squares (and, backward, its projection) in shared memory; the style's gradient
 //! a second kernel's sums over output channels.
 //!
-//! The modulated weight is written channels-last (`[C_out, kh, kw, C_in]` in memory), the layout
+//! The modulated weight (and an equalised convolution's scaled weight, [`scale_weight`]) is
+//! written channels-last (`[C_out, kh, kw, C_in]` in memory), the layout
 //! Burn's implicit-GEMM convolution reads its weight in, forward and for the input gradient:
 //! written row-major, each of those copied it first. Its gradient, which the weight-gradient
 //! GEMM hands back channels-last, is read as it comes.
@@ -149,6 +150,46 @@ mod kernels {
         }
     }
 
+    /// `out = weight · scale` with `out` channels-last, one thread per weight value (`j` its
+    /// row-major offset).
+    #[cube(launch)]
+    pub fn scale_weight(
+        weight: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+    ) {
+        let j = ABSOLUTE_POS as u32;
+        if j >= weight.len() as u32 {
+            terminate!();
+        }
+        let base = (j / per_output) * per_output;
+        let inputs = per_output / taps;
+        out[offset(base, j % per_output, taps, inputs, true) as usize] = weight[j as usize] * scale;
+    }
+
+    /// `d_weight = grad · scale`, row-major, from `grad` row-major or, with `grad_last`,
+    /// channels-last; one thread per value.
+    #[cube(launch)]
+    pub fn scale_weight_grad(
+        grad: &Tensor<f32>,
+        d_weight: &mut Tensor<f32>,
+        per_output: u32,
+        taps: u32,
+        scale: f32,
+        #[comptime] grad_last: bool,
+    ) {
+        let j = ABSOLUTE_POS as u32;
+        if j >= d_weight.len() as u32 {
+            terminate!();
+        }
+        let base = (j / per_output) * per_output;
+        let inputs = per_output / taps;
+        d_weight[j as usize] =
+            grad[offset(base, j % per_output, taps, inputs, grad_last) as usize] * scale;
+    }
+
     /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one thread per input channel.
     #[cube(launch)]
     pub fn style_grad(
@@ -264,6 +305,56 @@ pub(super) fn modulate_grad(
         taps,
     );
     (d_weight, d_style)
+}
+
+/// One thread per value, the output channels-last.
+pub(super) fn scale_weight(
+    weight: FloatTensor<CubeBackend>,
+    scale: f32,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&weight);
+    let weight = into_contiguous(weight);
+    let out = empty_in_layout(&weight, shape, true);
+    if let Some((_, _, per_output, taps)) = per_output_channel(shape) {
+        let (cubes, cube) = one_thread_per_value(weight.shape().num_elements());
+        kernels::scale_weight::launch(
+            &weight.client,
+            cubes,
+            cube,
+            weight.clone().into_tensor_arg(),
+            out.clone().into_tensor_arg(),
+            per_output,
+            taps,
+            scale,
+        );
+    }
+    out
+}
+
+/// One thread per value, from the gradient as it comes if channels-last, into a row-major
+/// gradient.
+pub(super) fn scale_weight_grad(
+    grad: FloatTensor<CubeBackend>,
+    scale: f32,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&grad);
+    let (grad, grad_last) = readable(grad);
+    let d_weight = empty_in_layout(&grad, shape, false);
+    if let Some((_, _, per_output, taps)) = per_output_channel(shape) {
+        let (cubes, cube) = one_thread_per_value(grad.shape().num_elements());
+        kernels::scale_weight_grad::launch(
+            &grad.client,
+            cubes,
+            cube,
+            grad.clone().into_tensor_arg(),
+            d_weight.clone().into_tensor_arg(),
+            per_output,
+            taps,
+            scale,
+            grad_last,
+        );
+    }
+    d_weight
 }
 
 /// The launch of [`kernels::modulate`] and its gradient for a weight of `shape`: one cube of
