@@ -68,6 +68,34 @@ pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> 
     }
 }
 
+/// `gain · leaky_relu(x + noise · strength + bias, slope)`: StyleGAN2's noise injection (a
+/// fixed `noise` map `[1, 1, H, W]` times a learned `strength` `[1]`) and its fused activation
+/// in one op where it [`runs`], Burn's ops and [`portable::bias_leaky_relu`] elsewhere. Why:
+/// as a multiply and a broadcast add, with their backward's broadcast sums, the injection cost
+/// a styled convolution six launches more on a GPU.
+pub fn noisy_bias_leaky_relu(
+    x: Tensor<4>,
+    noise: Tensor<4>,
+    strength: Tensor<1>,
+    bias: Tensor<1>,
+    slope: f64,
+    gain: f32,
+) -> Tensor<4> {
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::noisy_bias_leaky_relu(
+            x.into_dispatch(),
+            noise.into_dispatch(),
+            strength.into_dispatch(),
+            bias.into_dispatch(),
+            slope as f32,
+            gain,
+        ))
+    } else {
+        let injected = x + noise * strength.reshape([1, 1, 1, 1]);
+        portable::bias_leaky_relu(injected, bias, slope, gain)
+    }
+}
+
 /// Bilinear ×2 up-sampling (`align_corners = false`): one op where it [`runs`],
 /// [`portable::upsample2`] elsewhere.
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
@@ -235,6 +263,21 @@ pub trait FusedBackend: Backend {
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self>;
+
+    /// [`noisy_bias_leaky_relu`]; its backward is [`FusedBackend::bias_leaky_relu_grad`]'s, with
+    /// the strength's gradient from [`FusedBackend::noise_strength_grad`].
+    fn noisy_bias_leaky_relu(
+        x: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        strength: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self>;
+
+    /// `[1]`: `Σ_{b, c, h, w} grad[b, c, h, w] · noise[h, w]` for `noise` `[1, 1, H, W]` (the
+    /// noise strength's gradient from the pre-activation's).
+    fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// `[C]`: the sum of `x` over batch and pixels per channel (the bias gradient).
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self>;

@@ -21,8 +21,8 @@ use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, scale_weight, scaled_linear,
-    upsample2,
+    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, noisy_bias_leaky_relu,
+    scale_weight, scaled_linear, upsample2,
 };
 use crate::init::Init;
 
@@ -228,7 +228,7 @@ impl ModulatedConv2d {
 
 /// Fixed per-pixel noise (StyleGAN2 with `randomize_noise = False`) times a learned strength
 /// that starts at zero. The noise map is a parameter without gradient so that checkpoints keep
-/// it.
+/// it. [`StyledConv`] adds it in its activation's pass ([`noisy_bias_leaky_relu`]).
 #[derive(Module, Debug)]
 pub struct NoiseInjection {
     pub strength: Param<Tensor<1>>,
@@ -242,13 +242,9 @@ impl NoiseInjection {
             noise: init.normal([1, 1, size, size], 1.0).set_require_grad(false),
         }
     }
-
-    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        x + self.noise.val() * self.strength.val().reshape([1, 1, 1, 1])
-    }
 }
 
-/// Modulated 3×3 convolution (optionally up-sampling), noise, fused leaky ReLU.
+/// Modulated 3×3 convolution (optionally up-sampling), then noise, bias and leaky ReLU in one op.
 #[derive(Module, Debug)]
 pub struct StyledConv {
     pub conv: ModulatedConv2d,
@@ -272,9 +268,13 @@ impl StyledConv {
     }
 
     pub fn forward(&self, x: Tensor<4>, style: Tensor<2>) -> Tensor<4> {
-        fused_lrelu(
-            self.noise.forward(self.conv.forward(x, style)),
+        noisy_bias_leaky_relu(
+            self.conv.forward(x, style),
+            self.noise.noise.val(),
+            self.noise.strength.val(),
             self.bias.val(),
+            LRELU_SLOPE,
+            LRELU_GAIN,
         )
     }
 }

@@ -445,3 +445,75 @@ fn scale_weight_matches_the_tensor_ops_and_central_differences() {
         "dw of scale_weight",
     );
 }
+
+/// The noise injection and activation of a styled convolution as one op: output and the
+/// gradients of input, noise, strength and bias against Burn's ops, and central differences.
+#[test]
+fn the_noisy_activation_matches_the_tensor_ops_and_central_differences() {
+    let device = Device::flex().autodiff();
+    let shape = [2, 3, 4, 5];
+    let noise = || ramp([1, 1, 4, 5], &device).flip([3]) * 2.0;
+    let strength = || Tensor::<1>::from_data(TensorData::new(vec![0.37f32], [1]), &device);
+    type Op = fn(Tensor<4>, Tensor<4>, Tensor<1>, Tensor<1>, f64, f32) -> Tensor<4>;
+    let portable_op: Op = |x, noise, strength, bias, slope, gain| {
+        portable::bias_leaky_relu(
+            x + noise * strength.reshape([1, 1, 1, 1]),
+            bias,
+            slope,
+            gain,
+        )
+    };
+    for (slope, gain) in [(LRELU_SLOPE, LRELU_GAIN), (0.0, 1.0)] {
+        let run = |op: Op| {
+            let x = ramp(shape, &device).require_grad();
+            let (n, s) = (noise().require_grad(), strength().require_grad());
+            let b = bias(3, &device).require_grad();
+            let y = op(x.clone(), n.clone(), s.clone(), b.clone(), slope, gain);
+            let grads = (y.clone() * weights(shape, &device)).sum().backward();
+            [
+                values(y),
+                values(x.grad(&grads).unwrap()),
+                values(n.grad(&grads).unwrap()),
+                values(s.grad(&grads).unwrap()),
+                values(b.grad(&grads).unwrap()),
+            ]
+        };
+        let ours = run(fused::noisy_bias_leaky_relu);
+        let theirs = run(portable_op);
+        let names = ["y", "dx", "dnoise", "dstrength", "dbias"];
+        for ((got, expected), what) in ours.iter().zip(&theirs).zip(names) {
+            assert_close(
+                got,
+                expected,
+                &format!("{what} of the noisy activation ({slope})"),
+            );
+        }
+    }
+    // Away from the kink: the strength's small step moves a pre-activation by at most
+    // 2e-3 · max|noise| ≈ 2e-3, and none lies that close to zero (checked).
+    let squared = |y: Tensor<4>| {
+        let r = weights(y.dims(), &y.device()) * 0.1 + 0.05;
+        (y.clone() * y * r).sum()
+    };
+    // The offset keeps every pre-activation at least 0.013 from zero.
+    let x = ramp(shape, &device) + 0.145;
+    let pre = x.clone() + noise() * 0.37 + bias(3, &device).reshape([1, 3, 1, 1]);
+    let nearest = values(pre).iter().fold(f32::MAX, |m, v| m.min(v.abs()));
+    assert!(nearest > 4e-3, "a pre-activation {nearest} near the kink");
+    central_differences::check(
+        &|s4| {
+            let s = s4.reshape([1]);
+            squared(fused::noisy_bias_leaky_relu(
+                x.clone(),
+                noise(),
+                s,
+                bias(3, &device),
+                LRELU_SLOPE,
+                LRELU_GAIN,
+            ))
+        },
+        strength().reshape([1, 1, 1, 1]),
+        2e-3,
+        "dstrength of the noisy activation",
+    );
+}

@@ -576,6 +576,50 @@ fn the_fused_ops_match_the_cpu() {
             }
         }
         compare(&fused::upsample2, shape, "upsample2");
+        // A styled convolution's noise injection and activation in one op: the gradients of
+        // input, strength and bias too, from either layout.
+        for (x_last, r_last) in LAYOUTS {
+            let [_, _, h, w] = shape;
+            let run = |device: &Device| {
+                let x = laid_out(shape, device, x_last).require_grad();
+                let noise = ramp([1, 1, h, w], device).flip([3]) * 2.0;
+                let strength = Tensor::<1>::from_data(
+                    burn::tensor::TensorData::new(vec![0.37f32], [1]),
+                    device,
+                )
+                .require_grad();
+                let b = bias(device).require_grad();
+                let y = fused::noisy_bias_leaky_relu(
+                    x.clone(),
+                    noise,
+                    strength.clone(),
+                    b.clone(),
+                    0.2,
+                    1.5,
+                );
+                let r = (laid_out(shape, device, r_last) * 37.0).sin();
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(strength.grad(&grads).unwrap()),
+                    values(b.grad(&grads).unwrap()),
+                ]
+            };
+            let (got, expected) = (run(&gpu), run(&cpu));
+            for (what, (g, e)) in ["output", "dx", "strength gradient", "bias gradient"]
+                .iter()
+                .zip(got.iter().zip(&expected))
+            {
+                let layouts = format!("channels-last input {x_last}, gradient {r_last}");
+                assert_close(
+                    g,
+                    e,
+                    1e-5,
+                    &format!("noisy_bias_leaky_relu {shape:?}, {layouts}: {what}"),
+                );
+            }
+        }
     }
     // ReLU's backward stops an infinite gradient where the output is zero (LPIPS's √Σx²).
     let relu_sqrt = |x: Tensor<4>| {

@@ -39,6 +39,46 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
 }
 
 #[derive(Debug)]
+struct NoisyBiasLeakyReluBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 4> for NoisyBiasLeakyReluBackward {
+    /// The op's output (its sign gives the slope), the noise, the strength, the slope and the
+    /// gain.
+    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>, f32, f32);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 4>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (output, noise, strength, slope, gain) = ops.state;
+        let pre_activation = B::bias_leaky_relu_grad(output, grad, slope, gain);
+        let [x_node, noise_node, strength_node, bias_node] = ops.parents;
+        if let Some(node) = bias_node {
+            grads.register::<B>(node.id, B::channel_sum(pre_activation.clone()));
+        }
+        if let Some(node) = strength_node {
+            let d_strength = B::noise_strength_grad(pre_activation.clone(), noise);
+            grads.register::<B>(node.id, d_strength);
+        }
+        if let Some(node) = noise_node {
+            // The fixed noise maps never ask for it; any other caller gets it exactly.
+            let per_pixel = B::float_sum_dim(B::float_sum_dim(pre_activation.clone(), 0), 1);
+            let d_noise = B::float_mul(
+                per_pixel,
+                B::float_reshape(strength, burn::tensor::Shape::new([1, 1, 1, 1])),
+            );
+            grads.register::<B>(node.id, d_noise);
+        }
+        if let Some(node) = x_node {
+            grads.register::<B>(node.id, pre_activation);
+        }
+    }
+}
+
+#[derive(Debug)]
 struct Upsample2Backward;
 
 impl<B: Backend + FusedBackend> Backward<B, 1> for Upsample2Backward {
@@ -216,6 +256,41 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             OpsKind::Tracked(prep) => prep.finish((out.clone(), slope, gain), out),
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
+    }
+
+    fn noisy_bias_leaky_relu(
+        x: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        strength: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), noise.node(), strength.node(), bias.node()];
+        let (noise, strength) = (noise.into_primitive(), strength.into_primitive());
+        let out = B::noisy_bias_leaky_relu(
+            x.into_primitive(),
+            noise.clone(),
+            strength.clone(),
+            bias.into_primitive(),
+            slope,
+            gain,
+        );
+        match NoisyBiasLeakyReluBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((out.clone(), noise, strength, slope, gain), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::noise_strength_grad(
+            grad.into_primitive(),
+            noise.into_primitive(),
+        ))
     }
 
     fn bias_leaky_relu_grad(

@@ -78,6 +78,21 @@ impl FusedBackend for CubeBackend {
         bias_leaky_relu::bias_leaky_relu_grad(output, grad, slope, gain)
     }
 
+    fn noisy_bias_leaky_relu(
+        x: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        strength: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
+        bias_leaky_relu::noisy_bias_leaky_relu(x, noise, strength, bias, slope, gain)
+    }
+
+    fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self> {
+        bias_leaky_relu::noise_strength_grad(grad, noise)
+    }
+
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
         bias_leaky_relu::channel_sum(x)
     }

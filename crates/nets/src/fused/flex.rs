@@ -56,6 +56,53 @@ impl FusedBackend for Flex {
         from_values(dx, shape.to_vec())
     }
 
+    fn noisy_bias_leaky_relu(
+        x: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        strength: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&x);
+        let plane = shape[2] * shape[3];
+        let (noise, strength) = (host_f32(&noise), host_f32(&strength));
+        assert_eq!(noise.len(), plane, "one noise value per pixel");
+        let strength = strength[0];
+        let (bias, channels) = (host_f32(&bias), shape[1]);
+        assert_eq!(bias.len(), channels, "one bias per channel");
+        let mut out = host_f32(&x).into_owned();
+        out.par_chunks_mut(plane.max(1))
+            .enumerate()
+            .for_each(|(index, values)| {
+                let b = bias[index % channels];
+                for (v, &n) in values.iter_mut().zip(noise.iter()) {
+                    let pre = *v + n * strength + b;
+                    *v = gain * if pre > 0.0 { pre } else { slope * pre };
+                }
+            });
+        from_values(out, shape.to_vec())
+    }
+
+    fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self> {
+        let plane = dims(&grad)[2] * dims(&grad)[3];
+        let (grad, noise) = (host_f32(&grad), host_f32(&noise));
+        assert_eq!(noise.len(), plane, "one noise value per pixel");
+        let sum: f64 = if plane == 0 {
+            0.0
+        } else {
+            grad.par_chunks(plane)
+                .map(|g| {
+                    g.iter()
+                        .zip(noise.iter())
+                        .map(|(&g, &n)| f64::from(g) * f64::from(n))
+                        .sum::<f64>()
+                })
+                .sum()
+        };
+        from_values(vec![sum as f32], vec![1])
+    }
+
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels, height, width] = dims(&x);
         let plane = height * width;

@@ -42,6 +42,66 @@ mod kernels {
         out[i] = gain * value;
     }
 
+    /// [`bias_leaky_relu`] with `noise[p] · strength[0]` added, `p` the pixel of the value at
+    /// buffer offset `i` (`(i / pixel_stride) % pixels`).
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn noisy_bias_leaky_relu(
+        x: &Tensor<f32>,
+        noise: &Tensor<f32>,
+        strength: &Tensor<f32>,
+        bias: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        channel_stride: u32,
+        channels: u32,
+        pixel_stride: u32,
+        pixels: u32,
+        gain: f32,
+        slope: f32,
+    ) {
+        let i = ABSOLUTE_POS;
+        if i >= out.len() {
+            terminate!();
+        }
+        let c = (i as u32 / channel_stride) % channels;
+        let p = (i as u32 / pixel_stride) % pixels;
+        let pre = x[i] + noise[p as usize] * strength[0] + bias[c as usize];
+        let mut value = pre;
+        if pre <= 0.0 {
+            value = slope * pre;
+        }
+        out[i] = gain * value;
+    }
+
+    /// `out[p] = noise[p] · Σ_{b, c} grad[b, c, p]`, one thread per pixel `p` (`grad` row-major
+    /// or, with `channels_last`, channels-last).
+    #[cube(launch)]
+    pub fn noise_products(
+        grad: &Tensor<f32>,
+        noise: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        batch: u32,
+        channels: u32,
+        #[comptime] channels_last: bool,
+    ) {
+        let p = ABSOLUTE_POS as u32;
+        let pixels = out.len() as u32;
+        if p >= pixels {
+            terminate!();
+        }
+        let mut sum = 0.0f32;
+        for b in 0..batch {
+            for c in 0..channels {
+                let mut at = (b * channels + c) * pixels + p;
+                if comptime![channels_last] {
+                    at = (b * pixels + p) * channels + c;
+                }
+                sum += grad[at as usize];
+            }
+        }
+        out[p as usize] = sum * noise[p as usize];
+    }
+
     /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
     /// offset (the three share one gapless layout); with slope 0 a selection, as `fused::flex`'s
     /// `leaky_relu_grad`, so that a non-finite gradient where the output is zero does not pass.
@@ -94,6 +154,78 @@ pub(super) fn bias_leaky_relu(
             slope,
         )
     })
+}
+
+/// One kernel, in `x`'s layout.
+pub(super) fn noisy_bias_leaky_relu(
+    x: FloatTensor<CubeBackend>,
+    noise: FloatTensor<CubeBackend>,
+    strength: FloatTensor<CubeBackend>,
+    bias: FloatTensor<CubeBackend>,
+    slope: f32,
+    gain: f32,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&x);
+    let pixels = shape[2] * shape[3];
+    assert_eq!(bias.shape().dims::<1>(), [shape[1]], "one bias per channel");
+    assert_eq!(
+        noise.shape().num_elements(),
+        pixels,
+        "one noise value per pixel"
+    );
+    assert_eq!(strength.shape().num_elements(), 1, "one noise strength");
+    let [noise, strength, bias] = [noise, strength, bias].map(into_contiguous);
+    let (x, last) = readable(x);
+    let (channel_stride, pixel_stride) = if last { (1, shape[1]) } else { (pixels, 1) };
+    let out = empty_in_layout(&x, shape, last);
+    one_thread_per_output(out, &x, |cubes, cube, out| {
+        kernels::noisy_bias_leaky_relu::launch(
+            &x.client,
+            cubes,
+            cube,
+            x.clone().into_tensor_arg(),
+            noise.into_tensor_arg(),
+            strength.into_tensor_arg(),
+            bias.into_tensor_arg(),
+            out.into_tensor_arg(),
+            u32_of(channel_stride).max(1),
+            u32_of(shape[1]).max(1),
+            u32_of(pixel_stride).max(1),
+            u32_of(pixels).max(1),
+            gain,
+            slope,
+        )
+    })
+}
+
+/// The products with the noise per pixel in one kernel, summed by Burn's reduction.
+pub(super) fn noise_strength_grad(
+    grad: FloatTensor<CubeBackend>,
+    noise: FloatTensor<CubeBackend>,
+) -> FloatTensor<CubeBackend> {
+    let [batch, channels, height, width] = dims(&grad);
+    assert_eq!(
+        noise.shape().num_elements(),
+        height * width,
+        "one noise value per pixel"
+    );
+    let noise = into_contiguous(noise);
+    let (grad, last) = readable(grad);
+    let products = empty_in_layout(&grad, [1, 1, height, width], false);
+    let products = one_thread_per_output(products, &grad, |cubes, cube, products| {
+        kernels::noise_products::launch(
+            &grad.client,
+            cubes,
+            cube,
+            grad.clone().into_tensor_arg(),
+            noise.into_tensor_arg(),
+            products.into_tensor_arg(),
+            u32_of(batch),
+            u32_of(channels),
+            last,
+        )
+    });
+    CubeBackend::float_reshape(CubeBackend::float_sum(products), Shape::new([1]))
 }
 
 /// In the gradient's layout; the output is copied to it where the two differ.
