@@ -105,10 +105,11 @@ fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_th
 ///
 /// And issue #47's launches per `paper` step, counted by the driver (the difference of a
 /// three-step and a one-step process, halved): 13 561 before Adam's shared launches, 12 402
-/// with them, 9 178 with the scaled linear op, channels-last modulated weights and the
-/// skinning kernel (2026-11-29); the target is 3 000. The bound keeps what was won.
+/// with them, 8 547 with the scaled linear op, channels-last convolution weights, the skinning
+/// kernel and the noisy activation (2026-11-29); the target is 3 000. The bound keeps what was
+/// won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_9_500() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_8_800() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -140,7 +141,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_9_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (5_000..=9_500).contains(&per_step),
+        (5_000..=8_800).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }

@@ -8,8 +8,11 @@
 //! on the small Haar tensors, ten ops' fixed costs), and 40–57 % of a StyleUNet's
 //! forward+backward on `Flex` (`f3g bench nets --profile`, "other"). The modulated weight of
 //! every styled convolution is another ten small ops forward and twenty backward, each a kernel
-//! launch on a GPU. The 2 × 2 down-sampling of the encoder's input pyramid, as Burn's average
-//! pooling, compiles a GPU kernel for every pooling and input size. Here each is one backend op
+//! launch on a GPU, and so were the equalised linear layers that make each style (two scalings,
+//! a transpose, a matmul and a broadcast add), an equalised convolution's `weight · scale`
+//! and the noise injection before a styled convolution's activation. The 2 × 2 down-sampling
+//! of the encoder's input pyramid, as Burn's average pooling, compiles a GPU kernel for every
+//! pooling and input size. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel (`flex`), and on unfused `Cube` devices (wgpu, CUDA) one
 //! kernel (`cube`, a file per op). Burn's `fusion` devices keep the tensor-op formulation
@@ -215,11 +218,11 @@ impl LinearScales {
 
 /// A linear layer with scaled weight and bias and an optional leaky ReLU ([`LinearScales`]):
 /// `x` `[B, in]`, `weight` `[out, in]`, `bias` `[out]` → `[B, out]`. One op where it [`runs`],
-/// [`portable::linear`] elsewhere.
+/// [`portable::scaled_linear`] elsewhere.
 ///
 /// Why one op: the StyleUNets' modulations are such layers on one style vector, two of them per
 /// styled convolution; as Burn's ops (two scalings, a transpose, a matmul, a broadcast add,
-/// and their backwards) they were about a fifth of a `paper` step's kernel launches on a GPU.
+/// and their backwards) they were one in eight of a `paper` step's kernel launches on a GPU.
 pub fn scaled_linear(
     x: Tensor<2>,
     weight: Tensor<2>,
