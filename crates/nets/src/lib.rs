@@ -25,7 +25,7 @@ pub mod adam;
 pub mod checkpoint;
 pub mod conv;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
-mod cube_grid;
+pub mod cube_grid;
 #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
 mod cube_layout;
 pub mod discriminator;

@@ -3,6 +3,7 @@
 
 use burn::backend::Flex;
 use burn::backend::TensorMetadata;
+use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
@@ -85,7 +86,8 @@ impl FusedBackend for Flex {
     }
 
     fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self> {
-        let plane = dims(&grad)[2] * dims(&grad)[3];
+        let [_, _, height, width] = dims(&grad);
+        let plane = height * width;
         let (grad, noise) = (host_f32(&grad), host_f32(&noise));
         assert_eq!(noise.len(), plane, "one noise value per pixel");
         let sum: f64 = if plane == 0 {
@@ -364,11 +366,11 @@ impl FusedBackend for Flex {
     }
 
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
-        scaled(&weight, scale)
+        Flex::float_mul_scalar(weight, scale.into())
     }
 
     fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
-        scaled(&grad, scale)
+        Flex::float_mul_scalar(grad, scale.into())
     }
 
     fn scaled_linear(
@@ -444,16 +446,6 @@ impl FusedBackend for Flex {
             from_values(d_bias, vec![outputs]),
         )
     }
-}
-
-/// `t · scale`, row-major.
-fn scaled(t: &FloatTensor<Flex>, scale: f32) -> FloatTensor<Flex> {
-    let mut values = host_f32(t).into_owned();
-    values
-        .par_iter_mut()
-        .with_min_len(1 << 14)
-        .for_each(|v| *v *= scale);
-    from_values(values, t.shape().dims::<4>().to_vec())
 }
 
 /// `(batch, inputs, outputs)` of a linear layer's input `[B, in]` and weight `[out, in]`.

@@ -13,6 +13,7 @@ use burn::tensor::{DType, Int, IntDType, Shape, Tensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+use f3g_nets::cube_grid::one_thread_per_value;
 
 use super::POLAR_ITERATIONS;
 
@@ -189,7 +190,7 @@ impl SkinningBackend for CubeBackend {
         let (linear, translation) = (empty([rows, 9]), empty([rows, 3]));
         let (rotation, quaternion) = (empty([9, rows]), empty([rows, 4]));
         if rows > 0 {
-            let (cubes, cube) = one_thread_per_row(rows);
+            let (cubes, cube) = one_thread_per_value(rows);
             let rows = u32::try_from(rows).expect("fewer than 2^32 skinned points");
             kernels::skinning::launch(
                 &joints.client,
@@ -209,19 +210,6 @@ impl SkinningBackend for CubeBackend {
         }
         (linear, translation, rotation, quaternion)
     }
-}
-
-/// One thread per row, 256 per cube, on a 2-D grid (wgpu allows 65 535 cubes per dimension).
-fn one_thread_per_row(
-    rows: usize,
-) -> (burn_cubecl::cubecl::CubeCount, burn_cubecl::cubecl::CubeDim) {
-    const UNITS: u32 = 256;
-    const MAX_ROW: u32 = 65_535;
-    let cubes = rows.div_ceil(UNITS as usize).max(1) as u32;
-    (
-        burn_cubecl::cubecl::CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
-        burn_cubecl::cubecl::CubeDim::new_1d(UNITS),
-    )
 }
 
 /// The kernel's outputs as [`super::Skinning`]'s tensors, or `None` off unfused `Cube` devices.
