@@ -13,31 +13,36 @@
 #
 # run needs nothing but the package, python3 with PyTorch (CUDA) and the CUDA toolkit on the
 # GPU machine (nvcc, for gsplat's first use; compute-sanitizer if present). Within about 9
-# minutes it runs, each step under its own time limit and none stopping the others, the most
-# telling first (a step the budget no longer covers is skipped):
+# minutes it runs, each step under its own time limit and none stopping the others (a step the
+# budget no longer covers is skipped). gsplat's CUDA compiles in the background from the start
+# (minutes of nvcc on 8 host cores): the checks of correctness run beside it, every timed step
+# after it (beside it, f3g's `paper` step took 1 039 ms against 770-811 ms alone, 2026-11-27,
+# and every profiled launch about 20× its time, 2026-11-29):
 #   1. `f3g devices --json`                  what the machine has (driver, NVRTC, include, NCCL)
 #   2. the parity tests on cuda:0            splat kernels and networks against the CPU
 #   3. compute-sanitizer racecheck, synccheck, initcheck on one splat test (the whole op,
 #      forward and backward, on random scenes), when the tool is there
-#   4. `f3g bench splat --device cuda`
-#   5. `f3g bench nets --device cuda --paper --image 512` cold (first process, empty kernel
-#      cache) and warm (second process), without autotune, then tools/bench_nets_torch.py
-#   6. `f3g bench train --preset paper`      5 steps (random LPIPS VGG weights of the real
-#      shapes where the real ones are not installed: tools/random_lpips_vgg.py), then its
-#      PyTorch twin tools/paper_step_torch.py (the same step's work with gsplat, once gsplat's
-#      CUDA is built); the summary gives f3g's step ÷ the twin's
-#   7. tools/bench_gsplat.py                 gsplat on the same kind of scene as step 4 (its CUDA
-#      is compiled in the background from the start)
-#   8. the kernel profile of a `paper` run    each launch timed on the device (CubeCL's
-#      profiler at its `profile-full` level, F3G_KERNEL_PROFILE), summed by kernel family
-#      and by variant (a convolution's pass, the grid): profile.json, the top ones in
-#      profile.md
 #   on request (F3G_GPU_CHECK_ONLY="gemm-sweep"): the convolutions' implicit-GEMM routines one
 #      at a time (F3G_CONV_GEMM), `bench nets --paper` under each, then a `paper` step and the
 #      network parity tests with the fastest
-#   9. `f3g bench nets` with autotune         the paper body network, in what is left (only
+#   4. `f3g bench train --preset paper`      5 steps (random LPIPS VGG weights of the real
+#      shapes where the real ones are not installed: tools/random_lpips_vgg.py), again with
+#      `--unsynced` (no wait at each phase's end), then its PyTorch twin
+#      tools/paper_step_torch.py (the same step's work with gsplat); the summary gives f3g's
+#      step ÷ the twin's
+#   5. tools/bench_gsplat.py, then `f3g bench splat --device cuda` on the same kind of scene
+#   6. `f3g bench nets --device cuda --paper --image 512` twice (the first process compiles
+#      what the kernel cache does not hold yet), without autotune, then tools/bench_nets_torch.py
+#   7. the kernel profile of a `paper` run    each launch timed on the device (CubeCL's
+#      profiler at its `profile-full` level, F3G_KERNEL_PROFILE), summed by kernel family
+#      and by variant (a convolution's pass, the grid): profile.json, the top ones in
+#      profile.md; placed in the step's phases by tools/phase_profile.py with the offline
+#      driver's trace of the same command (trace.txt.xz, made at pack): phases.md
+#   8. `f3g bench nets` with autotune         the paper body network, in what is left (only
 #      when the package has the autotune binary: F3G_GPU_CHECK_AUTOTUNE=0 at pack leaves it
 #      out, and 12 minutes of building)
+# Beside all of it `nvidia-smi dmon` logs the card's clocks, power and load each second
+# (dmon.log), so a slow step can be told from a slow card.
 # and writes OUT/summary.json (each step: command, exit code, seconds, its JSON where it makes
 # one) and OUT/summary.md, with each step's output in OUT/<step>.log, and all of OUT (less the
 # kernel cache) as OUT.tar.gz: the one file to bring back.
@@ -77,6 +82,10 @@ for line in sys.stdin:
         cargo build --release --locked -p f3g-cli --features cuda,autotune
         cp target/release/f3g "$dir/bin/f3g-cuda-autotune"
     fi
+    # The offline driver's trace of the profiled command: which phase each launch belongs to
+    # (tools/phase_profile.py; the offline CUDA toolkit's wheels, about 130 MB, on first use).
+    python3 tools/phase_profile.py trace "$dir/bin/f3g-cuda" "$dir/trace.txt" >"$dir/trace.log" 2>&1
+    xz -9 "$dir/trace.txt" && rm "$dir/trace.log"
     strip "$dir"/bin/* "$dir"/tests/*
     # One solid archive with a dictionary larger than any binary: the four binaries share most
     # of their code (Burn, CubeCL), so each compresses against the others (two f3g binaries
@@ -97,7 +106,7 @@ with zipfile.ZipFile(wheel) as src, zipfile.ZipFile(wheel + ".tmp", "w", zipfile
 os.replace(wheel + ".tmp", wheel)
 PY
     cp tools/bench_gsplat.py tools/bench_nets_torch.py tools/random_lpips_vgg.py \
-        tools/kernel_profile.py tools/paper_step_torch.py "$dir/tools/"
+        tools/kernel_profile.py tools/phase_profile.py tools/paper_step_torch.py "$dir/tools/"
     cp "$0" "$dir/gpu-check.sh"
     # What a device call carries is the package and the working tree (tracked files and
     # untracked ones git does not ignore) together.
@@ -174,6 +183,11 @@ print(json.dumps({"step": name, "command": cmd, "exit": int(rc), "seconds": int(
                   "timed_out": rc in ("124", "137"), "result": result}))
 PY
     }
+    local dmon=0
+    if command -v nvidia-smi >/dev/null; then
+        nvidia-smi dmon -s pucm -o T >"$out/dmon.log" 2>&1 &
+        dmon=$!
+    fi
     # gsplat compiles its CUDA at first use (minutes of nvcc): start that now, beside the steps
     # that follow (they use one host core), and time gsplat only once it is built.
     # (Not when F3G_GPU_CHECK_ONLY leaves gsplat out: eight compilers would share the host with
@@ -204,14 +218,6 @@ PY
                 the_op_matches_the_cpu_on_random_scenes
         done
     fi
-    step bench-splat 60 "$out/splat.json" "$bin/f3g-cuda" bench splat --device cuda --repeats 5 \
-        --json "$out/splat.json"
-    step bench-nets-cold 120 "$out/nets-cold.json" "$bin/f3g-cuda" bench nets --device cuda \
-        --paper --image 512 --json "$out/nets-cold.json"
-    step bench-nets-warm 60 "$out/nets-warm.json" "$bin/f3g-cuda" bench nets --device cuda \
-        --paper --image 512 --json "$out/nets-warm.json"
-    step bench-nets-torch 60 "$out/nets-torch.json" python3 "$dir/tools/bench_nets_torch.py" \
-        --paper --image 512 --json "$out/nets-torch.json"
     # The convolutions' implicit-GEMM routines one at a time (`F3G_CONV_GEMM`, see
     # crates/nets/src/conv/cube.rs): the paper StyleUNets' forward and forward+backward under
     # each (F3G_GPU_CHECK_GEMMS, `default` = Burn's synchronous cyclic CMMA routine), then a
@@ -261,31 +267,50 @@ PY
             --test-threads 1
         only=$only_before
     fi
+    step gsplat-build 120 - sh -c "while kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
+        cat '$out/gsplat-build.log'; python3 -c 'from gsplat.cuda._backend import _C'"
+    # The timed steps from here on, after gsplat's build: an 8-job nvcc build beside f3g's `paper`
+    # step made it 1 039 ms against 770-811 ms alone (BENCHMARKS, 2026-11-27).
     # 5 timed steps after 1 warm-up: making the 1536×2048 capture, the run's setup and the
     # cold compilation come first (with 20 steps it did not end within 150 s on the H200).
     step bench-train-paper 150 "$out/train-paper.json" "$bin/f3g-cuda" bench train \
         --preset paper --device cuda --steps 5 --warmup 1 --json "$out/train-paper.json"
-    step gsplat-build 120 - sh -c "while kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
-        cat '$out/gsplat-build.log'; python3 -c 'from gsplat.cuda._backend import _C'"
+    # The same steps as training runs them, without a synchronisation at each phase's end: the
+    # difference is what the phase timer's waits cost.
+    step bench-train-paper-unsynced 90 "$out/train-paper-unsynced.json" "$bin/f3g-cuda" bench \
+        train --preset paper --device cuda --steps 5 --warmup 1 --unsynced \
+        --json "$out/train-paper-unsynced.json"
     # The PyTorch twin of the `paper` step just timed (same networks, Gaussians, render sizes,
     # LPIPS, discriminator step and Adam; tools/paper_step_torch.py's docstring maps its phases
     # to f3g's), with the same 1 warm-up + 5 timed steps. It renders with gsplat: its build
-    # awaited first (done by the step above unless F3G_GPU_CHECK_ONLY left that out).
+    # awaited first (done by the gsplat-build step unless F3G_GPU_CHECK_ONLY left that out).
     step bench-step-torch 75 "$out/step-torch.json" sh -c "while [ $gsplat_build -gt 0 ] \
         && kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
         python3 '$dir/tools/paper_step_torch.py' --device cuda --steps 5 --warmup 1 \
         --json '$out/step-torch.json'"
     step bench-gsplat 90 "$out/gsplat.json" python3 "$dir/tools/bench_gsplat.py" --repeats 5 \
         --json "$out/gsplat.json"
+    step bench-splat 60 "$out/splat.json" "$bin/f3g-cuda" bench splat --device cuda --repeats 5 \
+        --json "$out/splat.json"
+    step bench-nets-cold 120 "$out/nets-cold.json" "$bin/f3g-cuda" bench nets --device cuda \
+        --paper --image 512 --json "$out/nets-cold.json"
+    step bench-nets-warm 60 "$out/nets-warm.json" "$bin/f3g-cuda" bench nets --device cuda \
+        --paper --image 512 --json "$out/nets-warm.json"
+    step bench-nets-torch 60 "$out/nets-torch.json" python3 "$dir/tools/bench_nets_torch.py" \
+        --paper --image 512 --json "$out/nets-torch.json"
     # Every launch timed on the device: where a `paper` step's GPU time goes, kernel by kernel.
     # The profile holds the warm-up step's launches and the timed step's (halve its totals for
     # one step); compiling is not a launch, so it is not in them.
     # At CubeCL's `profile-full` level, so each variant is named by its pass and grid.
+    # After gsplat's build too: beside it (14 nvcc jobs) every launch's time came out about 20×
+    # the quiet machine's (2026-11-29).
     step profile-train-paper 120 "$out/profile.json" sh -c "CUBECL_DEBUG_OPTION=profile-full \
         F3G_KERNEL_PROFILE='$out/profile.log' \
         '$bin/f3g-cuda' bench train --preset paper --device cuda --steps 1 --warmup 1 \
         && python3 '$dir/tools/kernel_profile.py' '$out/profile.log' --json '$out/profile.json' \
-        --markdown '$out/profile.md'"
+        --markdown '$out/profile.md' && { [ ! -f '$dir/trace.txt.xz' ] \
+        || python3 '$dir/tools/phase_profile.py' join '$dir/trace.txt.xz' '$out/profile.log' \
+        --json '$out/phases.json' --markdown '$out/phases.md'; }"
     # Last: autotune compiles and times every candidate kernel of every shape (750 kernels for
     # the first network on the CPU machine's NVRTC); it gets what is left of the budget.
     # The paper-sized body network alone: the one Burn's untuned kernels are slowest on.
@@ -293,6 +318,7 @@ PY
         step bench-nets-autotune 180 "$out/nets-autotune.json" "$f3g" bench nets --device cuda \
             --paper --image 512 --only "body paper" --json "$out/nets-autotune.json"
     fi
+    [ "$dmon" -gt 0 ] && kill "$dmon" 2>/dev/null
     python3 - "$out" "$((SECONDS - started))" <<'PY'
 import json, sys
 out, total = sys.argv[1], int(sys.argv[2])

@@ -17,6 +17,7 @@
  *
  * Types follow cuda.h (CUDA 13.0); attribute numbers are CUdevice_attribute's.
  */
+#include <stdarg.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -28,6 +29,31 @@ typedef unsigned long long CUdeviceptr;
 typedef void *CUcontext, *CUstream, *CUevent, *CUmodule, *CUfunction;
 
 enum { SUCCESS = 0, INVALID_VALUE = 1, INVALID_DEVICE = 101, NOT_SUPPORTED = 801 };
+
+/* F3G_OFFLINE_TRACE=FILE: appends one line per launch (`L kernel gx gy gz`), synchronisation
+ * (`S ctx|stream|event`) and copy to the host (`R bytes`), in the order the process made them,
+ * unbuffered: `f3g bench train` with F3G_PHASE_TRACE=FILE appends its phase marks to the same
+ * file, and tools/phase_profile.py places each launch of a GPU's kernel profile in its phase. */
+static FILE *trace_file(void) {
+    static FILE *file;
+    static int opened;
+    if (!__atomic_load_n(&opened, __ATOMIC_ACQUIRE)) {
+        const char *path = getenv("F3G_OFFLINE_TRACE");
+        FILE *f = path && *path ? fopen(path, "a") : NULL;
+        if (f) setvbuf(f, NULL, _IONBF, 0);
+        if (!__sync_bool_compare_and_swap(&file, NULL, f) && f) fclose(f);
+        __atomic_store_n(&opened, 1, __ATOMIC_RELEASE);
+    }
+    return file;
+}
+__attribute__((format(printf, 1, 2))) static void trace(const char *format, ...) {
+    FILE *f = trace_file();
+    if (!f) return;
+    va_list args;
+    va_start(args, format);
+    vfprintf(f, format, args);
+    va_end(args);
+}
 
 static const size_t TOTAL_MEMORY = 80ull << 30;
 static const int MAX_SHARED_OPTIN = 232448;
@@ -88,7 +114,7 @@ CUresult cuDevicePrimaryCtxRelease_v2(CUdevice d) { return check_device(d); }
 CUresult cuCtxSetCurrent(CUcontext ctx) { (void)ctx; return SUCCESS; }
 CUresult cuCtxGetCurrent(CUcontext *ctx) { *ctx = &context; return SUCCESS; }
 CUresult cuCtxGetDevice(CUdevice *d) { *d = 0; return SUCCESS; }
-CUresult cuCtxSynchronize(void) { return SUCCESS; }
+CUresult cuCtxSynchronize(void) { trace("S ctx\n"); return SUCCESS; }
 CUresult cuCtxGetStreamPriorityRange(int *least, int *greatest) { *least = 0; *greatest = -5; return SUCCESS; }
 
 /* Streams and events are distinct non-null handles; nothing is ever pending. */
@@ -99,14 +125,14 @@ CUresult cuStreamCreateWithPriority(CUstream *s, unsigned flags, int priority) {
     return cuStreamCreate(s, flags);
 }
 CUresult cuStreamDestroy_v2(CUstream s) { free(s); return SUCCESS; }
-CUresult cuStreamSynchronize(CUstream s) { (void)s; return SUCCESS; }
+CUresult cuStreamSynchronize(CUstream s) { (void)s; trace("S stream\n"); return SUCCESS; }
 CUresult cuStreamQuery(CUstream s) { (void)s; return SUCCESS; }
 CUresult cuStreamWaitEvent(CUstream s, CUevent e, unsigned flags) { (void)s; (void)e; (void)flags; return SUCCESS; }
 CUresult cuEventCreate(CUevent *e, unsigned flags) { (void)flags; *e = new_handle(); return SUCCESS; }
 CUresult cuEventDestroy_v2(CUevent e) { free(e); return SUCCESS; }
 CUresult cuEventRecord(CUevent e, CUstream s) { (void)e; (void)s; return SUCCESS; }
 CUresult cuEventRecordWithFlags(CUevent e, CUstream s, unsigned flags) { (void)e; (void)s; (void)flags; return SUCCESS; }
-CUresult cuEventSynchronize(CUevent e) { (void)e; return SUCCESS; }
+CUresult cuEventSynchronize(CUevent e) { (void)e; trace("S event\n"); return SUCCESS; }
 CUresult cuEventQuery(CUevent e) { (void)e; return SUCCESS; }
 CUresult cuEventElapsedTime_v2(float *ms, CUevent start, CUevent end) {
     (void)start; (void)end;
@@ -141,8 +167,8 @@ CUresult cuMemFreeHost(void *p) { free(p); return SUCCESS; }
 /* Copies to the device go nowhere; copies to the host read zeros. */
 CUresult cuMemcpyHtoDAsync_v2(CUdeviceptr dst, const void *src, size_t n, CUstream s) { (void)dst; (void)src; (void)n; (void)s; return SUCCESS; }
 CUresult cuMemcpyHtoD_v2(CUdeviceptr dst, const void *src, size_t n) { (void)dst; (void)src; (void)n; return SUCCESS; }
-CUresult cuMemcpyDtoHAsync_v2(void *dst, CUdeviceptr src, size_t n, CUstream s) { (void)src; (void)s; memset(dst, 0, n); return SUCCESS; }
-CUresult cuMemcpyDtoH_v2(void *dst, CUdeviceptr src, size_t n) { (void)src; memset(dst, 0, n); return SUCCESS; }
+CUresult cuMemcpyDtoHAsync_v2(void *dst, CUdeviceptr src, size_t n, CUstream s) { (void)src; (void)s; memset(dst, 0, n); trace("R %zu\n", n); return SUCCESS; }
+CUresult cuMemcpyDtoH_v2(void *dst, CUdeviceptr src, size_t n) { (void)src; memset(dst, 0, n); trace("R %zu\n", n); return SUCCESS; }
 CUresult cuMemcpyDtoDAsync_v2(CUdeviceptr dst, CUdeviceptr src, size_t n, CUstream s) { (void)dst; (void)src; (void)n; (void)s; return SUCCESS; }
 CUresult cuMemsetD8Async(CUdeviceptr dst, unsigned char v, size_t n, CUstream s) { (void)dst; (void)v; (void)n; (void)s; return SUCCESS; }
 CUresult cuMemsetD32Async(CUdeviceptr dst, unsigned v, size_t n, CUstream s) { (void)dst; (void)v; (void)n; (void)s; return SUCCESS; }
@@ -164,9 +190,11 @@ typedef struct {
 } CUDA_MEMCPY2D;
 CUresult cuMemcpy2DAsync_v2(const CUDA_MEMCPY2D *c, CUstream s) {
     (void)s;
-    if (c->dstMemoryType == 1 /* host */)
+    if (c->dstMemoryType == 1 /* host */) {
+        trace("R %zu\n", c->WidthInBytes * c->Height);
         for (size_t row = 0; row < c->Height; row++)
             memset((char *)c->dstHost + (c->dstY + row) * c->dstPitch + c->dstXInBytes, 0, c->WidthInBytes);
+    }
     return SUCCESS;
 }
 
@@ -178,7 +206,12 @@ CUresult cuModuleLoadDataEx(CUmodule *m, const void *image, unsigned n, int *opt
     return cuModuleLoadData(m, image);
 }
 CUresult cuModuleUnload(CUmodule m) { free(m); return SUCCESS; }
-CUresult cuModuleGetFunction(CUfunction *f, CUmodule m, const char *name) { (void)m; (void)name; *f = new_handle(); return SUCCESS; }
+/* A function's handle is its name (for the trace): distinct and non-null, as the real ones. */
+CUresult cuModuleGetFunction(CUfunction *f, CUmodule m, const char *name) {
+    (void)m;
+    *f = strdup(name);
+    return *f ? SUCCESS : 2;
+}
 CUresult cuFuncSetAttribute(CUfunction f, int attribute, int value) {
     (void)f;
     /* CU_FUNC_ATTRIBUTE_MAX_DYNAMIC_SHARED_SIZE_BYTES */
@@ -193,7 +226,7 @@ CUresult cuFuncGetAttribute(int *value, int attribute, CUfunction f) {
 
 CUresult cuLaunchKernel(CUfunction f, unsigned gx, unsigned gy, unsigned gz, unsigned bx, unsigned by,
                         unsigned bz, unsigned shared, CUstream s, void **params, void **extra) {
-    (void)f; (void)s; (void)params; (void)extra;
+    (void)s; (void)params; (void)extra;
     unsigned long long threads = (unsigned long long)bx * by * bz;
     if (!gx || !gy || !gz || !threads || threads > 1024 || bx > 1024 || by > 1024 || bz > 64 ||
         gy > 65535 || gz > 65535 || shared > (unsigned)MAX_SHARED_OPTIN) {
@@ -202,6 +235,7 @@ CUresult cuLaunchKernel(CUfunction f, unsigned gx, unsigned gy, unsigned gz, uns
         return INVALID_VALUE;
     }
     __atomic_fetch_add(&launches, 1, __ATOMIC_RELAXED);
+    trace("L %s %u %u %u\n", (const char *)f, gx, gy, gz);
     return SUCCESS;
 }
 

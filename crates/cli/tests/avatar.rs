@@ -439,6 +439,53 @@ fn data_parallel_training_and_the_training_step_bench() {
     assert!(sum <= step * 1.001 && sum > 0.9 * step, "{sum} vs {step}");
     // The CPU launches no CubeCL kernels (counted on GPUs: tests/gpu.rs).
     assert!(bench["warmup_kernels"].is_null(), "{bench}");
+    // Without the phases' synchronisations: whole steps, no phases. F3G_PHASE_TRACE gets each
+    // step's start and each phase's end, in the order they ran (the phase profile's marks).
+    let trace = d.join("phases.trace");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_f3g"))
+        .args([
+            "bench", "train", "--data", "cap", "--steps", "1", "--warmup", "1",
+        ])
+        .args([
+            "--set",
+            "adversarial=true",
+            "--unsynced",
+            "--json",
+            "unsynced.json",
+        ])
+        .env("F3G_PHASE_TRACE", &trace)
+        .current_dir(d)
+        .output()
+        .unwrap();
+    ok(&out);
+    let unsynced: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("unsynced.json")).unwrap()).unwrap();
+    assert!(unsynced["phases"].is_null(), "{unsynced}");
+    assert!(unsynced["step_ms"].as_f64().unwrap() > 0.0, "{unsynced}");
+    let marks = std::fs::read_to_string(&trace).unwrap();
+    assert!(marks.is_empty(), "an unsynced bench marks nothing: {marks}");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_f3g"))
+        .args([
+            "bench", "train", "--data", "cap", "--steps", "1", "--warmup", "1",
+        ])
+        .args(["--set", "adversarial=true"])
+        .env("F3G_PHASE_TRACE", &trace)
+        .current_dir(d)
+        .output()
+        .unwrap();
+    ok(&out);
+    let marks = std::fs::read_to_string(&trace).unwrap();
+    let lines: Vec<&str> = marks.lines().collect();
+    assert_eq!(
+        lines.iter().filter(|l| **l == "P start").count(),
+        2,
+        "{marks}"
+    );
+    assert_eq!(lines[..2], ["P start", "P data"], "{marks}");
+    assert_eq!(lines.last(), Some(&"P discriminator"), "{marks}");
+    for phase in ["networks", "render", "lpips", "backward", "optimiser"] {
+        assert!(marks.contains(&format!("P {phase}\n")), "{phase}: {marks}");
+    }
     let e = f3g(
         d,
         &["bench", "train", "--data", "cap", "--set", "steps.joint=0"],

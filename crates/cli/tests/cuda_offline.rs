@@ -15,6 +15,16 @@ use std::process::{Command, Output};
 use common::{f3g_in, ok};
 
 fn on_offline_driver(dir: &Path, cache: &Path, args: &[&str]) -> Output {
+    on_offline_driver_with(dir, cache, args, &[])
+}
+
+/// [`on_offline_driver`] with more variables in the environment.
+fn on_offline_driver_with(
+    dir: &Path,
+    cache: &Path,
+    args: &[&str],
+    env: &[(&str, &Path)],
+) -> Output {
     let driver = std::env::var("F3G_OFFLINE_CUDA_DRIVER").unwrap_or_else(|_| {
         panic!(
             "F3G_OFFLINE_CUDA_DRIVER names the folder of the offline libcuda.so.1; run \
@@ -30,6 +40,7 @@ fn on_offline_driver(dir: &Path, cache: &Path, args: &[&str]) -> Output {
         .current_dir(dir)
         .env("LD_LIBRARY_PATH", library_path)
         .env("F3G_KERNEL_CACHE", cache)
+        .envs(env.iter().copied())
         .output()
         .unwrap()
 }
@@ -95,6 +106,96 @@ fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_th
         warm_ms < 0.5 * cold_ms,
         "warm-up {warm_ms:.0} ms with the cache, {cold_ms:.0} ms without"
     );
+}
+
+/// The phase profile's two halves (docs/gpu.md "Where GPU time goes"): the driver's launches
+/// and `bench train`'s phase marks appended to one file, in order, and
+/// `tools/phase_profile.py join` placing a profile's launches in the last step's phases. The
+/// profile is made from the trace itself in CubeCL's `basic` format (1 ms per launch, and one
+/// GPU-only launch after the last step's first rendering launch, as the splat op's raster
+/// kernels are on a GPU): every phase gets exactly its traced launches, the extra one the
+/// rendering's.
+#[test]
+fn the_phase_trace_places_every_launch_in_its_phase() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    ok(&f3g_in(
+        d,
+        &[
+            "synth",
+            "--out",
+            "cap",
+            "--frames",
+            "2",
+            "--resolution",
+            "128",
+        ],
+    ));
+    let trace = d.join("trace.txt");
+    ok(&on_offline_driver_with(
+        d,
+        &d.join("kernel-cache"),
+        &[
+            "bench", "train", "--device", "cuda", "--data", "cap", "--steps", "1", "--warmup", "1",
+        ],
+        &[("F3G_OFFLINE_TRACE", &trace), ("F3G_PHASE_TRACE", &trace)],
+    ));
+    let text = std::fs::read_to_string(&trace).unwrap();
+    let (before, last) = text.rsplit_once("P start\n").expect("no step start marked");
+    // The last step's launches, each with the phase whose mark follows it.
+    let mut launches: Vec<(&str, &str)> = Vec::new();
+    let mut pending = Vec::new();
+    for line in last.lines() {
+        if let Some(phase) = line.strip_prefix("P ") {
+            launches.extend(pending.drain(..).map(|name| (name, phase)));
+        } else if let Some(launch) = line.strip_prefix("L ") {
+            pending.push(launch.split(' ').next().unwrap());
+        }
+    }
+    let mut expected = std::collections::BTreeMap::new();
+    for (_, phase) in &launches {
+        *expected.entry(phase.to_string()).or_insert(0u64) += 1;
+    }
+    for phase in ["networks", "render", "backward", "optimiser"] {
+        assert!(
+            expected.contains_key(phase),
+            "no launch in {phase}:\n{text}"
+        );
+    }
+    *expected.get_mut("render").unwrap() += 1;
+    let mut profile = String::new();
+    for line in before.lines().filter_map(|l| l.strip_prefix("L ")) {
+        profile += &format!("| 1.0ms | {}\n", line.split(' ').next().unwrap());
+    }
+    let mut extra = true;
+    for (name, phase) in &launches {
+        profile += &format!("| 1.0ms | {name}\n");
+        if *phase == "render" && std::mem::take(&mut extra) {
+            profile += "| 1.0ms | rasterize_forward_0badc0de\n";
+        }
+    }
+    std::fs::write(d.join("profile.log"), profile).unwrap();
+    let tool = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tools/phase_profile.py");
+    ok(&Command::new("python3")
+        .arg(tool)
+        .args(["join", "trace.txt", "profile.log", "--json", "phases.json"])
+        .current_dir(d)
+        .output()
+        .unwrap());
+    let joined = bench(d, "phases.json");
+    assert_eq!(joined["gpu_only_launches"], 1, "{joined}");
+    assert_eq!(joined["traced_not_profiled"], 0, "{joined}");
+    let got: std::collections::BTreeMap<String, u64> = joined["phases"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            let n = p["launches"].as_u64().unwrap();
+            assert_eq!(p["device_ms"].as_f64().unwrap(), n as f64, "{p}");
+            (p["phase"].as_str().unwrap().to_string(), n)
+        })
+        .collect();
+    assert_eq!(got, expected, "{joined}");
 }
 
 /// Issue #26's budget for a cold start: the first `paper`-preset training step (1536×2048

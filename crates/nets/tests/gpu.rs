@@ -76,6 +76,10 @@ fn body_net(device: &Device) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
     (front, gx, values(loss))
 }
 
+/// On CUDA the input gradient's tolerance is wider than [`tolerance_factor`] makes it: it
+/// goes back through every convolution, each on TF32 tensor cores both ways. Measured: rounding
+/// the convolutions' inputs to TF32 on the CPU moves it by 0.0244 of its largest value (the
+/// output by 6.9e-4); the H200 gave 0.0249 (2026-11-29). On wgpu, in f32, it stays 1e-3.
 #[test]
 fn the_body_network_matches_the_cpu_on_the_gpu() {
     let gpu = test_device();
@@ -83,7 +87,13 @@ fn the_body_network_matches_the_cpu_on_the_gpu() {
     let (front_cpu, grad_cpu, loss_cpu) = body_net(&Device::flex());
     assert_close(&front_gpu, &front_cpu, 1e-4, "front output");
     assert_close(&loss_gpu, &loss_cpu, 1e-4, "loss");
-    assert_close(&grad_gpu, &grad_cpu, 1e-3, "input gradient");
+    let cuda = std::env::var("F3G_TEST_DEVICE").as_deref() == Ok("cuda");
+    let gradient_tolerance = if cuda {
+        0.05 / tolerance_factor()
+    } else {
+        1e-3
+    };
+    assert_close(&grad_gpu, &grad_cpu, gradient_tolerance, "input gradient");
 }
 
 #[test]

@@ -73,7 +73,7 @@ use sample::DeviceSample;
 use step::Replica;
 
 pub use config::{LossWeights, Stages, TrainConfig};
-pub use profile::{Phase, PhaseTimer, PhaseTimes};
+pub use profile::{BenchSamples, Phase, PhaseTimer, PhaseTimes};
 pub use run::load_optim;
 use schedule::Schedule;
 pub use schedule::Stage;

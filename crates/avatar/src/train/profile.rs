@@ -14,6 +14,9 @@ use std::time::Instant;
 use burn::tensor::Device;
 use serde::Serialize;
 
+use f3g_data::loader::Loader;
+
+use super::sample::DeviceSample;
 use super::schedule::Stage;
 use super::{StepReport, Trainer, next_samples};
 use crate::AvatarError;
@@ -104,7 +107,14 @@ impl fmt::Display for Phase {
 pub struct PhaseTimer {
     device: Device,
     state: Mutex<(Instant, [f64; Phase::ALL.len()])>,
+    on_sync: Option<SyncHook>,
 }
+
+/// Called right after each of the timer's synchronisations, with the phase that just ended
+/// (`None`: a step starts). All device work launched before it is then done, so a tool that
+/// logs launches can tell which phase each belongs to (`f3g bench train`'s
+/// `F3G_PHASE_TRACE`, tools/phase_profile.py).
+type SyncHook = Box<dyn Fn(Option<Phase>) + Send + Sync>;
 
 /// Milliseconds per phase of one or more steps.
 #[derive(Clone, Debug, Serialize)]
@@ -117,12 +127,20 @@ impl PhaseTimer {
         Self {
             device: device.clone(),
             state: Mutex::new((Instant::now(), [0.0; Phase::ALL.len()])),
+            on_sync: None,
         }
+    }
+
+    /// The timer calling `hook` after each synchronisation (see [`SyncHook`]).
+    pub fn with_sync_hook(mut self, hook: impl Fn(Option<Phase>) + Send + Sync + 'static) -> Self {
+        self.on_sync = Some(Box::new(hook));
+        self
     }
 
     /// Starts timing from now (the time since the last mark is not charged).
     pub fn restart(&self) -> Result<(), AvatarError> {
         self.sync()?;
+        self.synced(None);
         self.lock().0 = Instant::now();
         Ok(())
     }
@@ -130,6 +148,7 @@ impl PhaseTimer {
     /// Ends `phase`: waits for the device, charges the time since the previous mark to it.
     pub fn mark(&self, phase: Phase) -> Result<(), AvatarError> {
         self.sync()?;
+        self.synced(Some(phase));
         let mut state = self.lock();
         let now = Instant::now();
         state.1[phase.index()] += (now - state.0).as_secs_f64();
@@ -156,10 +175,26 @@ impl PhaseTimer {
             .map_err(|e| AvatarError::Invalid(format!("the device failed: {e:?}")))
     }
 
+    fn synced(&self, ended: Option<Phase>) {
+        if let Some(hook) = &self.on_sync {
+            hook(ended);
+        }
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, (Instant, [f64; Phase::ALL.len()])> {
         // A panic while holding the lock leaves plain numbers: still usable.
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
+}
+
+/// The samples [`Trainer::bench`] draws, from [`Trainer::bench_samples`].
+pub struct BenchSamples {
+    loader: Loader<Result<DeviceSample, AvatarError>>,
+    /// The stage's first step and its number of steps.
+    first: u64,
+    len: u64,
+    /// Steps drawn so far.
+    drawn: u64,
 }
 
 /// Marks `phase` on `timer` when there is one.
@@ -168,29 +203,48 @@ pub(super) fn mark(timer: Option<&PhaseTimer>, phase: Phase) -> Result<(), Avata
 }
 
 impl Trainer {
-    /// Runs `warmup + steps` steps of `stage` (cycling through its steps) and writes nothing:
-    /// `timer` holds the phases of the last `steps` steps afterwards. For `f3g bench train`:
-    /// the trainer is left mid-run and must not be checkpointed or trained further.
-    pub fn bench(
-        &mut self,
-        stage: Stage,
-        warmup: u64,
-        steps: u64,
-        timer: &PhaseTimer,
-    ) -> Result<Vec<StepReport>, AvatarError> {
+    /// The samples of `stage`'s first steps, in the order [`Trainer::bench`] draws them. Its
+    /// loader's worker starts preparing them (posing, upload) as soon as it exists: made before
+    /// the warm-up, the timed steps' samples are ready when they start, as in a training run,
+    /// whose loader runs throughout (made at their start, the first one's preparation was
+    /// charged to them: about 200 ms of host time for a `paper` sample on the 2-core VM).
+    pub fn bench_samples(&self, stage: Stage) -> Result<BenchSamples, AvatarError> {
         let (first, len) = self.stage_steps(stage)?;
         let per_step = (self.replicas.len() * self.config.batch) as u64;
-        let mut loader = self.loader(first * per_step)?;
+        Ok(BenchSamples {
+            loader: self.loader(first * per_step)?,
+            first,
+            len,
+            drawn: 0,
+        })
+    }
+
+    /// Runs `warmup + steps` steps (cycling through the stage's steps) on `samples` and writes
+    /// nothing: `timer` holds the phases of the last `steps` steps afterwards; without one the
+    /// steps run as training runs them, the device synchronised only where a step reads values
+    /// back. For `f3g bench train`: the trainer is left mid-run and must not be checkpointed or
+    /// trained further.
+    pub fn bench(
+        &mut self,
+        samples: &mut BenchSamples,
+        warmup: u64,
+        steps: u64,
+        timer: Option<&PhaseTimer>,
+    ) -> Result<Vec<StepReport>, AvatarError> {
+        let per_step = (self.replicas.len() * self.config.batch) as u64;
         let mut reports = Vec::new();
         for i in 0..warmup + steps {
-            if i == warmup {
-                timer.take(1);
+            if let Some(timer) = timer {
+                if i == warmup {
+                    timer.take(1);
+                }
+                timer.restart()?;
             }
-            timer.restart()?;
-            let s = first + i % len;
-            let samples = next_samples(&mut loader, per_step)?;
-            timer.mark(Phase::Data)?;
-            let report = self.run_step(s, &samples, Some(timer))?;
+            let s = samples.first + samples.drawn % samples.len;
+            samples.drawn += 1;
+            let drawn = next_samples(&mut samples.loader, per_step)?;
+            mark(timer, Phase::Data)?;
+            let report = self.run_step(s, &drawn, timer)?;
             if i >= warmup {
                 reports.push(report);
             }

@@ -68,6 +68,11 @@ pub struct TrainBenchArgs {
     /// Write the numbers as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Time whole steps only, as training runs them: no synchronisation at each phase's end
+    /// (the device waits only where a step reads values back), so no phase times. What the
+    /// phases' synchronisations cost is the step time with them minus this.
+    #[arg(long)]
+    pub unsynced: bool,
 }
 
 #[derive(Serialize)]
@@ -78,8 +83,8 @@ struct TrainBench {
     steps: usize,
     /// Milliseconds per step, wall clock, the phase synchronisations included.
     step_ms: f64,
-    /// Milliseconds per step of each phase.
-    phases: PhaseTimes,
+    /// Milliseconds per step of each phase (none with `--unsynced`).
+    phases: Option<PhaseTimes>,
     /// The most memory the device's allocator held (GPU), or the most the process allocated
     /// on the heap during the timed steps (CPU), MiB.
     peak_mib: Option<f64>,
@@ -131,7 +136,7 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         None,
         std::slice::from_ref(&device),
     )?;
-    let timer = PhaseTimer::new(&device);
+    let timer = phase_trace(PhaseTimer::new(&device))?;
     eprintln!(
         "timing {} + {} warm-up steps of the {:?} stage on {} ({} body + {} face Gaussians)",
         a.steps,
@@ -143,19 +148,30 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     );
     let stage = Stage::from(a.stage);
     // The timed steps replay the warm-up's samples: every one of their images decoded now,
-    // before the warm-up's clock and kernel count start.
+    // before the warm-up's clock and kernel count start, and their loader made now, so that
+    // its worker has prepared them when they start (a training run's loader runs throughout).
     trainer.decode_ahead(stage, a.warmup.max(a.steps) as u64)?;
+    let mut warmup_samples = trainer.bench_samples(stage)?;
+    let mut timed_samples = trainer.bench_samples(stage)?;
     let launched = kernel_count::start(a.device.spec != DeviceSpec::Cpu);
     let start = Instant::now();
-    trainer.bench(stage, a.warmup as u64, 0, &timer)?;
+    let phase_timer = (!a.unsynced).then_some(&timer);
+    trainer.bench(&mut warmup_samples, a.warmup as u64, 0, phase_timer)?;
+    drop(warmup_samples);
+    device
+        .sync()
+        .map_err(|e| anyhow::anyhow!("the device failed: {e:?}"))?;
     let warmup_ms = start.elapsed().as_secs_f64() * 1e3;
     let warmup_kernels = launched.map(kernel_count::finish);
     let before = memory::live_bytes();
     memory::reset_peak();
     let start = Instant::now();
-    trainer.bench(stage, 0, a.steps as u64, &timer)?;
+    trainer.bench(&mut timed_samples, 0, a.steps as u64, phase_timer)?;
+    device
+        .sync()
+        .map_err(|e| anyhow::anyhow!("the device failed: {e:?}"))?;
     let step_ms = start.elapsed().as_secs_f64() * 1e3 / a.steps as f64;
-    let phases = timer.take(a.steps as u64);
+    let phases = phase_timer.map(|t| t.take(a.steps as u64));
     let peak_mib = match device.memory_pool_usage() {
         Some(usage) => Some(usage.bytes_reserved as f64 / (1 << 20) as f64),
         None if a.device.spec == DeviceSpec::Cpu => {
@@ -176,15 +192,23 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         body_gaussians: trainer.setup().body_count(),
         face_gaussians: trainer.setup().face_count(),
     };
-    println!("{:<14} {:>10}  what", "phase", "ms/step");
-    for (phase, ms) in &result.phases.phases {
-        println!("{phase:<14} {ms:>10.1}  {}", phase.meaning());
+    match &result.phases {
+        Some(phases) => {
+            println!("{:<14} {:>10}  what", "phase", "ms/step");
+            for (phase, ms) in &phases.phases {
+                println!("{phase:<14} {ms:>10.1}  {}", phase.meaning());
+            }
+            let phase_sum: f64 = phases.phases.iter().map(|p| p.1).sum();
+            println!(
+                "{:<14} {:>10.1}  wall clock per step (phases sum to {phase_sum:.1})",
+                "step", result.step_ms
+            );
+        }
+        None => println!(
+            "{:<14} {:>10.1}  wall clock per step, without the phases' synchronisations",
+            "step", result.step_ms
+        ),
     }
-    let phase_sum: f64 = result.phases.phases.iter().map(|p| p.1).sum();
-    println!(
-        "{:<14} {:>10.1}  wall clock per step (phases sum to {phase_sum:.1})",
-        "step", result.step_ms
-    );
     match result.peak_mib {
         Some(m) => println!("peak memory {m:.0} MiB"),
         None => println!("peak memory: not reported by this device"),
@@ -198,9 +222,35 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
         ),
         None => println!("warm-up: {} steps in {:.1} s", a.warmup, warmup_ms / 1e3),
     }
-    debug_assert_eq!(Phase::ALL.len(), result.phases.phases.len());
+    debug_assert!(
+        result
+            .phases
+            .as_ref()
+            .is_none_or(|p| p.phases.len() == Phase::ALL.len())
+    );
     if let Some(path) = &a.json {
         f3g_io::write_atomic(path, serde_json::to_string_pretty(&result)?.as_bytes())?;
     }
     Ok(())
+}
+
+/// With `F3G_PHASE_TRACE=FILE`, the timer appends `P start` when a step starts and `P <phase>`
+/// when a phase ends, each after the device finished the phase's work: beside a driver that
+/// appends its launches to the same file (tools/offline-cuda's `F3G_OFFLINE_TRACE`), every
+/// launch lands between the marks of its phase (tools/phase_profile.py).
+fn phase_trace(timer: PhaseTimer) -> Result<PhaseTimer> {
+    let Some(path) = std::env::var_os("F3G_PHASE_TRACE").filter(|p| !p.is_empty()) else {
+        return Ok(timer);
+    };
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .with_context(|| format!("opening F3G_PHASE_TRACE {}", PathBuf::from(&path).display()))?;
+    Ok(timer.with_sync_hook(move |ended| {
+        use std::io::Write;
+        let name = ended.map_or("start", Phase::name);
+        // One unbuffered write per mark, so the driver's lines and these stay in order.
+        let _ = (&file).write_all(format!("P {name}\n").as_bytes());
+    }))
 }
