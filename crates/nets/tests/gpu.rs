@@ -549,6 +549,27 @@ fn the_fused_ops_match_the_cpu() {
             assert_close(&got[1], &expected[1], 1e-5, &format!("{what}: gradient"));
         }
     };
+    // The bias's gradient of a long map over few channels, summed in segments and then over
+    // them (`channel_sum`), from either layout; a batch of two row-major.
+    for (shape, x_last, r_last) in [
+        ([1, 3, 256, 256], false, false),
+        ([1, 3, 256, 256], true, true),
+        ([2, 3, 256, 256], false, true),
+    ] {
+        let run = |device: &Device| {
+            let x = laid_out(shape, device, x_last);
+            let b = Tensor::<1>::from_data(
+                burn::tensor::TensorData::new(vec![0.3f32, -0.1, 0.05], [3]),
+                device,
+            )
+            .require_grad();
+            let y = fused::bias_leaky_relu(x, b.clone(), 0.2, 1.5);
+            let r = (laid_out(shape, device, r_last) * 37.0).sin();
+            values(b.grad(&(y * r).sum().backward()).unwrap())
+        };
+        let what = format!("bias gradient {shape:?}, channels-last {x_last}/{r_last}");
+        assert_close(&run(&gpu), &run(&cpu), 1e-4, &what);
+    }
     for shape in [[1, 1, 1, 1], [2, 3, 5, 7], [1, 32, 16, 16]] {
         let channels = shape[1];
         let bias = |device: &Device| {

@@ -34,6 +34,7 @@ mod haar;
 mod linear;
 mod modulate;
 mod position;
+mod sum;
 mod upsample;
 
 fn dims(t: &FloatTensor<CubeBackend>) -> [usize; 4] {

@@ -1,7 +1,9 @@
-//! A linear layer with scaled weight and bias and an optional leaky ReLU: the forward one thread
-//! per output value, the three gradients one launch with a thread per value of each (a dot
-//! product each, no atomics). Meant for the few rows of a style vector or a discriminator's
-//! head, where a tiled matmul's launches and layout copies cost more than its arithmetic saves.
+//! A linear layer with scaled weight and bias and an optional leaky ReLU, for the few rows of a
+//! style vector or a discriminator's head, where a tiled matmul's launches and layout copies
+//! cost more than its arithmetic saves. Each dot product is a cube's ([`super::sum`]): the
+//! forward one cube per output value; the three gradients one launch, whose first cubes compute
+//! the weight's and the bias's gradient a thread per value (a sum over the batch, a row or
+//! two) and whose last cubes the input's, a cube per value (a sum over the outputs). No atomics.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -10,13 +12,15 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
+use super::sum::{SUM_UNITS, one_cube_per_value};
 use super::u32_of;
-use crate::cube_grid::one_thread_per_value;
 use crate::fused::LinearScales;
 
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
+
+    use super::super::sum::{cube_index, cube_sum};
 
     /// The activation's gradient, as `bias_leaky_relu_grad`'s: with slope 0 a selection.
     #[cube]
@@ -31,7 +35,8 @@ mod kernels {
     }
 
     /// `out[b, o] = gain · leaky_relu(Σ_i x[b, i] · weight[o, i] · weight_scale + bias[o] ·
-    /// bias_scale, slope)`, one thread per output value (row-major tensors).
+    /// bias_scale, slope)`, one cube per output value `k = b · outputs + o` ([`cube_index`];
+    /// cubes past the `values` write nothing), its units striding over `i` (row-major tensors).
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn scaled_linear(
@@ -39,35 +44,45 @@ mod kernels {
         weight: &Tensor<f32>,
         bias: &Tensor<f32>,
         out: &mut Tensor<f32>,
+        values: u32,
         inputs: u32,
         outputs: u32,
         weight_scale: f32,
         bias_scale: f32,
         slope: f32,
         gain: f32,
+        #[comptime] units: u32,
     ) {
-        let k = ABSOLUTE_POS;
-        if k >= out.len() {
-            terminate!();
-        }
-        let b = k as u32 / outputs;
-        let o = k as u32 % outputs;
+        let t = UNIT_POS;
+        let k = cube_index();
+        let b = k / outputs;
+        let o = k % outputs;
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
         let mut dot = 0.0f32;
-        for i in 0..inputs {
-            dot += x[(b * inputs + i) as usize] * weight[(o * inputs + i) as usize];
+        if k < values {
+            let mut i = t;
+            while i < inputs {
+                dot += x[(b * inputs + i) as usize] * weight[(o * inputs + i) as usize];
+                i += units;
+            }
         }
-        let pre = dot * weight_scale + bias[o as usize] * bias_scale;
-        let mut value = pre;
-        if pre <= 0.0 {
-            value = slope * pre;
+        partial[t as usize] = dot;
+        cube_sum(&mut partial, units);
+        if t == 0 && k < values {
+            let pre = partial[0] * weight_scale + bias[o as usize] * bias_scale;
+            let mut value = pre;
+            if pre <= 0.0 {
+                value = slope * pre;
+            }
+            out[k as usize] = gain * value;
         }
-        out[k] = gain * value;
     }
 
-    /// The three gradients, thread `t` computing `d_weight[t]` for `t < out·in`, then
-    /// `d_x[t − out·in]` for the next `B·in`, then `d_bias[t − out·in − B·in]` for the last
-    /// `out`: each a sum over the batch or the outputs of the activation's gradient times the
-    /// other factor, in the order `fused::flex` sums.
+    /// The three gradients. The first `elementwise` cubes ([`cube_index`]) a thread `t` per
+    /// value: `d_weight[t]` for `t < out·in`, then `d_bias[t − out·in]` for the next `out`,
+    /// each a sum over the batch. The cubes after them one per value `u` of `d_x` (`B·in`
+    /// of them; further cubes write nothing), its units striding over the outputs. Each term
+    /// is the activation's gradient times the other factor; every unit reaches the cube sum.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn scaled_linear_grad(
@@ -78,6 +93,7 @@ mod kernels {
         d_x: &mut Tensor<f32>,
         d_weight: &mut Tensor<f32>,
         d_bias: &mut Tensor<f32>,
+        elementwise: u32,
         batch: u32,
         inputs: u32,
         outputs: u32,
@@ -85,39 +101,52 @@ mod kernels {
         bias_scale: f32,
         slope: f32,
         gain: f32,
+        #[comptime] units: u32,
     ) {
-        let t = ABSOLUTE_POS as u32;
+        let c = cube_index();
         let weights = outputs * inputs;
-        let xs = batch * inputs;
-        if t < weights {
-            let o = t / inputs;
-            let i = t % inputs;
-            let mut sum = 0.0f32;
-            for b in 0..batch {
-                let at = (b * outputs + o) as usize;
-                let g = activation_grad(grad[at], output[at], slope, gain);
-                sum += g * x[(b * inputs + i) as usize];
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        let mut term = 0.0f32;
+        let mut u = 0u32;
+        if c >= elementwise {
+            u = c - elementwise;
+        }
+        if c < elementwise {
+            let t = c * units + UNIT_POS;
+            if t < weights {
+                let o = t / inputs;
+                let i = t % inputs;
+                let mut sum = 0.0f32;
+                for b in 0..batch {
+                    let at = (b * outputs + o) as usize;
+                    let g = activation_grad(grad[at], output[at], slope, gain);
+                    sum += g * x[(b * inputs + i) as usize];
+                }
+                d_weight[t as usize] = sum * weight_scale;
+            } else if t < weights + outputs {
+                let o = t - weights;
+                let mut sum = 0.0f32;
+                for b in 0..batch {
+                    let at = (b * outputs + o) as usize;
+                    sum += activation_grad(grad[at], output[at], slope, gain);
+                }
+                d_bias[o as usize] = sum * bias_scale;
             }
-            d_weight[t as usize] = sum * weight_scale;
-        } else if t < weights + xs {
-            let u = t - weights;
+        } else if u < batch * inputs {
             let b = u / inputs;
             let i = u % inputs;
-            let mut sum = 0.0f32;
-            for o in 0..outputs {
+            let mut o = UNIT_POS;
+            while o < outputs {
                 let at = (b * outputs + o) as usize;
                 let g = activation_grad(grad[at], output[at], slope, gain);
-                sum += g * weight[(o * inputs + i) as usize];
+                term += g * weight[(o * inputs + i) as usize];
+                o += units;
             }
-            d_x[u as usize] = sum * weight_scale;
-        } else if t < weights + xs + outputs {
-            let o = t - weights - xs;
-            let mut sum = 0.0f32;
-            for b in 0..batch {
-                let at = (b * outputs + o) as usize;
-                sum += activation_grad(grad[at], output[at], slope, gain);
-            }
-            d_bias[o as usize] = sum * bias_scale;
+        }
+        partial[UNIT_POS as usize] = term;
+        cube_sum(&mut partial, units);
+        if UNIT_POS == 0 && c >= elementwise && u < batch * inputs {
+            d_x[u as usize] = partial[0] * weight_scale;
         }
     }
 }
@@ -155,7 +184,7 @@ pub(super) fn scaled_linear(
     let out = empty(&x, vec![batch, outputs]);
     let values = batch * outputs;
     if values > 0 {
-        let (cubes, cube) = one_thread_per_value(values);
+        let (cubes, cube) = one_cube_per_value(values);
         kernels::scaled_linear::launch(
             &x.client,
             cubes,
@@ -164,12 +193,14 @@ pub(super) fn scaled_linear(
             weight.into_tensor_arg(),
             bias.into_tensor_arg(),
             out.clone().into_tensor_arg(),
+            u32_of(values),
             u32_of(inputs),
             u32_of(outputs),
             scales.weight_scale,
             scales.bias_scale,
             scales.slope,
             scales.gain,
+            SUM_UNITS,
         );
     }
     out
@@ -193,9 +224,11 @@ pub(super) fn scaled_linear_grad(
     let d_x = empty(&x, vec![batch, inputs]);
     let d_weight = empty(&x, vec![outputs, inputs]);
     let d_bias = empty(&x, vec![outputs]);
-    let threads = u32_of(outputs * inputs + batch * inputs + outputs);
-    if threads > 0 {
-        let (cubes, cube) = one_thread_per_value(threads as usize);
+    let elementwise = (outputs * inputs + outputs).div_ceil(SUM_UNITS as usize);
+    let cubes = elementwise + batch * inputs;
+    u32_of(cubes * SUM_UNITS as usize);
+    if outputs * inputs + batch * inputs + outputs > 0 {
+        let (cubes, cube) = one_cube_per_value(cubes);
         kernels::scaled_linear_grad::launch(
             &x.client,
             cubes,
@@ -207,6 +240,7 @@ pub(super) fn scaled_linear_grad(
             d_x.clone().into_tensor_arg(),
             d_weight.clone().into_tensor_arg(),
             d_bias.clone().into_tensor_arg(),
+            u32_of(elementwise),
             u32_of(batch),
             u32_of(inputs),
             u32_of(outputs),
@@ -214,6 +248,7 @@ pub(super) fn scaled_linear_grad(
             scales.bias_scale,
             scales.slope,
             scales.gain,
+            SUM_UNITS,
         );
     }
     (d_x, d_weight, d_bias)

@@ -1,6 +1,6 @@
 //! StyleGAN2's modulated weight and its gradients: one cube per output channel, which sums the
 //! demodulation's squares (and, backward, its projection) in shared memory; the style's gradient
-//! a second kernel's sums over output channels.
+//! a second kernel, one cube per input channel summing over output channels and taps.
 //!
 //! The modulated weight (and an equalised convolution's scaled weight, [`scale_weight`]) is
 //! written channels-last (`[C_out, kh, kw, C_in]` in memory), the layout
@@ -17,6 +17,7 @@ use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
+use super::sum::SUM_UNITS;
 use super::{dims, u32_of};
 use crate::cube_grid::{UNITS, one_thread_per_value};
 use crate::cube_layout::{empty_in_layout, readable};
@@ -26,21 +27,7 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    /// Sums `partial` (one value per unit, `units` a power of two) into `partial[0]`, pairwise
-    /// with doubling strides; every unit must call it.
-    #[cube]
-    fn cube_sum(partial: &mut Shared<[f32]>, #[comptime] units: u32) {
-        let t = UNIT_POS;
-        sync_cube();
-        let mut stride = 1u32;
-        while stride < units {
-            if t & (2 * stride - 1) == 0 {
-                partial[t as usize] += partial[(t + stride) as usize];
-            }
-            sync_cube();
-            stride *= 2;
-        }
-    }
+    use super::super::sum::cube_sum;
 
     /// The buffer offset of value `j = i · taps + k` (input channel `i`, tap `k`) of the output
     /// channel at `base`: `base + j` row-major, `base + k · inputs + i` channels-last.
@@ -190,7 +177,8 @@ mod kernels {
             grad[offset(base, j % per_output, taps, inputs, grad_last) as usize] * scale;
     }
 
-    /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one thread per input channel.
+    /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one cube per input channel `i`
+    /// (`CUBE_POS_X`), its units striding over the `(o, k)` pairs.
     #[cube(launch)]
     pub fn style_grad(
         terms: &Tensor<f32>,
@@ -198,19 +186,22 @@ mod kernels {
         outputs: u32,
         per_output: u32,
         taps: u32,
+        #[comptime] units: u32,
     ) {
-        let i = ABSOLUTE_POS;
-        if i >= d_style.len() {
-            terminate!();
-        }
-        let first = i as u32 * taps;
+        let t = UNIT_POS;
+        let first = CUBE_POS_X * taps;
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
         let mut sum = 0.0f32;
-        for o in 0..outputs {
-            for k in 0..taps {
-                sum += terms[(o * per_output + first + k) as usize];
-            }
+        let mut n = t;
+        while n < outputs * taps {
+            sum += terms[((n / taps) * per_output + first + n % taps) as usize];
+            n += units;
         }
-        d_style[i] = sum;
+        partial[t as usize] = sum;
+        cube_sum(&mut partial, units);
+        if t == 0 {
+            d_style[CUBE_POS_X as usize] = partial[0];
+        }
     }
 }
 
@@ -293,16 +284,22 @@ pub(super) fn modulate_grad(
         grad_last,
         UNITS,
     );
-    let (cubes, cube) = one_thread_per_value(shape[1]);
+    // One cube per input channel (as many as the weight has: at most 65 535, as the output
+    // channels of `per_output_channel`).
+    let inputs = u32::try_from(shape[1])
+        .ok()
+        .filter(|&c| c <= 65_535)
+        .expect("at most 65 535 input channels");
     kernels::style_grad::launch(
         &weight.client,
-        cubes,
-        cube,
+        CubeCount::Static(inputs, 1, 1),
+        CubeDim::new_1d(SUM_UNITS),
         terms.into_tensor_arg(),
         d_style.clone().into_tensor_arg(),
         u32_of(shape[0]),
         per_output,
         taps,
+        SUM_UNITS,
     );
     (d_weight, d_style)
 }
