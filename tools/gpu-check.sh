@@ -271,22 +271,24 @@ PY
         cat '$out/gsplat-build.log'; python3 -c 'from gsplat.cuda._backend import _C'"
     # The timed steps from here on, after gsplat's build: an 8-job nvcc build beside f3g's `paper`
     # step made it 1 039 ms against 770-811 ms alone (BENCHMARKS, 2026-11-27).
-    # 5 timed steps after 1 warm-up: making the 1536×2048 capture, the run's setup and the
-    # cold compilation come first (with 20 steps it did not end within 150 s on the H200).
+    # 5 timed steps after 2 warm-ups: making the 1536×2048 capture, the run's setup and the
+    # cold compilation come first (with 20 steps it did not end within 150 s on the H200). Two
+    # warm-ups, as the twin's: after one, the GPU memory in use still grew from 26 to 33 GB in
+    # the first timed step of every run (2026-11-29).
     step bench-train-paper 150 "$out/train-paper.json" "$bin/f3g-cuda" bench train \
-        --preset paper --device cuda --steps 5 --warmup 1 --json "$out/train-paper.json"
+        --preset paper --device cuda --steps 5 --warmup 2 --json "$out/train-paper.json"
     # The same steps as training runs them, without a synchronisation at each phase's end: the
     # difference is what the phase timer's waits cost.
     step bench-train-paper-unsynced 90 "$out/train-paper-unsynced.json" "$bin/f3g-cuda" bench \
-        train --preset paper --device cuda --steps 5 --warmup 1 --unsynced \
+        train --preset paper --device cuda --steps 5 --warmup 2 --unsynced \
         --json "$out/train-paper-unsynced.json"
     # The PyTorch twin of the `paper` step just timed (same networks, Gaussians, render sizes,
     # LPIPS, discriminator step and Adam; tools/paper_step_torch.py's docstring maps its phases
-    # to f3g's), with the same 1 warm-up + 5 timed steps. It renders with gsplat: its build
+    # to f3g's), with the same 2 warm-ups + 5 timed steps. It renders with gsplat: its build
     # awaited first (done by the gsplat-build step unless F3G_GPU_CHECK_ONLY left that out).
     step bench-step-torch 75 "$out/step-torch.json" sh -c "while [ $gsplat_build -gt 0 ] \
         && kill -0 $gsplat_build 2>/dev/null; do sleep 1; done; \
-        python3 '$dir/tools/paper_step_torch.py' --device cuda --steps 5 --warmup 1 \
+        python3 '$dir/tools/paper_step_torch.py' --device cuda --steps 5 --warmup 2 \
         --json '$out/step-torch.json'"
     step bench-gsplat 90 "$out/gsplat.json" python3 "$dir/tools/bench_gsplat.py" --repeats 5 \
         --json "$out/gsplat.json"
