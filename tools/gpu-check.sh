@@ -119,7 +119,8 @@ PY
     du -sh "$dir/binaries.tar.xz" "$dir/wheels"
     if [ $((size + tree)) -ge $((64 * 1024 * 1024)) ]; then
         echo "the package and the working tree are 64 MiB or more: the GPU machine is given" \
-            "at most 64 MiB (pack with F3G_GPU_CHECK_AUTOTUNE=0 for one f3g binary)" >&2
+            "at most 64 MiB (pack with F3G_GPU_CHECK_AUTOTUNE=0 for one f3g binary; still over," \
+            "carry a test binary in a second call: docs/gpu.md, the GPU check)" >&2
         exit 1
     fi
 }
@@ -132,9 +133,15 @@ run() {
     export F3G_KERNEL_CACHE=$out/kernel-cache
     rm -rf "$F3G_KERNEL_CACHE"
     xz -dc "$dir/binaries.tar.xz" | tar -C "$dir/unpacked" -xf -
-    mv "$dir"/unpacked/bin/* "$dir"/unpacked/tests/* "$dir/unpacked/"
+    # (A package of test binaries alone, for a second call, has no bin/ and no wheels.)
+    local part
+    for part in bin tests; do
+        [ -d "$dir/unpacked/$part" ] && mv "$dir/unpacked/$part"/* "$dir/unpacked/"
+    done
     mkdir -p "$dir/python"
-    for w in "$dir"/wheels/*.whl; do python3 -m zipfile -e "$w" "$dir/python"; done
+    for w in "$dir"/wheels/*.whl; do
+        [ -e "$w" ] && python3 -m zipfile -e "$w" "$dir/python"
+    done
     export PYTHONPATH="$PWD/$dir/python${PYTHONPATH:+:$PYTHONPATH}"
     # NVRTC and NCCL where the loader does not find them: CUDA's and pip's folders.
     local lib found
