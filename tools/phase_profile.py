@@ -69,8 +69,6 @@ def traced_steps(path):
     return steps
 
 
-
-
 def join(trace, profile):
     steps = traced_steps(trace)
     if not steps:
@@ -99,16 +97,14 @@ def join(trace, profile):
     pairs.reverse()
     if not pairs:
         sys.exit("no launch of the trace's last step matched the profile's")
-    first = pairs[0][0]
-    phase_of = {}
-    current = pairs[0][1]
+    # From the step's first matched launch on, each launch in its match's phase or, GPU-only,
+    # in the phase of the launch before it.
     matched = dict(pairs)
-    for k in range(first, len(launches)):
-        current = matched.get(k, current)
-        phase_of[k] = current
-    by_phase = collections.OrderedDict()
+    phase = pairs[0][1]
+    by_phase = {}
     kernels = collections.defaultdict(collections.Counter)
-    for k, phase in phase_of.items():
+    for k in range(pairs[0][0], len(launches)):
+        phase = matched.get(k, phase)
         ms, name = launches[k]
         row = by_phase.setdefault(phase, {"launches": 0, "device_ms": 0.0})
         row["launches"] += 1
@@ -119,7 +115,7 @@ def join(trace, profile):
                                              for n, m in kernels[p].most_common(5)]}
                    for p, r in by_phase.items()],
         "device_ms": sum(r["device_ms"] for r in by_phase.values()),
-        "launches": len(phase_of),
+        "launches": sum(r["launches"] for r in by_phase.values()),
         "traced_launches": len(last),
         "gpu_only_launches": unmatched_gpu,
         "traced_not_profiled": unmatched_trace,

@@ -45,17 +45,10 @@ fn on_offline_driver_with(
         .unwrap()
 }
 
-fn bench(dir: &Path, json: &str) -> serde_json::Value {
-    serde_json::from_str(&std::fs::read_to_string(dir.join(json)).unwrap()).unwrap()
-}
-
-#[test]
-fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_them() {
-    let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let cache = d.join("kernel-cache");
+/// A synthetic capture of two frames at 128 px in `dir/cap`: a training step in seconds.
+fn small_capture(dir: &Path) {
     ok(&f3g_in(
-        d,
+        dir,
         &[
             "synth",
             "--out",
@@ -66,6 +59,18 @@ fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_th
             "128",
         ],
     ));
+}
+
+fn bench(dir: &Path, json: &str) -> serde_json::Value {
+    serde_json::from_str(&std::fs::read_to_string(dir.join(json)).unwrap()).unwrap()
+}
+
+#[test]
+fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let cache = d.join("kernel-cache");
+    small_capture(d);
     let step = |json: &str| {
         let out = on_offline_driver(
             d,
@@ -119,18 +124,7 @@ fn a_training_step_compiles_every_kernel_for_sm_90_and_a_second_process_loads_th
 fn the_phase_trace_places_every_launch_in_its_phase() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    ok(&f3g_in(
-        d,
-        &[
-            "synth",
-            "--out",
-            "cap",
-            "--frames",
-            "2",
-            "--resolution",
-            "128",
-        ],
-    ));
+    small_capture(d);
     let trace = d.join("trace.txt");
     ok(&on_offline_driver_with(
         d,

@@ -13,11 +13,17 @@ const MAX_ROW: u32 = 65_535;
 
 /// The cubes and cube shape for one thread per each of `values` values.
 pub fn one_thread_per_value(values: usize) -> (CubeCount, CubeDim) {
-    let cubes = values.div_ceil(UNITS as usize).max(1) as u32;
     (
-        CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
+        cubes_in_rows(values.div_ceil(UNITS as usize)),
         CubeDim::new_1d(UNITS),
     )
+}
+
+/// `cubes` cubes (at least one) in rows of at most 65 535; cube `(CUBE_POS_Y · CUBE_COUNT_X +
+/// CUBE_POS_X)` counts along them, and the last row may run past `cubes`.
+pub(crate) fn cubes_in_rows(cubes: usize) -> CubeCount {
+    let cubes = u32::try_from(cubes.max(1)).expect("fewer than 2^32 cubes");
+    CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1)
 }
 
 /// [`one_thread_per_value`] for the longest of `layers` tensors, one grid layer (`CUBE_POS_Z`)

@@ -153,23 +153,25 @@ pub fn run(a: &TrainBenchArgs) -> Result<()> {
     trainer.decode_ahead(stage, a.warmup.max(a.steps) as u64)?;
     let mut warmup_samples = trainer.bench_samples(stage)?;
     let mut timed_samples = trainer.bench_samples(stage)?;
+    // The device's work done before a clock is read.
+    let finish = || {
+        device
+            .sync()
+            .map_err(|e| anyhow::anyhow!("the device failed: {e:?}"))
+    };
     let launched = kernel_count::start(a.device.spec != DeviceSpec::Cpu);
     let start = Instant::now();
     let phase_timer = (!a.unsynced).then_some(&timer);
     trainer.bench(&mut warmup_samples, a.warmup as u64, 0, phase_timer)?;
     drop(warmup_samples);
-    device
-        .sync()
-        .map_err(|e| anyhow::anyhow!("the device failed: {e:?}"))?;
+    finish()?;
     let warmup_ms = start.elapsed().as_secs_f64() * 1e3;
     let warmup_kernels = launched.map(kernel_count::finish);
     let before = memory::live_bytes();
     memory::reset_peak();
     let start = Instant::now();
     trainer.bench(&mut timed_samples, 0, a.steps as u64, phase_timer)?;
-    device
-        .sync()
-        .map_err(|e| anyhow::anyhow!("the device failed: {e:?}"))?;
+    finish()?;
     let step_ms = start.elapsed().as_secs_f64() * 1e3 / a.steps as f64;
     let phases = phase_timer.map(|t| t.take(a.steps as u64));
     let peak_mib = match device.memory_pool_usage() {

@@ -284,15 +284,9 @@ pub(super) fn modulate_grad(
         grad_last,
         UNITS,
     );
-    // One cube per input channel (as many as the weight has: at most 65 535, as the output
-    // channels of `per_output_channel`).
-    let inputs = u32::try_from(shape[1])
-        .ok()
-        .filter(|&c| c <= 65_535)
-        .expect("at most 65 535 input channels");
     kernels::style_grad::launch(
         &weight.client,
-        CubeCount::Static(inputs, 1, 1),
+        one_cube_per_channel(shape[1], "input"),
         CubeDim::new_1d(SUM_UNITS),
         terms.into_tensor_arg(),
         d_style.clone().into_tensor_arg(),
@@ -364,14 +358,19 @@ fn per_output_channel(shape: [usize; 4]) -> Option<(CubeCount, CubeDim, u32, u32
         return None;
     }
     u32_of(c_out * per_output);
-    let cubes = u32::try_from(c_out)
-        .ok()
-        .filter(|&c| c <= 65_535)
-        .expect("at most 65 535 output channels");
     Some((
-        CubeCount::Static(cubes, 1, 1),
+        one_cube_per_channel(c_out, "output"),
         CubeDim::new_1d(UNITS),
         u32_of(per_output),
         u32_of(kh * kw),
     ))
+}
+
+/// A row of one cube per channel (`CUBE_POS_X`): at most 65 535 (wgpu's limit per dimension).
+fn one_cube_per_channel(channels: usize, which: &str) -> CubeCount {
+    let cubes = u32::try_from(channels)
+        .ok()
+        .filter(|&c| c <= 65_535)
+        .unwrap_or_else(|| panic!("at most 65 535 {which} channels"));
+    CubeCount::Static(cubes, 1, 1)
 }

@@ -12,19 +12,15 @@ use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
+use crate::cube_grid::cubes_in_rows;
+
 /// Units per summing cube.
 pub(super) const SUM_UNITS: u32 = 64;
-/// Cubes per grid row (wgpu's limit per dimension).
-const MAX_ROW: u32 = 65_535;
 
-/// The cubes and cube shape for one cube of [`SUM_UNITS`] per each of `values` values, on a
-/// 2-D grid ([`cube_index`]); the last row may run past the values.
+/// The cubes and cube shape for one cube of [`SUM_UNITS`] per each of `values` values, in
+/// rows ([`cubes_in_rows`], [`cube_index`]); the last row may run past the values.
 pub(super) fn one_cube_per_value(values: usize) -> (CubeCount, CubeDim) {
-    let cubes = u32::try_from(values.max(1)).expect("fewer than 2^32 sums");
-    (
-        CubeCount::Static(cubes.min(MAX_ROW), cubes.div_ceil(MAX_ROW), 1),
-        CubeDim::new_1d(SUM_UNITS),
-    )
+    (cubes_in_rows(values), CubeDim::new_1d(SUM_UNITS))
 }
 
 /// The cube's position on [`one_cube_per_value`]'s grid.
