@@ -358,12 +358,11 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
     assert!(worst < 1e-3, "SH coefficients differ by {worst}");
 }
 
-/// The skinning kernel of unfused GPU devices (`f3g_avatar::model::posing`'s `cube`) against
+/// The skinning kernel of GPU devices (`f3g_avatar::model::posing`'s `cube`) against
 /// the CPU's loop: the built-in human's vertices under a pose with bent joints (two to eight
 /// influences each), turned as a whole by nothing and by 170° about each axis so that each of
 /// Shepperd's four pivots is taken; every output (blend, nearest rotation, quaternion) within
 /// float rounding.
-#[cfg(not(feature = "fusion"))]
 #[test]
 fn skinning_on_the_gpu_matches_the_cpu() {
     use burn::tensor::{Device, Tensor};

@@ -6,11 +6,11 @@
 //! launches of the `paper` preset's ≈ 67 000 per step, and 375 ms of its 3 s on an H200
 //! (BENCHMARKS "Where the device time goes"). [`FusedAdam`] computes the same update in one
 //! pass over each parameter ([`AdamBackend::adam_update`]: one parallel loop on `Flex`, one kernel
-//! on unfused `Cube` devices) and keeps Burn's state type ([`AdamState`]), so checkpoints written
-//! by either load in the other. Devices without the op (Burn's `fusion`, which fuses the chain
-//! itself) run Burn's arithmetic as tensor ops ([`update_as_tensors`]).
+//! on `Cube` devices, fused or not) and keeps Burn's state type ([`AdamState`]), so checkpoints
+//! written by either load in the other. Devices without the op run Burn's arithmetic as tensor
+//! ops ([`update_as_tensors`]).
 //!
-//! [`ModuleAdam`] steps a whole module. On unfused `Cube` devices it launches the updates of
+//! [`ModuleAdam`] steps a whole module. On `Cube` devices it launches the updates of
 //! up to [`MAX_PER_LAUNCH`] parameters per kernel instead of one kernel per parameter (the
 //! `paper` step has ≈ 1 200 parameters): each parameter's outputs are allocated as Burn's
 //! `ModuleOptimizer` visits it, and written when every parameter has been visited.
@@ -28,7 +28,7 @@ use burn::optim::{
 };
 use burn::tensor::{Device, Tensor};
 
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
 mod flex;
 
@@ -57,10 +57,12 @@ pub struct AdamCoefficients {
 /// The Adam update as one backend op.
 #[backend_extension(
     Flex,
-    Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))
+    Cube: cfg(any(feature = "gpu", feature = "cuda")),
+    Fusion: cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))
 )]
 pub trait AdamBackend: Backend {
     /// `(param, m, v)` after one step with gradient `grad`; all four of one shape.
+    #[fusion(meta = |param, _grad, _m, _v, _c| (param.clone(), param.clone(), param.clone()))]
     fn adam_update(
         param: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -122,7 +124,7 @@ impl Optimizer for FusedAdam {
         };
         let time = time + 1;
         let coefficients = self.coefficients(time, lr);
-        #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+        #[cfg(any(feature = "gpu", feature = "cuda"))]
         if cube::deferring(&tensor.device()) {
             let (tensor, moment_1, moment_2) =
                 cube::defer(tensor, grad, moment_1, moment_2, coefficients);
@@ -157,7 +159,7 @@ impl Optimizer for FusedAdam {
 
 /// Adam over a whole module: Burn's [`ModuleOptimizer`] stepping [`FusedAdam`] (so its
 /// per-parameter states and records are Burn's, and checkpoints load either way), with the
-/// updates of unfused `Cube` devices launched [`MAX_PER_LAUNCH`] parameters at a time.
+/// updates of `Cube` devices launched [`MAX_PER_LAUNCH`] parameters at a time.
 #[derive(Clone)]
 pub struct ModuleAdam {
     inner: ModuleOptimizer,
@@ -166,11 +168,11 @@ pub struct ModuleAdam {
 impl ModuleAdam {
     /// Updates `module`'s parameters with `grads` at learning rate `lr`.
     pub fn step<M: Module>(&mut self, lr: LearningRate, module: M, grads: GradientsParams) -> M {
-        #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+        #[cfg(any(feature = "gpu", feature = "cuda"))]
         {
             cube::batched(|| self.inner.step(lr, module, grads))
         }
-        #[cfg(not(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion"))))]
+        #[cfg(not(any(feature = "gpu", feature = "cuda")))]
         {
             self.inner.step(lr, module, grads)
         }
@@ -191,7 +193,7 @@ impl ModuleAdam {
 
 /// Whether `device` runs [`AdamBackend`] (the optimiser's tensors never carry autodiff).
 fn has_the_op(device: &Device) -> bool {
-    #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+    #[cfg(any(feature = "gpu", feature = "cuda"))]
     if matches!(device.as_dispatch(), burn::backend::DispatchDevice::Cube(_)) {
         return true;
     }

@@ -12,22 +12,24 @@
 //! `Σ G · X̂ᵀ`, each one well-shaped GEMM per tile of output positions.
 //!
 //! `Cube` devices use Burn's kernels for all three, with the algorithm chosen in [`cube`] (implicit
-//! GEMMs on matrix units where the device has them) unless Burn's `autotune` or `fusion` is on,
-//! where Burn's own choice stands. `Autodiff` records one node whose backward
-//! asks the inner backend for each gradient a parent needs. Layouts are Burn's: `x`
-//! `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
+//! GEMMs on matrix units where the device has them) unless Burn's `autotune` is on, where Burn's
+//! own choice stands; under Burn's `fusion` each is a lazy operation of the fusion stream.
+//! `Autodiff` records one node whose backward asks the inner backend for each gradient a parent
+//! needs. Layouts are Burn's: `x` `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
+use burn::tensor::Shape;
 use burn::tensor::Tensor;
 use burn::tensor::ops::ConvOptions;
 
 mod autodiff;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 pub mod bands;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 pub use cube::{GemmChoice, gemm_choices};
 mod flex;
 pub mod profile;
@@ -53,9 +55,15 @@ pub fn conv2d(
 }
 
 /// The convolution and its two gradients as backend operations.
-#[backend_extension(Autodiff, Flex, Cube: cfg(any(feature = "gpu", feature = "cuda")))]
+#[backend_extension(
+    Autodiff,
+    Flex,
+    Cube: cfg(any(feature = "gpu", feature = "cuda")),
+    Fusion: cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))
+)]
 pub trait ConvBackend: Backend {
     /// `conv2d(x, weight)` without bias: `[B, C_out, H_out, W_out]`.
+    #[fusion(dtype = x, shape = output_shape(x, weight, options))]
     fn conv2d_forward(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -63,6 +71,7 @@ pub trait ConvBackend: Backend {
     ) -> FloatTensor<Self>;
 
     /// The gradient of the input given the output gradient `grad`.
+    #[fusion(dtype = x, shape = x)]
     fn conv2d_input_grad(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -71,6 +80,7 @@ pub trait ConvBackend: Backend {
     ) -> FloatTensor<Self>;
 
     /// The gradient of the weight given the output gradient `grad`.
+    #[fusion(dtype = weight, shape = weight)]
     fn conv2d_weight_grad(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -79,35 +89,14 @@ pub trait ConvBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// Burn's kernels with Burn's choice of algorithm on fused wgpu and CUDA devices (the tensors
-/// are the fusion engine's; unfused devices: [`cube`]).
+/// The output shape of [`ConvBackend::conv2d_forward`] (Burn's `fusion` records each op's output
+/// shape before running it).
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
-impl ConvBackend for burn::backend::Cube {
-    fn conv2d_forward(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d(x, weight, None, options)
-    }
-
-    fn conv2d_input_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d_x_backward(x, weight, grad, options)
-    }
-
-    fn conv2d_weight_grad(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        <Self as burn::backend::ops::ModuleOps<Self>>::conv2d_weight_backward(
-            x, weight, grad, options,
-        )
-    }
+fn output_shape(x: &Shape, weight: &Shape, options: &ConvOptions<2>) -> Shape {
+    let side = |axis: usize| {
+        let (before, after) = options.padding[axis];
+        let reach = options.dilation[axis] * (weight[2 + axis] - 1) + 1;
+        (x[2 + axis] + before + after - reach) / options.stride[axis] + 1
+    };
+    Shape::new([x[0], weight[0], side(0), side(1)])
 }

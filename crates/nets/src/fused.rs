@@ -14,19 +14,26 @@
 //! of the encoder's input pyramid, as Burn's average pooling, compiles a GPU kernel for every
 //! pooling and input size. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
-//! loop over the planes, in parallel (`flex`), and on unfused `Cube` devices (wgpu, CUDA) one
-//! kernel (`cube`, a file per op). Burn's `fusion` devices keep the tensor-op formulation
-//! ([`portable`]), which fusion fuses itself.
+//! loop over the planes, in parallel (`flex`), and on `Cube` devices (wgpu, CUDA) one kernel
+//! (`cube`, a file per op). Under Burn's `fusion` each op is a lazy operation of the fusion
+//! stream (`#[fusion]` below: its output shape recorded now, the kernel run in turn), so fusion
+//! fuses the element-wise chains between them; as Burn's ops ([`portable`]) under fusion the
+//! StyleGAN2 blocks regrouped into more launches than these kernels make (BENCHMARKS "Burn's
+//! fusion, fixed").
 //!
 //! Layouts: `[B, C, H, W]` (row-major on the CPU; on a GPU row-major or channels-last, see
 //! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `[C_in]`.
 
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
+use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
+use burn::tensor::Shape;
 use burn::tensor::{Device, Tensor};
 
 mod autodiff;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
 mod flex;
 pub mod portable;
@@ -36,14 +43,14 @@ pub fn on_flex<const D: usize>(x: &Tensor<D>) -> bool {
     x.device().without_autodiff() == Device::flex()
 }
 
-/// Whether a fused op on `x` runs as one op here: on the CPU, and on unfused `Cube` devices
-/// where none of the op's tensors has 2³² values or more (`largest`: the most any of them has,
-/// forward or backward), since their kernels index with 32 bits.
+/// Whether a fused op on `x` runs as one op here: on the CPU, and on `Cube` devices (fused or
+/// not) where none of the op's tensors has 2³² values or more (`largest`: the most any of them
+/// has, forward or backward), since their kernels index with 32 bits.
 pub fn runs<const D: usize>(x: &Tensor<D>, largest: usize) -> bool {
     if on_flex(x) {
         return true;
     }
-    #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+    #[cfg(any(feature = "gpu", feature = "cuda"))]
     if matches!(
         x.device().without_autodiff().as_dispatch(),
         burn::backend::DispatchDevice::Cube(_)
@@ -176,8 +183,8 @@ pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: boo
 }
 
 /// `weight · scale` for a convolution weight `[C_out, C_in, kh, kw]` (an equalised
-/// convolution's): one op where it [`runs`], Burn's scaling elsewhere. On unfused `Cube`
-/// devices the result is stored channels-last, the layout Burn's implicit-GEMM convolution
+/// convolution's): one op where it [`runs`], Burn's scaling elsewhere. On `Cube` devices
+/// the result is stored channels-last, the layout Burn's implicit-GEMM convolution
 /// reads its weight in: stored row-major, as Burn's scaling leaves it, it was copied before the
 /// convolution and again before its input gradient.
 pub fn scale_weight(weight: Tensor<4>, scale: f32) -> Tensor<4> {
@@ -246,10 +253,12 @@ pub fn scaled_linear(
 #[backend_extension(
     Autodiff,
     Flex,
-    Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))
+    Cube: cfg(any(feature = "gpu", feature = "cuda")),
+    Fusion: cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))
 )]
 pub trait FusedBackend: Backend {
     /// `gain · leaky_relu(x + bias, slope)` (`gain > 0`, `slope ≥ 0`).
+    #[fusion(dtype = x, shape = x)]
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
         bias: FloatTensor<Self>,
@@ -260,6 +269,7 @@ pub trait FusedBackend: Backend {
     /// The gradient of `x + bias` from the op's `output` and the output gradient `grad`
     /// (`grad · gain`, times `slope` where the output is not positive; with slope 0 there zero,
     /// whatever `grad` holds, as ReLU's backward selects: `∞ · 0` would be NaN).
+    #[fusion(dtype = output, shape = output)]
     fn bias_leaky_relu_grad(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -269,6 +279,7 @@ pub trait FusedBackend: Backend {
 
     /// [`noisy_bias_leaky_relu`]; its backward is [`FusedBackend::bias_leaky_relu_grad`]'s, with
     /// the strength's gradient from [`FusedBackend::noise_strength_grad`].
+    #[fusion(dtype = x, shape = x)]
     fn noisy_bias_leaky_relu(
         x: FloatTensor<Self>,
         noise: FloatTensor<Self>,
@@ -280,38 +291,48 @@ pub trait FusedBackend: Backend {
 
     /// `[1]`: `Σ_{b, c, h, w} grad[b, c, h, w] · noise[h, w]` for `noise` `[1, 1, H, W]` (the
     /// noise strength's gradient from the pre-activation's).
+    #[fusion(dtype = grad, shape = Shape::new([1]))]
     fn noise_strength_grad(grad: FloatTensor<Self>, noise: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// `[C]`: the sum of `x` over batch and pixels per channel (the bias gradient).
+    #[fusion(dtype = x, shape = Shape::new([x[1]]))]
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// `[B, C, H, W] → [B, C, 2H, 2W]`, bilinear.
+    #[fusion(dtype = x, shape = scaled(x, 2, 1))]
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// The adjoint of [`FusedBackend::upsample2`]: `[B, C, 2H, 2W] → [B, C, H, W]`.
+    #[fusion(dtype = grad, shape = scaled(grad, 1, 2))]
     fn upsample2_grad(grad: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// `[B, C, H, W] → [B, C, ⌊H/2⌋, ⌊W/2⌋]`: the mean of each 2 × 2 block (an odd last row or
     /// column is left out).
+    #[fusion(dtype = x, shape = scaled(x, 1, 2))]
     fn downsample2(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// The adjoint of [`FusedBackend::downsample2`] for an input of `height × width`: each value
     /// a quarter of its block's gradient, zero on a left-out row or column.
+    #[fusion(dtype = grad, shape = Shape::new([grad[0], grad[1], *height, *width]))]
     fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self>;
 
     /// The blur: each axis grows by `before + after − 3`. Its adjoint is the blur with padding
     /// `(3 − before, 3 − after)` (the taps are symmetric).
+    #[fusion(dtype = x, shape = blurred(x, *before, *after))]
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self>;
 
     /// Haar analysis: channel `4c + k` holds sub-band `k ∈ (LL, LH, HL, HH)` of channel `c`. The
     /// transform is orthonormal, so its adjoint is [`FusedBackend::inverse_haar`].
+    #[fusion(dtype = x, shape = Shape::new([x[0], 4 * x[1], x[2] / 2, x[3] / 2]))]
     fn haar(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// Haar synthesis, the inverse (and adjoint) of [`FusedBackend::haar`].
+    #[fusion(dtype = x, shape = Shape::new([x[0], x[1] / 4, 2 * x[2], 2 * x[3]]))]
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// The modulated weight ([`modulate`]): `u = weight · style[i] · scale`, and with
     /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
+    #[fusion(dtype = weight, shape = weight)]
     fn modulate(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,
@@ -322,6 +343,7 @@ pub trait FusedBackend: Backend {
     /// The gradients of `weight` and `style` given the output gradient `grad`. With
     /// demodulation, the gradient of `u` is `d · (g − u · d² · Σ g·u)` (sums per output channel);
     /// then `∂weight = ∂u · style[i] · scale` and `∂style[i] = Σ_{o,taps} ∂u · weight · scale`.
+    #[fusion(meta = |weight, style, _grad, _scale, _demodulate| (weight.clone(), style.clone()))]
     fn modulate_grad(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,
@@ -331,13 +353,16 @@ pub trait FusedBackend: Backend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// [`scale_weight`]: `weight · scale`, in the layout the backend's convolutions read.
+    #[fusion(dtype = weight, shape = weight)]
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self>;
 
     /// The gradient of [`FusedBackend::scale_weight`]'s input: `grad · scale`, row-major (the
     /// weight's layout).
+    #[fusion(dtype = grad, shape = grad)]
     fn scale_weight_grad(grad: FloatTensor<Self>, scale: f32) -> FloatTensor<Self>;
 
     /// [`scaled_linear`]: `[B, in] → [B, out]`.
+    #[fusion(dtype = x, shape = Shape::new([x[0], bias[0]]))]
     fn scaled_linear(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -349,6 +374,10 @@ pub trait FusedBackend: Backend {
     /// `grad`: with `g` the activation's gradient (as [`FusedBackend::bias_leaky_relu_grad`]'s),
     /// `∂x = weight_scale · g · weight`, `∂weight = weight_scale · gᵀ · x` and
     /// `∂bias = bias_scale · Σ_batch g`.
+    #[fusion(meta = |x, weight, output, _grad, _scales| {
+        let bias = TensorSpec::new(Shape::new([output.shape[1]]), output.dtype);
+        (x.clone(), weight.clone(), bias)
+    })]
     fn scaled_linear_grad(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -356,6 +385,20 @@ pub trait FusedBackend: Backend {
         grad: FloatTensor<Self>,
         scales: LinearScales,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+}
+
+/// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
+/// each op's output shape before running it).
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
+fn scaled(x: &Shape, times: usize, by: usize) -> Shape {
+    Shape::new([x[0], x[1], x[2] * times / by, x[3] * times / by])
+}
+
+/// The shape of [`FusedBackend::blur`]'s output.
+#[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
+fn blurred(x: &Shape, before: usize, after: usize) -> Shape {
+    let grown = |n: usize| n + before + after - 3;
+    Shape::new([x[0], x[1], grown(x[2]), grown(x[3])])
 }
 
 /// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).

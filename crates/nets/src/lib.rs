@@ -24,9 +24,9 @@
 pub mod adam;
 pub mod checkpoint;
 pub mod conv;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 pub mod cube_grid;
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube_layout;
 pub mod discriminator;
 mod error;

@@ -11,7 +11,7 @@
 //! On the CPU backend the skinning transforms and the gathers (which need no gradient: joint
 //! transforms and the maps' inputs are data) are one parallel loop each instead
 //! ([`Skinning::new`], [`Taps::apply`]): the tensor chain is about 600 operations on `[N, 1]`
-//! columns, each a serial pass and an allocation on `Flex`. On unfused GPU devices the skinning
+//! columns, each a serial pass and an allocation on `Flex`. On GPU devices the skinning
 //! is one kernel (`posing/cube.rs`), for the same reason: each of those operations is a launch.
 
 use std::sync::Arc;
@@ -23,7 +23,7 @@ use rayon::prelude::*;
 
 use super::{host_data, host_values};
 
-#[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+#[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
@@ -331,12 +331,12 @@ pub struct Skinning {
 impl Skinning {
     /// The skinning of points with `skin` under joint transforms `[J, 3, 4]`: for joints that
     /// need no gradient, on the CPU backend one parallel loop ([`Skinning::on_host`]) and on
-    /// unfused GPU devices one kernel (`cube`); elsewhere tensor operations
+    /// GPU devices one kernel (`cube`); elsewhere tensor operations
     /// ([`Skinning::from_tensors`]); they agree to float rounding (tested).
     pub fn new(joints: &Tensor<3>, skin: &Taps) -> Self {
         match &skin.host {
             Some(host) if !joints.is_require_grad() => Self::on_host(joints, skin, host),
-            #[cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion")))]
+            #[cfg(any(feature = "gpu", feature = "cuda"))]
             _ if !joints.is_require_grad() => cube::skinning(joints, &skin.index, &skin.weight)
                 .unwrap_or_else(|| Self::from_tensors(joints, skin)),
             _ => Self::from_tensors(joints, skin),

@@ -1,9 +1,9 @@
-//! Adam on `CubeBackend` (wgpu, CUDA without fusion): one kernel, `adam_update_many`, updates
-//! up to [`MAX_PER_LAUNCH`] parameters, one grid layer each — one parameter for `impl
-//! AdamBackend`, a queue of them for the batched path of [`super::ModuleAdam`]
-//! ([`AdamManyBackend`]). Inputs are read row-major after `into_contiguous`; outputs are
-//! allocated contiguous (CUDA pitches Burn's ordinary allocations: `f3g_splat::cube`'s module
-//! doc).
+//! Adam on `CubeBackend` (wgpu, CUDA; under `fusion` as lazy ops): one kernel,
+//! `adam_update_many`, updates up to [`MAX_PER_LAUNCH`] parameters, one grid layer each — one
+//! parameter for `impl AdamBackend`, a queue of them for the batched path of
+//! [`super::ModuleAdam`] ([`AdamManyBackend`]). Inputs are read row-major after
+//! `into_contiguous`; outputs are allocated contiguous (CUDA pitches Burn's ordinary
+//! allocations: `f3g_splat::cube`'s module doc).
 //!
 //! Batching: while [`batched`] runs a module's step on this thread, [`defer`] gives each
 //! parameter freshly allocated outputs (its new value and moments, which Burn's optimiser
@@ -81,11 +81,17 @@ impl AdamBackend for CubeBackend {
     }
 }
 
-/// The batched update's two halves as backend ops (unfused `Cube` devices only).
-#[backend_extension(Cube)]
+/// The batched update's two halves as backend ops (`Cube` devices only). Under Burn's `fusion`
+/// both run on the fusion stream's thread in the order they were recorded, so the queue is
+/// that thread's.
+#[backend_extension(
+    Cube,
+    Fusion: cfg(feature = "fusion")
+)]
 pub trait AdamManyBackend: Backend {
     /// Queues the update of one parameter on this thread and returns its new value and
     /// moments: allocated now, written by [`Self::adam_launch_queued`].
+    #[fusion(meta = |param, _grad, _m, _v, _c| (param.clone(), param.clone(), param.clone()))]
     fn adam_queue(
         param: FloatTensor<Self>,
         grad: FloatTensor<Self>,
@@ -96,6 +102,7 @@ pub trait AdamManyBackend: Backend {
 
     /// Launches the updates queued on this thread, [`MAX_PER_LAUNCH`] parameters at most per
     /// kernel; `route` (any tensor of the device) selects the backend and is returned.
+    #[fusion(dtype = route, shape = route)]
     fn adam_launch_queued(route: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 

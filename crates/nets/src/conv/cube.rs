@@ -1,4 +1,4 @@
-//! `impl ConvBackend for CubeBackend` (wgpu, CUDA without fusion): Burn's convolution kernels,
+//! `impl ConvBackend for CubeBackend` (wgpu, CUDA, fused or not): Burn's convolution kernels,
 //! with the algorithm chosen here instead of by Burn's default.
 //!
 //! Without `autotune`, Burn 0.22.1 runs a convolution and both its gradients with its *direct*

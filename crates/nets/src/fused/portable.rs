@@ -1,7 +1,6 @@
-//! The fused ops written with Burn's tensor ops, differentiable on every backend: what devices
-//! with Burn's `fusion` run (fusion fuses the chains itself), what unfused `Cube` devices run for
-//! tensors of 2³² values or more, and the reference the fused ops are tested against. Each
-//! function has the semantics of its namesake in [`crate::fused`].
+//! The fused ops written with Burn's tensor ops, differentiable on every backend: what `Cube`
+//! devices run for tensors of 2³² values or more, and the reference the fused ops are tested
+//! against. Each function has the semantics of its namesake in [`crate::fused`].
 
 use burn::tensor::Tensor;
 use burn::tensor::activation::{leaky_relu, relu};

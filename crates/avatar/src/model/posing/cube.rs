@@ -1,5 +1,6 @@
-//! [`Skinning`](super::Skinning) on unfused `Cube` devices (wgpu, CUDA): the blend, the polar
-//! iteration and Shepperd's quaternion of every point in one kernel, one thread per point.
+//! [`Skinning`](super::Skinning) on `Cube` devices (wgpu, CUDA; under Burn's `fusion` a lazy
+//! operation of its stream): the blend, the polar iteration and Shepperd's quaternion of every
+//! point in one kernel, one thread per point.
 //!
 //! Why: as tensor operations on `[N, 1]` columns ([`super::Skinning::from_tensors`]) the
 //! skinning of a `paper` step's body and face Gaussians launched about 1 300 kernels (the offline
@@ -7,6 +8,8 @@
 //! the tensor path's, term by term (the same cofactors, fixed iteration count, guard and pivot
 //! choice), so the two agree to float rounding.
 
+#[cfg(feature = "fusion")]
+use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
 use burn::tensor::{DType, Int, IntDType, Shape, Tensor};
@@ -143,11 +146,16 @@ mod kernels {
 }
 
 /// The skinning kernel as a backend op, so that `Dispatch` routes it to the `Cube` backend.
-#[backend_extension(Cube: cfg(all(any(feature = "gpu", feature = "cuda"), not(feature = "fusion"))))]
+#[backend_extension(Cube, Fusion: cfg(feature = "fusion"))]
 pub trait SkinningBackend: Backend {
     /// `joints` `[J, 3, 4]`, taps tap-major (`index` `[width · rows]`, `weight` `[width, rows,
     /// 1]`) → linear parts `[rows, 9]`, translations `[rows, 3]`, nearest rotations as nine
     /// columns `[9, rows]`, quaternions `[rows, 4]`.
+    #[fusion(meta = |_joints, _index, weight| {
+        let rows = weight.shape[1];
+        let spec = |dims: [usize; 2]| TensorSpec::new(Shape::new(dims), weight.dtype);
+        (spec([rows, 9]), spec([rows, 3]), spec([9, rows]), spec([rows, 4]))
+    })]
     fn skinning(
         joints: FloatTensor<Self>,
         index: IntTensor<Self>,
@@ -212,7 +220,7 @@ impl SkinningBackend for CubeBackend {
     }
 }
 
-/// The kernel's outputs as [`super::Skinning`]'s tensors, or `None` off unfused `Cube` devices.
+/// The kernel's outputs as [`super::Skinning`]'s tensors, or `None` off `Cube` devices.
 pub(super) fn skinning(
     joints: &Tensor<3>,
     index: &Tensor<1, Int>,
