@@ -503,10 +503,6 @@ fn long_reductions_with_few_outputs_match_the_cpu() {
 /// shapes and paddings the networks use, edge sizes, and an up-sampling of more cubes than one
 /// grid row holds.
 #[test]
-#[cfg_attr(
-    feature = "fusion",
-    ignore = "meets Burn 0.22.1's fusion bug of a_gradient_through_a_permuted_view_matches_the_cpu"
-)]
 fn the_fused_ops_match_the_cpu() {
     use f3g_nets::fused;
     /// A ramp of `shape` (`[B, C, H, W]`), stored row-major or channels-last (a permuted view,
@@ -831,17 +827,12 @@ fn the_fused_ops_match_the_cpu() {
 
 /// A gradient through a channels-last view of one channel: `x` `[1, 1, 1, 1]` repeated to
 /// 2 × 2, times `sin(37 · v)` for a `[1, 2, 2, 1]` ramp `v` permuted to `[1, 1, 2, 2]`. Under
-/// Burn 0.22.1's `fusion` (patched, lavapipe) `x`'s gradient comes out −2.41 against −1.247:
-/// `r₀ + r₁ + r₂ + r₁` for `r = sin(37 · v)`, the last of the four products read from the
-/// second's place. The same products and sums without autodiff are right, and so are they with
-/// the ramp row-major or with `x` not repeated (BENCHMARKS "Burn's fusion with f3g's ops as lazy
-/// operations"). Found by
-/// `the_fused_ops_match_the_cpu`, whose layout pairings meet it; this is its smallest case.
+/// Burn 0.22.1's published `fusion` `x`'s gradient came out −2.41 against −1.247: the fused
+/// block wrote `r = sin(37 · v)` in place wrongly, its aliased input read at vector size 1 in a
+/// block of width 2 (the second change of the vendored `burn-cubecl-fusion`,
+/// third_party/burn-cubecl-fusion.md). Found by `the_fused_ops_match_the_cpu`, whose layout
+/// pairings meet it; this is its smallest case. Unfused builds run it too.
 #[test]
-#[cfg_attr(
-    feature = "fusion",
-    ignore = "wrong under Burn 0.22.1's fusion: a gradient through a permuted one-channel view"
-)]
 fn a_gradient_through_a_permuted_view_matches_the_cpu() {
     let run = |device: &Device| {
         let x = ramp([1, 1, 1, 1], device).require_grad();

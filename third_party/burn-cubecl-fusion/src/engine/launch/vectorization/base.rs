@@ -230,12 +230,16 @@ fn vectorization_input(
     }
 
     // Reflect changes from https://github.com/tracel-ai/cubecl/pull/1312
-    // Calculate the smallest non-zero stride among other dimensions
+    // Calculate the smallest non-zero stride among other dimensions. A size-one dimension is
+    // only ever indexed at zero: its stride is whatever a permutation left there and must not
+    // cap the vector size (a permuted one-channel view, strides [4, 1, 2, 1] for [1, 1, 2, 2],
+    // got vector size 1 here while its block ran at width 2, and the in-place output aliasing
+    // it was read at the wrong positions).
     let mut next_stride = handle
         .strides
         .iter()
         .enumerate()
-        .filter_map(|(i, &s)| (i != axis && s != 0).then_some(s))
+        .filter_map(|(i, &s)| (i != axis && s != 0 && desc.shape[i] != 1).then_some(s))
         .min()
         .unwrap_or(0);
 
