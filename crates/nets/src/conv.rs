@@ -89,14 +89,25 @@ pub trait ConvBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
+/// The output side along spatial `axis` (0: height, 1: width) of a convolution of an input side
+/// `input` with a kernel side `kernel`; `None` when the stride is zero or the kernel's reach is
+/// longer than the padded input.
+pub(crate) fn output_side(
+    input: usize,
+    kernel: usize,
+    options: &ConvOptions<2>,
+    axis: usize,
+) -> Option<usize> {
+    let (before, after) = options.padding[axis];
+    let span = options.dilation[axis] * kernel.checked_sub(1)? + 1;
+    let padded = input + before + after;
+    (padded >= span && options.stride[axis] > 0).then(|| (padded - span) / options.stride[axis] + 1)
+}
+
 /// The output shape of [`ConvBackend::conv2d_forward`] (Burn's `fusion` records each op's output
-/// shape before running it).
+/// shape before running it; a side [`output_side`] has none of is empty).
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 fn output_shape(x: &Shape, weight: &Shape, options: &ConvOptions<2>) -> Shape {
-    let side = |axis: usize| {
-        let (before, after) = options.padding[axis];
-        let reach = options.dilation[axis] * (weight[2 + axis] - 1) + 1;
-        (x[2 + axis] + before + after - reach) / options.stride[axis] + 1
-    };
+    let side = |axis: usize| output_side(x[2 + axis], weight[2 + axis], options, axis).unwrap_or(0);
     Shape::new([x[0], weight[0], side(0), side(1)])
 }

@@ -397,8 +397,14 @@ fn scaled(x: &Shape, times: usize, by: usize) -> Shape {
 /// The shape of [`FusedBackend::blur`]'s output.
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 fn blurred(x: &Shape, before: usize, after: usize) -> Shape {
-    let grown = |n: usize| n + before + after - 3;
-    Shape::new([x[0], x[1], grown(x[2]), grown(x[3])])
+    let side = |n: usize| blurred_side(n, before, after);
+    Shape::new([x[0], x[1], side(x[2]), side(x[3])])
+}
+
+/// A side of [`FusedBackend::blur`]'s output for an input side `n`: `n + before + after − 3`,
+/// at least 0 (every backend and fusion's recorded shape agree on it).
+pub(crate) fn blurred_side(n: usize, before: usize, after: usize) -> usize {
+    (n + before + after).saturating_sub(3)
 }
 
 /// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).

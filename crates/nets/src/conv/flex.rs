@@ -29,8 +29,8 @@ use burn::tensor::DType;
 use burn::tensor::ops::ConvOptions;
 use rayon::prelude::*;
 
-use super::ConvBackend;
 use super::profile::{self, Phase};
+use super::{ConvBackend, output_side};
 use crate::host::{from_values, host_f32};
 
 /// Floats of im2col per tile (1 MiB): a tile's columns stay in cache while its GEMM reads them.
@@ -222,13 +222,7 @@ impl Geometry {
     /// output would be empty or the kernel is larger than the padded input.
     fn new(input: [usize; 4], weight: [usize; 4], options: ConvOptions<2>) -> Option<Self> {
         let kernel = [weight[2], weight[3]];
-        let side = |axis: usize| {
-            let (before, after) = options.padding[axis];
-            let span = options.dilation[axis] * kernel[axis].checked_sub(1)? + 1;
-            let padded = input[2 + axis] + before + after;
-            (padded >= span && options.stride[axis] > 0)
-                .then(|| (padded - span) / options.stride[axis] + 1)
-        };
+        let side = |axis: usize| output_side(input[2 + axis], kernel[axis], &options, axis);
         let output = [input[0], weight[0], side(0)?, side(1)?];
         (output.iter().all(|&d| d > 0) && input[1] > 0).then_some(Self {
             input,

@@ -7,7 +7,7 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
-use super::{DEMODULATION_EPSILON, FusedBackend, LinearScales};
+use super::{DEMODULATION_EPSILON, FusedBackend, LinearScales, blurred_side};
 use crate::host::{from_values, host_f32};
 
 /// The blur's taps.
@@ -205,7 +205,7 @@ impl FusedBackend for Flex {
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {
         let [batch, channels, height, width] = dims(&x);
         assert!(before <= 3 && after <= 3, "blur padding at most 3");
-        let grown = |n: usize| (n + before + after).saturating_sub(3);
+        let grown = |n: usize| blurred_side(n, before, after);
         let (out_h, out_w) = (grown(height), grown(width));
         let x = host_f32(&x);
         let mut out = vec![0.0f32; batch * channels * out_h * out_w];

@@ -6,6 +6,7 @@ use burn_cubecl::CubeBackend;
 
 use super::{dims, one_thread_per_output, u32_of};
 use crate::cube_layout::{empty_in_layout, readable};
+use crate::fused::blurred_side;
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -79,7 +80,7 @@ pub(super) fn blur(
 ) -> FloatTensor<CubeBackend> {
     let [batch, channels, h, w] = dims(&x);
     assert!(before <= 3 && after <= 3, "blur padding at most 3");
-    let grown = |n: usize| (n + before + after).saturating_sub(3);
+    let grown = |n: usize| blurred_side(n, before, after);
     let (out_h, out_w) = (grown(h), grown(w));
     let (x, last) = readable(x);
     let out = empty_in_layout(&x, [batch, channels, out_h, out_w], last);
