@@ -244,34 +244,59 @@ pub fn mask_bounds(mask: &Image, threshold: f32) -> Option<[usize; 4]> {
     (x0 <= x1).then_some([x0, y0, x1, y1])
 }
 
-/// Square dilation (`grow`) or erosion of a boolean mask with a `(2r+1)²` window.
+/// Square dilation (`grow`) or erosion of a boolean mask with a `(2r+1)²` window, clipped to
+/// the image. Separable, each pass a sliding count of set pixels (a window is all set when its
+/// count is its length): O(1) per pixel whatever `r`, and the column pass walks rows, not
+/// columns (the loader runs this on every training view: 3 M pixels at 1536 × 2048).
 pub fn morph(mask: &[bool], width: usize, height: usize, r: usize, grow: bool) -> Vec<bool> {
-    let pass = |src: &[bool], horizontal: bool| -> Vec<bool> {
-        let mut out = vec![false; src.len()];
-        for y in 0..height {
-            for x in 0..width {
-                let (lo, hi) = if horizontal {
-                    (x.saturating_sub(r), (x + r).min(width - 1))
-                } else {
-                    (y.saturating_sub(r), (y + r).min(height - 1))
-                };
-                let at = |k: usize| {
-                    if horizontal {
-                        src[y * width + k]
-                    } else {
-                        src[k * width + x]
-                    }
-                };
-                out[y * width + x] = if grow {
-                    (lo..=hi).any(at)
-                } else {
-                    (lo..=hi).all(at)
-                };
+    if width == 0 || height == 0 {
+        return Vec::new();
+    }
+    let keep = |count: u32, len: usize| {
+        if grow {
+            count > 0
+        } else {
+            count as usize == len
+        }
+    };
+    let span = |i: usize, n: usize| (i + r).min(n - 1) - i.saturating_sub(r) + 1;
+    let mut rows = vec![false; mask.len()];
+    for (src, dst) in mask.chunks_exact(width).zip(rows.chunks_exact_mut(width)) {
+        let mut count = src[..=r.min(width - 1)].iter().filter(|&&b| b).count() as u32;
+        for x in 0..width {
+            dst[x] = keep(count, span(x, width));
+            if x + r + 1 < width && src[x + r + 1] {
+                count += 1;
+            }
+            if x >= r && src[x - r] {
+                count -= 1;
             }
         }
-        out
+    }
+    let mut counts = vec![0u32; width];
+    let add = |counts: &mut [u32], row: &[bool], sign: i32| {
+        for (c, &b) in counts.iter_mut().zip(row) {
+            *c = c.wrapping_add_signed(sign * b as i32);
+        }
     };
-    pass(&pass(mask, true), false)
+    let row = |y: usize| &rows[y * width..(y + 1) * width];
+    for y in 0..=r.min(height - 1) {
+        add(&mut counts, row(y), 1);
+    }
+    let mut out = vec![false; mask.len()];
+    for (y, dst) in out.chunks_exact_mut(width).enumerate() {
+        let len = span(y, height);
+        for (o, &c) in dst.iter_mut().zip(&counts) {
+            *o = keep(c, len);
+        }
+        if y + r + 1 < height {
+            add(&mut counts, row(y + r + 1), 1);
+        }
+        if y >= r {
+            add(&mut counts, row(y - r), -1);
+        }
+    }
+    out
 }
 
 /// Draws a rectangle outline (thickness 2) on an RGB image.
@@ -318,6 +343,7 @@ pub fn paste(canvas: &mut Image, tile: &Image, x: usize, y: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     /// Area averaging keeps a mask's mean and makes each output pixel the covered share: a
     /// 9-pixel-wide block shrunk by 2.25 covers 4 output pixels exactly.
@@ -379,6 +405,37 @@ mod tests {
         let mut tap = [0.0];
         sample(&img, 8.25, 8.25, &[0.0], &mut tap);
         assert_eq!(up.data[0], tap[0]);
+    }
+
+    /// The definition: each output pixel over its clipped window.
+    fn morph_by_definition(m: &[bool], w: usize, h: usize, r: usize, grow: bool) -> Vec<bool> {
+        let mut out = Vec::with_capacity(m.len());
+        for y in 0..h {
+            for x in 0..w {
+                let mut window = (y.saturating_sub(r)..=(y + r).min(h - 1)).flat_map(|v| {
+                    (x.saturating_sub(r)..=(x + r).min(w - 1)).map(move |u| m[v * w + u])
+                });
+                out.push(if grow {
+                    window.any(|b| b)
+                } else {
+                    window.all(|b| b)
+                });
+            }
+        }
+        out
+    }
+
+    proptest! {
+        #[test]
+        fn morphology_matches_its_definition(
+            (w, h, m) in (1usize..24, 1usize..24).prop_flat_map(|(w, h)| {
+                (Just(w), Just(h), proptest::collection::vec(proptest::bool::weighted(0.6), w * h))
+            }),
+            r in 0usize..6,
+            grow: bool,
+        ) {
+            prop_assert_eq!(morph(&m, w, h, r, grow), morph_by_definition(&m, w, h, r, grow));
+        }
     }
 
     #[test]

@@ -167,12 +167,18 @@ pub fn ssim_skimage(a: &Image, b: &Image) -> Result<f64, NetsError> {
 
 /// A host image `[H, W, C]` as a `[1, C, H, W]` tensor.
 pub fn image_tensor(img: &Image, device: &Device) -> Tensor<4> {
-    Tensor::<3>::from_data(
-        TensorData::new(img.data.clone(), [img.height, img.width, img.channels]),
-        device,
-    )
-    .permute([2, 0, 1])
-    .unsqueeze()
+    into_image_tensor(img.clone(), device)
+}
+
+/// [`image_tensor`] of an image the caller gives up: its pixels become the tensor's data
+/// without a copy. A full-resolution training view is 38 MB (1536 × 2048 RGB); a copy that
+/// size is a fresh mapping that the kernel zeroes page by page, for every sample (13 % of the
+/// CPU samples of an offline `paper` bench's last fifth on 2 cores, BENCHMARKS.md).
+pub fn into_image_tensor(img: Image, device: &Device) -> Tensor<4> {
+    let shape = [img.height, img.width, img.channels];
+    Tensor::<3>::from_data(TensorData::new(img.data, shape), device)
+        .permute([2, 0, 1])
+        .unsqueeze()
 }
 
 fn same_shape(a: &Image, b: &Image) -> Result<(), NetsError> {

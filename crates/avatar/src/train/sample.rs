@@ -10,7 +10,7 @@ use crate::model::PoseTensors;
 use crate::model::Setup;
 use f3g_data::imgops::CentredSquare;
 use f3g_data::loader::{Sample, View};
-use f3g_nets::metrics::image_tensor;
+use f3g_nets::metrics::into_image_tensor;
 use f3g_splat::Camera;
 
 /// One camera's view of the sample, on the device.
@@ -25,14 +25,15 @@ pub struct DeviceView {
 }
 
 impl DeviceView {
-    fn upload(view: &View, device: &Device) -> Self {
+    /// Takes the view: its pixels become the image tensor's data without a copy.
+    fn upload(view: View, device: &Device) -> Self {
         let (h, w) = (view.image.height, view.image.width);
         let band: Vec<f32> = view.band.iter().map(|&b| b as u8 as f32).collect();
         Self {
-            camera: view.camera.clone(),
-            image: image_tensor(&view.image, device),
-            band: Tensor::from_data(TensorData::new(band, [1, 1, h, w]), device),
             square: CentredSquare::around_mask(&view.mask, 0),
+            image: into_image_tensor(view.image, device),
+            band: Tensor::from_data(TensorData::new(band, [1, 1, h, w]), device),
+            camera: view.camera,
         }
     }
 }
@@ -77,8 +78,8 @@ impl DeviceSample {
             background: sample.background,
             pose,
             noise,
-            body: DeviceView::upload(&sample.body, device),
-            face: sample.face.as_ref().map(|v| DeviceView::upload(v, device)),
+            body: DeviceView::upload(sample.body, device),
+            face: sample.face.map(|v| DeviceView::upload(v, device)),
         })
     }
 }
