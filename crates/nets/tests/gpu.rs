@@ -499,9 +499,8 @@ fn long_reductions_with_few_outputs_match_the_cpu() {
 
 /// StyleGAN2's element-wise chains and modulated weights as single kernels (`fused`, `Cube`
 /// devices, with or without Burn's `fusion`) against the CPU's single loops, forward and
-/// backward, for the
-/// shapes and paddings the networks use, edge sizes, and an up-sampling of more cubes than one
-/// grid row holds.
+/// backward, for the shapes and paddings the networks use, edge sizes, and an up-sampling of
+/// more cubes than one grid row holds.
 #[test]
 fn the_fused_ops_match_the_cpu() {
     use f3g_nets::fused;
