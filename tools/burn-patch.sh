@@ -67,8 +67,8 @@ for name in $crates; do
         (cd "$work/a" && patch --quiet -p1 --no-backup-if-mismatch) <"$patch_file"
         if ! diff -r "$work/a" "$tree" >"$work/differences"; then
             cat "$work/differences" >&2
-            echo "$tree is not $name ${version[$name]} + $patch_file: change the vendored tree and run" \
-                "tools/burn-patch.sh make $name, or the other way round" >&2
+            echo "$tree is not $name ${version[$name]} + $patch_file: change the vendored tree" \
+                "and run tools/burn-patch.sh make $name, or the other way round" >&2
             exit 1
         fi
         echo "$tree = $name ${version[$name]} + $patch_file"
