@@ -1,6 +1,6 @@
-//! StyleGAN2's element-wise chains and modulated weights, each op choosing its path: one pass
-//! where [`runs`] says it can (one loop on the CPU, one kernel on a GPU), elsewhere the same maths
-//! in Burn's tensor ops ([`portable`]).
+//! StyleGAN2's element-wise chains and modulated weights, and LPIPS's comparison of a tap, each
+//! op choosing its path: one pass where [`runs`] says it can (one loop on the CPU, one kernel on
+//! a GPU), elsewhere the same maths in Burn's tensor ops ([`portable`]).
 //!
 //! Written with Burn's tensor ops, the bias + leaky ReLU of every layer, the ×2 bilinear
 //! up-sampling, the `[1, 3, 3, 1]` blur and the Haar transforms of the output are chains of
@@ -12,7 +12,10 @@
 //! a transpose, a matmul and a broadcast add), an equalised convolution's `weight · scale`
 //! and the noise injection before a styled convolution's activation. The 2 × 2 down-sampling
 //! of the encoder's input pyramid, as Burn's average pooling, compiles a GPU kernel for every
-//! pooling and input size. Here each is one backend op
+//! pooling and input size. A ToRGB's output (its bias and the previous level's output carried
+//! up through three resampling ops) and LPIPS's comparison of a tap (each feature map
+//! normalised over channels, the difference weighted by a 1×1 convolution, the mean) were five
+//! and about fifteen ops forward, twice as many backward. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel (`flex`), and on `Cube` devices (wgpu, CUDA) one kernel
 //! (`cube`, a file per op). Under Burn's `fusion` each op is a lazy operation of the fusion
@@ -165,6 +168,26 @@ pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
     }
 }
 
+/// `x + bias + haar(upsample2(inverse_haar(skip)))`: the output of a Haar-domain ToRGB
+/// ([`crate::layers::ToRgb`]), its `x` (`[B, 4C, H, W]`) plus a bias per sub-band channel (`[4C]`)
+/// plus the previous level's output `skip` (`[B, 4C, H/2, W/2]`) carried up as an image. One op
+/// where it [`runs`] (one kernel each way; `x`'s gradient is the output's, passed on without a
+/// launch), those ops and a broadcast add elsewhere.
+///
+/// Why one op: as three resampling ops and two adds it was five launches forward and six back
+/// per decoder level, on maps of few channels where each launch's fixed cost is its time.
+pub fn to_rgb_output(x: Tensor<4>, bias: Tensor<1>, skip: Tensor<4>) -> Tensor<4> {
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::to_rgb_output(
+            x.into_dispatch(),
+            bias.into_dispatch(),
+            skip.into_dispatch(),
+        ))
+    } else {
+        portable::to_rgb_output(x, bias, skip)
+    }
+}
+
 /// StyleGAN2's modulated convolution weight: each input channel `i` of `weight`
 /// (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then, with `demodulate`, each output
 /// channel divided by its norm `√(Σ w² + 10⁻⁸)`. One op where it [`runs`] (`weight`'s device),
@@ -249,6 +272,33 @@ pub fn scaled_linear(
     }
 }
 
+/// LPIPS's comparison of one tap: per batch item, the mean over pixels of
+/// `Σ_c weight[c] · (x̂_c − ŷ_c)²`, where `x̂ = x / (‖x‖ + 10⁻¹⁰)` is `x` (`[B, C, H, W]`)
+/// unit-normalised over channels at each pixel, as `lpips` 0.1.4 normalises, and `ŷ` the same
+/// of `y` (the shape of `x`); `weight` `[C]` is the tap's linear head, a constant (no gradient
+/// flows to it). `[B]`. One op where it [`runs`] (one pass over `x` and `y` each way),
+/// [`portable::lpips_distance`] elsewhere. Where `x` is zero at a pixel, the tensor ops'
+/// gradient is NaN (their square root has no derivative at zero); the op's is the
+/// normalisation's one-sided derivative there, `u / 10⁻¹⁰` ([`FusedBackend::lpips_distance_grad`]).
+///
+/// Why one op: as Burn's ops the normalisations, the difference, the head as a 1×1 convolution
+/// and the mean were about 15 launches and passes over the features forward and 20 backward per
+/// tap, and the taps of LPIPS VGG are the largest feature maps of a `paper` step after the body
+/// network's.
+pub fn lpips_distance(x: Tensor<4>, y: Tensor<4>, weight: Tensor<1>) -> Tensor<1> {
+    assert_eq!(x.dims(), y.dims(), "LPIPS compares features of one shape");
+    assert_eq!(weight.dims(), [x.dims()[1]], "one head weight per channel");
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::lpips_distance(
+            x.into_dispatch(),
+            y.into_dispatch(),
+            weight.detach().into_dispatch(),
+        ))
+    } else {
+        portable::lpips_distance(x, y, weight.detach())
+    }
+}
+
 /// The fused ops and the backward passes their autodiff nodes call.
 #[backend_extension(
     Autodiff,
@@ -330,6 +380,19 @@ pub trait FusedBackend: Backend {
     #[fusion(dtype = x, shape = Shape::new([x[0], x[1] / 4, 2 * x[2], 2 * x[3]]))]
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
+    /// [`to_rgb_output`]: `x + bias + haar(upsample2(inverse_haar(skip)))`.
+    #[fusion(dtype = x, shape = x)]
+    fn to_rgb_output(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        skip: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+
+    /// The adjoint of [`to_rgb_output`]'s skip path, `haar(upsample2_grad(inverse_haar(grad)))`:
+    /// `[B, 4C, 2H, 2W] → [B, 4C, H, W]`.
+    #[fusion(dtype = grad, shape = scaled(grad, 1, 2))]
+    fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self>;
+
     /// The modulated weight ([`modulate`]): `u = weight · style[i] · scale`, and with
     /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
     #[fusion(dtype = weight, shape = weight)]
@@ -385,6 +448,26 @@ pub trait FusedBackend: Backend {
         grad: FloatTensor<Self>,
         scales: LinearScales,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+
+    /// [`lpips_distance`]: `[B]`.
+    #[fusion(dtype = x, shape = Shape::new([x[0]]))]
+    fn lpips_distance(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+
+    /// The gradient of `x` given the distances' gradient `grad` (`[B]`): with `n = ‖x‖ + 10⁻¹⁰`,
+    /// `u_c = 2 · weight[c] · (x̂_c − ŷ_c) · grad[b] / (H·W)`, it is
+    /// `u_j / n − x_j · Σ_c u_c x_c / (n² ‖x‖)` at each pixel, `u_j / n` where `‖x‖` is zero.
+    /// (`y`'s is the same with the two swapped: the distance is symmetric.)
+    #[fusion(dtype = x, shape = x)]
+    fn lpips_distance_grad(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
 }
 
 /// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
@@ -409,6 +492,10 @@ pub(crate) fn blurred_side(n: usize, before: usize, after: usize) -> usize {
 
 /// The demodulation's `10⁻⁸` under the square root (StyleGAN2's).
 pub const DEMODULATION_EPSILON: f32 = 1e-8;
+
+/// What LPIPS adds to a feature's norm before dividing by it (`lpips` 0.1.4's
+/// `normalize_tensor`).
+pub const LPIPS_EPSILON: f32 = 1e-10;
 
 #[cfg(test)]
 mod tests {
@@ -481,6 +568,135 @@ mod tests {
                     .chain(ours_grad.iter().zip(&theirs_grad))
                 {
                     assert!((a - b).abs() < 1e-5, "{h}×{w}: {a} vs {b}");
+                }
+            }
+        }
+    }
+
+    /// LPIPS's comparison of one tap as one op: its distances and both gradients equal the
+    /// tensor-op formulation's, and its gradient equals central differences of the distance,
+    /// also at a pixel where `x` is zero (where the tensor ops' square root has no derivative).
+    #[test]
+    fn lpips_distance_matches_the_tensor_ops_and_finite_differences() {
+        let device = Device::flex().autodiff();
+        let [b, c, h, w] = [2, 5, 3, 4];
+        let n = b * c * h * w;
+        let ramp = |seed: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| (((i * 7919 + seed * 31) % 97) as f32 / 97.0 - 0.3).max(0.0))
+                .collect()
+        };
+        let (xv, yv) = (ramp(1), ramp(2));
+        let head: Vec<f32> = (0..c).map(|k| 0.1 + 0.05 * k as f32).collect();
+        let weights: Vec<f32> = vec![1.5, -0.75];
+        let tensor =
+            |v: &[f32]| Tensor::<4>::from_data(TensorData::new(v.to_vec(), [b, c, h, w]), &device);
+        let run = |op: &dyn Fn(Tensor<4>, Tensor<4>, Tensor<1>) -> Tensor<1>, xv: &[f32]| {
+            let (x, y) = (tensor(xv).require_grad(), tensor(&yv).require_grad());
+            let head = Tensor::<1>::from_data(TensorData::new(head.clone(), [c]), &device);
+            let weights = Tensor::<1>::from_data(TensorData::new(weights.clone(), [b]), &device);
+            let d = op(x.clone(), y.clone(), head);
+            let grads = (d.clone() * weights).sum().backward();
+            [
+                values(d),
+                values(x.grad(&grads).unwrap()),
+                values(y.grad(&grads).unwrap()),
+            ]
+        };
+        let ours = run(&lpips_distance, &xv);
+        let theirs = run(&portable::lpips_distance, &xv);
+        for (what, (a, e)) in ["distance", "x gradient", "y gradient"]
+            .iter()
+            .zip(ours.iter().zip(&theirs))
+        {
+            let scale = e.iter().fold(0f32, |m, v| m.max(v.abs()));
+            for (a, e) in a.iter().zip(e) {
+                assert!((a - e).abs() <= 1e-5 * scale, "{what}: {a} vs {e}");
+            }
+        }
+        // x zero at one pixel of each batch item: the tensor ops' square root has no
+        // derivative there (NaN); the op gives the normalisation's one-sided derivative there
+        // (finite) and, everywhere else, central differences of the distance.
+        let mut zeroed = xv.clone();
+        for bb in 0..b {
+            for cc in 0..c {
+                zeroed[(bb * c + cc) * h * w + 5] = 0.0;
+            }
+        }
+        let [_, grad, _] = run(&lpips_distance, &zeroed);
+        let loss = |v: &[f32]| {
+            let head = Tensor::<1>::from_data(TensorData::new(head.clone(), [c]), &device);
+            let d = values(lpips_distance(tensor(v), tensor(&yv), head));
+            d.iter()
+                .zip(&weights)
+                .map(|(d, w)| f64::from(d * w))
+                .sum::<f64>()
+        };
+        let step = 1e-3f32;
+        for i in 0..n {
+            assert!(grad[i].is_finite(), "value {i}: {}", grad[i]);
+            if i % (h * w) == 5 {
+                continue;
+            }
+            let (mut plus, mut minus) = (zeroed.clone(), zeroed.clone());
+            plus[i] += step;
+            minus[i] -= step;
+            let numeric = (loss(&plus) - loss(&minus)) / f64::from(2.0 * step);
+            assert!(
+                (f64::from(grad[i]) - numeric).abs() <= 2e-3 * (1.0 + numeric.abs()),
+                "value {i}: analytic {} vs numeric {numeric}",
+                grad[i]
+            );
+        }
+    }
+
+    /// The ToRGB output op equals its composition of Burn's ops (`portable`): output and the
+    /// gradients of `x`, the bias and the skip, from a skip of one pixel (every tap an edge)
+    /// up to one of 4 × 3.
+    #[test]
+    fn to_rgb_output_matches_the_tensor_ops() {
+        let device = Device::flex().autodiff();
+        for [b, c4, h, w] in [[1, 4, 1, 1], [2, 8, 2, 3], [1, 12, 4, 3]] {
+            let ramp = |n: usize, k: usize| -> Vec<f32> {
+                (0..n)
+                    .map(|i| ((i * 7919 + k * 131) % 97) as f32 / 97.0 - 0.5)
+                    .collect()
+            };
+            let big = [b, c4, 2 * h, 2 * w];
+            let run = |op: &dyn Fn(Tensor<4>, Tensor<1>, Tensor<4>) -> Tensor<4>| {
+                let x = Tensor::<4>::from_data(
+                    TensorData::new(ramp(b * c4 * 4 * h * w, 1), big),
+                    &device,
+                )
+                .require_grad();
+                let bias = Tensor::<1>::from_data(TensorData::new(ramp(c4, 2), [c4]), &device)
+                    .require_grad();
+                let skip = Tensor::<4>::from_data(
+                    TensorData::new(ramp(b * c4 * h * w, 3), [b, c4, h, w]),
+                    &device,
+                )
+                .require_grad();
+                let r = Tensor::<4>::from_data(
+                    TensorData::new(ramp(b * c4 * 4 * h * w, 4), big),
+                    &device,
+                );
+                let y = op(x.clone(), bias.clone(), skip.clone());
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(bias.grad(&grads).unwrap()),
+                    values(skip.grad(&grads).unwrap()),
+                ]
+            };
+            let (ours, theirs) = (run(&to_rgb_output), run(&portable::to_rgb_output));
+            for (what, (a, e)) in ["output", "x gradient", "bias gradient", "skip gradient"]
+                .iter()
+                .zip(ours.iter().zip(&theirs))
+            {
+                assert_eq!(a.len(), e.len(), "{what}");
+                for (a, e) in a.iter().zip(e) {
+                    assert!((a - e).abs() < 1e-5, "{b}×{c4}×{h}×{w} {what}: {a} vs {e}");
                 }
             }
         }

@@ -21,8 +21,8 @@ use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, bias_leaky_relu, blur, haar, inverse_haar, modulate, noisy_bias_leaky_relu,
-    scale_weight, scaled_linear, upsample2,
+    LinearScales, bias_leaky_relu, blur, modulate, noisy_bias_leaky_relu, scale_weight,
+    scaled_linear, to_rgb_output, upsample2,
 };
 use crate::init::Init;
 
@@ -304,11 +304,13 @@ impl ToRgb {
     }
 
     pub fn forward(&self, x: Tensor<4>, style: Tensor<2>, skip: Option<Tensor<4>>) -> Tensor<4> {
-        let c = self.bias.dims()[0];
-        let out = self.conv.forward(x, style) + self.bias.val().reshape([1, c, 1, 1]);
+        let out = self.conv.forward(x, style);
         match skip {
-            Some(s) => out + haar(upsample2(inverse_haar(s))),
-            None => out,
+            Some(s) => to_rgb_output(out, self.bias.val(), s),
+            None => {
+                let c = self.bias.dims()[0];
+                out + self.bias.val().reshape([1, c, 1, 1])
+            }
         }
     }
 }

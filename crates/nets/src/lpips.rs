@@ -1,7 +1,8 @@
 //! LPIPS v0.1 (Zhang et al. 2018) with the AlexNet or VGG16 backbone, differentiable.
 //!
 //! `d(x, y) = Σ_l mean_hw( w_l · (φ̂_l(x) − φ̂_l(y))² )` where `φ̂_l` are the backbone's ReLU
-//! features at five taps, unit-normalised over channels, and `w_l` the learned linear heads.
+//! features at five taps, unit-normalised over channels, and `w_l` the learned linear heads;
+//! each tap's term is one op ([`crate::fused::lpips_distance`]).
 //! Inputs are images in `[0, 1]` (`[B, 3, H, W]`); inside they are mapped to `[-1, 1]` and
 //! through the scaling layer `(x − shift) / scale`, as the reference does with
 //! `normalize=True`.
@@ -21,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
 use crate::conv::conv2d;
-use crate::fused::bias_leaky_relu;
+use crate::fused::{bias_leaky_relu, lpips_distance};
 
 /// The AlexNet LPIPS weights, compiled in so the demo and the tests work offline.
 const ALEX_WEIGHTS: &[u8] = include_bytes!("../../../assets/lpips/alex.safetensors");
@@ -136,7 +137,8 @@ pub fn weights_file(net: LpipsNet) -> String {
 pub struct Lpips {
     net: LpipsNet,
     convs: Vec<(Tensor<4>, Tensor<1>)>,
-    heads: Vec<Tensor<4>>,
+    /// Each tap's linear head, a weight per channel.
+    heads: Vec<Tensor<1>>,
 }
 
 impl Lpips {
@@ -219,9 +221,8 @@ impl Lpips {
             .filter(|s| s.tap)
             .enumerate()
             .map(|(k, s)| {
-                let shape = [1, s.out, 1, 1];
-                let w = tensor(&format!("lin.{k}.weight"), &shape)?;
-                Ok(Tensor::from_data(TensorData::new(w, shape), device))
+                let w = tensor(&format!("lin.{k}.weight"), &[1, s.out, 1, 1])?;
+                Ok(Tensor::from_data(TensorData::new(w, [s.out]), device))
             })
             .collect::<Result<Vec<_>, NetsError>>()?;
         Ok(Self { net, convs, heads })
@@ -238,7 +239,7 @@ impl Lpips {
         self.net
     }
 
-    /// Unit-normalised features at the five taps.
+    /// The ReLU features at the five taps (normalised by [`lpips_distance`]).
     fn features(&self, x: Tensor<4>) -> Vec<Tensor<4>> {
         let device = x.device();
         let shift = Tensor::<1>::from_data(TensorData::new(SHIFT.to_vec(), [3]), &device);
@@ -253,8 +254,7 @@ impl Lpips {
             // The bias and the ReLU in one pass.
             x = bias_leaky_relu(conv2d(x, w.clone(), None, options), b.clone(), 0.0, 1.0);
             if s.tap {
-                let norm = x.clone().powf_scalar(2.0).sum_dim(1).sqrt() + 1e-10;
-                taps.push(x.clone() / norm);
+                taps.push(x.clone());
             }
         }
         taps
@@ -278,23 +278,11 @@ impl Lpips {
                 self.net, da[3], da[2]
             )));
         }
-        let batch = da[0];
         let fa = self.features(a);
         let fb = self.features(b);
         let mut total: Option<Tensor<1>> = None;
         for ((x, y), head) in fa.into_iter().zip(fb).zip(&self.heads) {
-            let d = (x - y).powf_scalar(2.0);
-            let weighted = conv2d(
-                d,
-                head.clone(),
-                None,
-                ConvOptions::new([1, 1], [0, 0], [1, 1], 1),
-            );
-            let [_, _, h, w] = weighted.dims();
-            let term = weighted
-                .reshape([batch, h * w])
-                .mean_dim(1)
-                .reshape([batch]);
+            let term = lpips_distance(x, y, head.clone());
             total = Some(match total {
                 Some(t) => t + term,
                 None => term,

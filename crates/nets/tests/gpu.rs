@@ -822,6 +822,112 @@ fn the_fused_ops_match_the_cpu() {
         let bands = [shape[0], 4 * shape[1], shape[2] / 2, shape[3] / 2];
         compare(&fused::inverse_haar, bands, "inverse_haar");
     }
+    // A ToRGB's output: x, the previous level's bands carried up and a bias, the gradients of
+    // all three; x (and the output gradient) and the skip in every pairing of layouts, from a
+    // skip of one pixel (every up-sampling tap an edge) to one of 8 × 6.
+    for [b, c4, h, w] in [[1, 4, 1, 1], [2, 12, 3, 2], [1, 8, 8, 6]] {
+        for (x_last, skip_last) in LAYOUTS {
+            let big = [b, c4, 2 * h, 2 * w];
+            let run = |device: &Device| {
+                let x = laid_out(big, device, x_last).require_grad();
+                let skip = (laid_out([b, c4, h, w], device, skip_last) * 3.0).require_grad();
+                let v = (0..c4).map(|c| 0.2 - 0.07 * c as f32).collect();
+                let bias = Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [c4]), device)
+                    .require_grad();
+                let y = fused::to_rgb_output(x.clone(), bias.clone(), skip.clone());
+                let r = (laid_out(big, device, x_last) * 37.0).sin();
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(bias.grad(&grads).unwrap()),
+                    values(skip.grad(&grads).unwrap()),
+                ]
+            };
+            let (got, expected) = (run(&gpu), run(&cpu));
+            for (what, (g, e)) in ["output", "dx", "bias gradient", "skip gradient"]
+                .iter()
+                .zip(got.iter().zip(&expected))
+            {
+                let what = format!(
+                    "to_rgb_output {big:?}, channels-last x {x_last}, skip {skip_last}: {what}"
+                );
+                assert_close(g, e, 1e-5, &what);
+            }
+        }
+    }
+}
+
+/// LPIPS's comparison of one tap (`fused::lpips_distance`): distances and both maps'
+/// gradients, each map row-major or channels-last (as the VGG's ReLUs leave them on a GPU), a
+/// batch of two with one pixel of `x` zero in each item (where the op's gradient is its
+/// one-sided derivative), at AlexNet's narrowest tap and a VGG-like width.
+#[test]
+fn the_lpips_comparison_matches_the_cpu() {
+    use f3g_nets::fused;
+    fn laid_out(shape: [usize; 4], device: &Device, channels_last: bool, flip: bool) -> Tensor<4> {
+        let [b, c, h, w] = shape;
+        let mut t = if channels_last {
+            ramp([b, h, w, c], device).permute([0, 3, 1, 2])
+        } else {
+            ramp(shape, device)
+        };
+        if flip {
+            t = t.flip([1]);
+        }
+        // ReLU features, and pixel (0, 0) of x zero in every channel.
+        let t = burn::tensor::activation::relu(t + 0.2);
+        if flip {
+            t
+        } else {
+            t.slice_fill([0..b, 0..c, 0..1, 0..1], 0.0)
+        }
+    }
+    let (gpu, cpu) = (test_device().autodiff(), Device::flex().autodiff());
+    for shape in [[2, 64, 9, 7], [2, 256, 4, 4]] {
+        let c = shape[1];
+        for (x_last, y_last) in [(false, false), (true, true), (true, false), (false, true)] {
+            let run = |device: &Device| {
+                let x = laid_out(shape, device, x_last, false).require_grad();
+                let y = laid_out(shape, device, y_last, true).require_grad();
+                let head: Vec<f32> = (0..c).map(|k| 0.01 + 0.3 * ((k * 13) % 7) as f32).collect();
+                let head = Tensor::<1>::from_data(burn::tensor::TensorData::new(head, [c]), device);
+                let d = fused::lpips_distance(x.clone(), y.clone(), head);
+                let weights = Tensor::<1>::from_data(
+                    burn::tensor::TensorData::new(vec![1.0f32, -2.0], [2]),
+                    device,
+                );
+                let grads = (d.clone() * weights).sum().backward();
+                [
+                    values(d),
+                    values(x.grad(&grads).unwrap()),
+                    values(y.grad(&grads).unwrap()),
+                ]
+            };
+            let (got, expected) = (run(&gpu), run(&cpu));
+            let plane = shape[2] * shape[3];
+            // x's zero pixels apart: their gradient is ~10¹⁰ times the others'.
+            let part = |v: &[f32], zero: bool| -> Vec<f32> {
+                v.iter()
+                    .enumerate()
+                    .filter(|(i, _)| (i % plane == 0) == zero)
+                    .map(|(_, &v)| v)
+                    .collect()
+            };
+            let layouts = format!("{shape:?}, channels-last x {x_last}, y {y_last}");
+            assert_close(&got[0], &expected[0], 1e-5, &format!("{layouts}: distance"));
+            for zero in [false, true] {
+                let what = format!("{layouts}: x gradient (zero pixel {zero})");
+                assert_close(&part(&got[1], zero), &part(&expected[1], zero), 1e-5, &what);
+            }
+            assert_close(
+                &got[2],
+                &expected[2],
+                1e-5,
+                &format!("{layouts}: y gradient"),
+            );
+        }
+    }
 }
 
 /// A gradient through a channels-last view of one channel: `x` `[1, 1, 1, 1]` repeated to

@@ -168,6 +168,32 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for HaarBackward {
 }
 
 #[derive(Debug)]
+struct ToRgbOutputBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 3> for ToRgbOutputBackward {
+    type State = ();
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 3>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let [x_node, bias_node, skip_node] = ops.parents;
+        if let Some(node) = skip_node {
+            grads.register::<B>(node.id, B::to_rgb_skip_grad(grad.clone()));
+        }
+        if let Some(node) = bias_node {
+            grads.register::<B>(node.id, B::channel_sum(grad.clone()));
+        }
+        if let Some(node) = x_node {
+            grads.register::<B>(node.id, grad);
+        }
+    }
+}
+
+#[derive(Debug)]
 struct ModulateBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
@@ -235,6 +261,32 @@ impl<B: Backend + FusedBackend> Backward<B, 3> for LinearBackward {
             if let Some(node) = node {
                 grads.register::<B>(node.id, d);
             }
+        }
+    }
+}
+
+#[derive(Debug)]
+struct LpipsDistanceBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for LpipsDistanceBackward {
+    /// The two feature maps and the head's weights (a constant).
+    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, y, weight) = ops.state;
+        let [x_node, y_node] = ops.parents;
+        if let Some(node) = y_node {
+            let d_y = B::lpips_distance_grad(y.clone(), x.clone(), weight.clone(), grad.clone());
+            grads.register::<B>(node.id, d_y);
+        }
+        if let Some(node) = x_node {
+            grads.register::<B>(node.id, B::lpips_distance_grad(x, y, weight, grad));
         }
     }
 }
@@ -365,6 +417,27 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             .compute_bound()
             .stateless(B::inverse_haar(x.into_primitive()))
     }
+
+    fn to_rgb_output(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        skip: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), bias.node(), skip.node()];
+        ToRgbOutputBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::to_rgb_output(
+                x.into_primitive(),
+                bias.into_primitive(),
+                skip.into_primitive(),
+            ))
+    }
+
+    fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::to_rgb_skip_grad(grad.into_primitive()))
+    }
+
     fn modulate(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,
@@ -459,5 +532,41 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             Autodiff::<B, C>::from_inner(d_weight),
             Autodiff::<B, C>::from_inner(d_bias),
         )
+    }
+
+    fn lpips_distance(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let nodes = [x.node(), y.node()];
+        let (x, y, weight) = (
+            x.into_primitive(),
+            y.into_primitive(),
+            weight.into_primitive(),
+        );
+        let out = B::lpips_distance(x.clone(), y.clone(), weight.clone());
+        match LpipsDistanceBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((x, y, weight), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn lpips_distance_grad(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::lpips_distance_grad(
+            x.into_primitive(),
+            y.into_primitive(),
+            weight.into_primitive(),
+            grad.into_primitive(),
+        ))
     }
 }

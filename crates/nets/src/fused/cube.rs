@@ -32,9 +32,11 @@ mod blur;
 mod downsample;
 mod haar;
 mod linear;
+mod lpips;
 mod modulate;
 mod position;
 mod sum;
+mod to_rgb;
 mod upsample;
 
 fn dims(t: &FloatTensor<CubeBackend>) -> [usize; 4] {
@@ -128,6 +130,18 @@ impl FusedBackend for CubeBackend {
         haar::inverse_haar(x)
     }
 
+    fn to_rgb_output(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        skip: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        to_rgb::to_rgb_output(x, bias, skip)
+    }
+
+    fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        to_rgb::to_rgb_skip_grad(grad)
+    }
+
     fn modulate(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,
@@ -172,5 +186,22 @@ impl FusedBackend for CubeBackend {
         scales: LinearScales,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
         linear::scaled_linear_grad(x, weight, output, grad, scales)
+    }
+
+    fn lpips_distance(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        lpips::lpips_distance(x, y, weight)
+    }
+
+    fn lpips_distance_grad(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        lpips::lpips_distance_grad(x, y, weight, grad)
     }
 }

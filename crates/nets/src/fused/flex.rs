@@ -7,7 +7,7 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
-use super::{DEMODULATION_EPSILON, FusedBackend, LinearScales, blurred_side};
+use super::{DEMODULATION_EPSILON, FusedBackend, LPIPS_EPSILON, LinearScales, blurred_side};
 use crate::host::{from_values, host_f32};
 
 /// The blur's taps.
@@ -288,6 +288,39 @@ impl FusedBackend for Flex {
         from_values(out, vec![batch, channels4 / 4, 2 * h, 2 * w])
     }
 
+    fn to_rgb_output(
+        x: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        skip: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&x);
+        let plane = shape[2] * shape[3];
+        let carried = Self::haar(Self::upsample2(Self::inverse_haar(skip)));
+        assert_eq!(
+            dims(&carried),
+            shape,
+            "the skip carried up is the size of x"
+        );
+        let (bias, channels) = (host_f32(&bias), shape[1]);
+        assert_eq!(bias.len(), channels, "one bias per sub-band channel");
+        let x = host_f32(&x);
+        let mut out = host_f32(&carried).into_owned();
+        out.par_chunks_mut(plane.max(1))
+            .zip(x.par_chunks(plane.max(1)))
+            .enumerate()
+            .for_each(|(index, (out, x))| {
+                let b = bias[index % channels];
+                for (o, &x) in out.iter_mut().zip(x) {
+                    *o += x + b;
+                }
+            });
+        from_values(out, shape.to_vec())
+    }
+
+    fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::haar(Self::upsample2_grad(Self::inverse_haar(grad)))
+    }
+
     fn modulate(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,
@@ -445,6 +478,167 @@ impl FusedBackend for Flex {
             from_values(d_weight, vec![outputs, inputs]),
             from_values(d_bias, vec![outputs]),
         )
+    }
+
+    fn lpips_distance(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let features = LpipsFeatures::new(&x, &y, &weight);
+        let plane = features.plane;
+        let distances = (0..features.batch)
+            .map(|b| {
+                let sum: f64 = (0..plane.div_ceil(PIXEL_BLOCK))
+                    .into_par_iter()
+                    .map(|block| {
+                        let pixels = block * PIXEL_BLOCK..((block + 1) * PIXEL_BLOCK).min(plane);
+                        let norms = features.norms(b, pixels.clone());
+                        let mut d = vec![0.0f32; pixels.len()];
+                        for c in 0..features.channels {
+                            let (xc, yc) = features.channel(b, c, pixels.clone());
+                            for (((d, &x), &y), n) in d.iter_mut().zip(xc).zip(yc).zip(&norms) {
+                                let diff = x * n.inv_x - y * n.inv_y;
+                                *d += features.weight[c] * diff * diff;
+                            }
+                        }
+                        d.iter().map(|&v| f64::from(v)).sum::<f64>()
+                    })
+                    .sum();
+                (sum / plane as f64) as f32
+            })
+            .collect();
+        from_values(distances, vec![features.batch])
+    }
+
+    fn lpips_distance_grad(
+        x: FloatTensor<Self>,
+        y: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let shape = dims(&x);
+        let features = LpipsFeatures::new(&x, &y, &weight);
+        let (plane, channels) = (features.plane, features.channels);
+        let grad = host_f32(&grad);
+        assert_eq!(grad.len(), features.batch, "one gradient per distance");
+        let mut dx = vec![0.0f32; features.x.len()];
+        for (b, dx) in dx.chunks_mut((channels * plane).max(1)).enumerate() {
+            let scale = grad[b] / plane as f32;
+            // Per pixel, the norms' inverses and `k = Σ_c u_c x_c / (n² ‖x‖)`.
+            let pixels: Vec<(PixelNorms, f32)> = (0..plane.div_ceil(PIXEL_BLOCK))
+                .into_par_iter()
+                .flat_map_iter(|block| {
+                    let pixels = block * PIXEL_BLOCK..((block + 1) * PIXEL_BLOCK).min(plane);
+                    let norms = features.norms(b, pixels.clone());
+                    let mut dot = vec![0.0f32; pixels.len()];
+                    for c in 0..channels {
+                        let (xc, yc) = features.channel(b, c, pixels.clone());
+                        let w2 = 2.0 * features.weight[c] * scale;
+                        for (((dot, &x), &y), n) in dot.iter_mut().zip(xc).zip(yc).zip(&norms) {
+                            *dot += w2 * (x * n.inv_x - y * n.inv_y) * x;
+                        }
+                    }
+                    norms.into_iter().zip(dot).map(|(n, dot)| {
+                        let k = if n.norm_x > 0.0 {
+                            dot * n.inv_x * n.inv_x / n.norm_x
+                        } else {
+                            0.0
+                        };
+                        (n, k)
+                    })
+                })
+                .collect();
+            dx.par_chunks_mut(plane.max(1))
+                .enumerate()
+                .for_each(|(c, dx)| {
+                    let (xc, yc) = features.channel(b, c, 0..plane);
+                    let w2 = 2.0 * features.weight[c] * scale;
+                    for (((dx, &x), &y), (n, k)) in dx.iter_mut().zip(xc).zip(yc).zip(&pixels) {
+                        let u = w2 * (x * n.inv_x - y * n.inv_y);
+                        *dx = u * n.inv_x - x * k;
+                    }
+                });
+        }
+        from_values(dx, shape.to_vec())
+    }
+}
+
+/// Pixels per task of the LPIPS comparison: each task walks the channels over its block.
+const PIXEL_BLOCK: usize = 1024;
+
+/// The inputs of [`FusedBackend::lpips_distance`] as host values, row-major `[B, C, H·W]`.
+struct LpipsFeatures<'a> {
+    x: std::borrow::Cow<'a, [f32]>,
+    y: std::borrow::Cow<'a, [f32]>,
+    weight: std::borrow::Cow<'a, [f32]>,
+    batch: usize,
+    channels: usize,
+    plane: usize,
+}
+
+/// One pixel's feature norms over channels: `‖x‖` and the inverses of `‖x‖ + ε`, `‖y‖ + ε`.
+struct PixelNorms {
+    norm_x: f32,
+    inv_x: f32,
+    inv_y: f32,
+}
+
+impl<'a> LpipsFeatures<'a> {
+    fn new(
+        x: &'a FloatTensor<Flex>,
+        y: &'a FloatTensor<Flex>,
+        weight: &'a FloatTensor<Flex>,
+    ) -> Self {
+        let [batch, channels, h, w] = dims(x);
+        assert_eq!(
+            dims(y),
+            [batch, channels, h, w],
+            "LPIPS compares features of one shape"
+        );
+        let weight = host_f32(weight);
+        assert_eq!(weight.len(), channels, "one head weight per channel");
+        Self {
+            x: host_f32(x),
+            y: host_f32(y),
+            weight,
+            batch,
+            channels,
+            plane: h * w,
+        }
+    }
+
+    /// Channel `c` of batch item `b` over `pixels`, of `x` and of `y`.
+    fn channel(&self, b: usize, c: usize, pixels: std::ops::Range<usize>) -> (&[f32], &[f32]) {
+        let start = (b * self.channels + c) * self.plane;
+        (
+            &self.x[start + pixels.start..start + pixels.end],
+            &self.y[start + pixels.start..start + pixels.end],
+        )
+    }
+
+    /// The norms over channels at each of `pixels` of batch item `b`, summed channel by
+    /// channel in f32 (as the GPU kernel sums them).
+    fn norms(&self, b: usize, pixels: std::ops::Range<usize>) -> Vec<PixelNorms> {
+        let (mut sx, mut sy) = (vec![0.0f32; pixels.len()], vec![0.0f32; pixels.len()]);
+        for c in 0..self.channels {
+            let (xc, yc) = self.channel(b, c, pixels.clone());
+            for (((sx, sy), &x), &y) in sx.iter_mut().zip(sy.iter_mut()).zip(xc).zip(yc) {
+                *sx += x * x;
+                *sy += y * y;
+            }
+        }
+        sx.into_iter()
+            .zip(sy)
+            .map(|(sx, sy)| {
+                let norm_x = sx.sqrt();
+                PixelNorms {
+                    norm_x,
+                    inv_x: 1.0 / (norm_x + LPIPS_EPSILON),
+                    inv_y: 1.0 / (sy.sqrt() + LPIPS_EPSILON),
+                }
+            })
+            .collect()
     }
 }
 

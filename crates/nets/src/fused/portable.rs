@@ -7,7 +7,7 @@ use burn::tensor::activation::{leaky_relu, relu};
 use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 
-use super::{DEMODULATION_EPSILON, LinearScales};
+use super::{DEMODULATION_EPSILON, LPIPS_EPSILON, LinearScales};
 
 /// `gain · leaky_relu(x + bias, slope)` with a per-channel bias; with slope 0 Burn's `relu`,
 /// whose backward selects (a non-finite gradient where the output is zero does not pass;
@@ -166,4 +166,27 @@ pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
     let top = row(p, q).reshape([b, c, h, 1, w, 2]);
     let bottom = row(r, s).reshape([b, c, h, 1, w, 2]);
     Tensor::cat(vec![top, bottom], 3).reshape([b, c, 2 * h, 2 * w])
+}
+
+/// LPIPS's comparison of one tap ([`crate::fused::lpips_distance`]): each feature map divided
+/// by its norm over channels plus 10⁻¹⁰, the squared difference weighted per channel by the
+/// head and summed over channels, the mean over pixels. `[B]`.
+pub fn lpips_distance(x: Tensor<4>, y: Tensor<4>, weight: Tensor<1>) -> Tensor<1> {
+    let [batch, channels, h, w] = x.dims();
+    let unit = |f: Tensor<4>| {
+        let norm = f.clone().powf_scalar(2.0).sum_dim(1).sqrt() + LPIPS_EPSILON;
+        f / norm
+    };
+    let weighted = (unit(x) - unit(y)).powf_scalar(2.0) * weight.reshape([1, channels, 1, 1]);
+    weighted
+        .sum_dim(1)
+        .reshape([batch, h * w])
+        .mean_dim(1)
+        .reshape([batch])
+}
+
+/// `x + bias + haar(upsample2(inverse_haar(skip)))` ([`crate::fused::to_rgb_output`]).
+pub fn to_rgb_output(x: Tensor<4>, bias: Tensor<1>, skip: Tensor<4>) -> Tensor<4> {
+    let channels = bias.dims()[0];
+    x + bias.reshape([1, channels, 1, 1]) + haar(upsample2(inverse_haar(skip)))
 }

@@ -10,23 +10,9 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    use crate::fused::cube::position::{offset, position};
-
-    /// The sample `2i ∓ 1`'s neighbour along an axis of `n` samples: output `o` of the ×2
-    /// up-sampling blends sample `o / 2` (¾) with this one (¼), the edge repeated.
-    #[cube]
-    fn upsample_neighbour(o: u32, n: u32) -> u32 {
-        let i = o / 2;
-        let mut neighbour = i;
-        if o % 2 == 1 {
-            if i + 1 < n {
-                neighbour = i + 1;
-            }
-        } else if i > 0 {
-            neighbour = i - 1;
-        }
-        neighbour
-    }
+    use crate::fused::cube::position::{
+        offset, position, upsample_adjoint_weight, upsample_neighbour,
+    };
 
     /// `out` (`[B, C, 2h, 2w]`) from `x` (`[B, C, h, w]`), both in one layout: bilinear along
     /// the row, then along the column.
@@ -52,32 +38,6 @@ mod kernels {
         let far = 0.75 * x[offset(b, c, y1, x0, channels, h, w, channels_last)]
             + 0.25 * x[offset(b, c, y1, x1, channels, h, w, channels_last)];
         out[i] = 0.75 * near + 0.25 * far;
-    }
-
-    /// The weight with which output `2i + tap − 1` of the ×2 up-sampling (along an axis of `n`
-    /// samples) reads sample `i`: ¼ from the odd output before and the even one after, ¾ from
-    /// its own two, the edge outputs reading their edge sample twice.
-    #[cube]
-    fn upsample_adjoint_weight(i: u32, n: u32, tap: u32) -> f32 {
-        let mut weight = 0.0f32;
-        if tap == 0 {
-            if i > 0 {
-                weight = 0.25;
-            }
-        } else if tap == 1 {
-            weight = 0.75;
-            if i == 0 {
-                weight = 1.0;
-            }
-        } else if tap == 2 {
-            weight = 0.75;
-            if i + 1 == n {
-                weight = 1.0;
-            }
-        } else if i + 1 < n {
-            weight = 0.25;
-        }
-        weight
     }
 
     /// `dx` (`[B, C, h, w]`), the adjoint of [`upsample2`]: the weighted sum of the up to 4 × 4

@@ -1,0 +1,259 @@
+//! The tail of a Haar-domain ToRGB, `x + bias + haar(upsample2(inverse_haar(skip)))`, one
+//! thread per output value, and the skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`,
+//! one thread per value of the skip's gradient: each value gathers the few it depends on
+//! through the three maps (the composition of `haar.rs`'s and `upsample.rs`'s kernels, the same
+//! arithmetic), instead of three launches and two intermediate maps each way.
+
+use burn::backend::TensorMetadata;
+use burn::backend::tensor::FloatTensor;
+use burn_cubecl::CubeBackend;
+use burn_cubecl::kernel::into_contiguous;
+
+use super::{dims, one_thread_per_output, u32_of};
+use crate::cube_layout::{empty_in_layout, readable};
+
+mod kernels {
+    use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::prelude::*;
+
+    use crate::fused::cube::position::{
+        offset, position, upsample_adjoint_weight, upsample_neighbour,
+    };
+
+    /// The sign of sub-band `band` ∈ (LL, LH, HL, HH) at a 2 × 2 block's right column: HL and
+    /// HH negate it.
+    #[cube]
+    fn right_sign(band: u32) -> f32 {
+        let mut sign = 1.0f32;
+        if band >= 2 {
+            sign = -1.0f32;
+        }
+        sign
+    }
+
+    /// The sign of sub-band `band` at a 2 × 2 block's bottom row: LH and HH negate it.
+    #[cube]
+    fn bottom_sign(band: u32) -> f32 {
+        let mut sign = 1.0f32;
+        if band % 2 == 1 {
+            sign = -1.0f32;
+        }
+        sign
+    }
+
+    /// Pixel `(i, j)` of channel `c` of `inverse_haar(bands)`, `bands` `[B, 4C, h, w]`.
+    #[allow(clippy::too_many_arguments)]
+    #[cube]
+    fn synthesised(
+        bands: &Tensor<f32>,
+        b: u32,
+        c: u32,
+        i: u32,
+        j: u32,
+        h: u32,
+        w: u32,
+        c4: u32,
+        #[comptime] last: bool,
+    ) -> f32 {
+        let (y, x, first) = (i / 2, j / 2, 4 * c);
+        let ll = bands[offset(b, first, y, x, c4, h, w, last)];
+        let lh = bands[offset(b, first + 1, y, x, c4, h, w, last)];
+        let hl = bands[offset(b, first + 2, y, x, c4, h, w, last)];
+        let hh = bands[offset(b, first + 3, y, x, c4, h, w, last)];
+        let mut sign_b = 1.0f32;
+        if i % 2 == 1 {
+            sign_b = -1.0f32;
+        }
+        let mut sign_c = 1.0f32;
+        if j % 2 == 1 {
+            sign_c = -1.0f32;
+        }
+        0.5f32 * (ll + sign_b * lh + sign_c * hl + sign_b * sign_c * hh)
+    }
+
+    /// Pixel `(r, s)` of channel `c` of `upsample2(inverse_haar(skip))` (`4h × 4w`), `skip`
+    /// `[B, 4C, h, w]`.
+    #[allow(clippy::too_many_arguments)]
+    #[cube]
+    fn upsampled(
+        skip: &Tensor<f32>,
+        b: u32,
+        c: u32,
+        r: u32,
+        s: u32,
+        h: u32,
+        w: u32,
+        c4: u32,
+        #[comptime] last: bool,
+    ) -> f32 {
+        let (r0, r1) = (r / 2, upsample_neighbour(r, 2 * h));
+        let (s0, s1) = (s / 2, upsample_neighbour(s, 2 * w));
+        let near = 0.75f32 * synthesised(skip, b, c, r0, s0, h, w, c4, last)
+            + 0.25f32 * synthesised(skip, b, c, r0, s1, h, w, c4, last);
+        let far = 0.75f32 * synthesised(skip, b, c, r1, s0, h, w, c4, last)
+            + 0.25f32 * synthesised(skip, b, c, r1, s1, h, w, c4, last);
+        0.75f32 * near + 0.25f32 * far
+    }
+
+    /// `out = x + bias[channel] + haar(upsample2(inverse_haar(skip)))`: `x` and `out`
+    /// `[B, 4C, 2h, 2w]` in one layout, `skip` `[B, 4C, h, w]` in its own.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn to_rgb_output(
+        x: &Tensor<f32>,
+        bias: &Tensor<f32>,
+        skip: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        c4: u32,
+        h: u32,
+        w: u32,
+        #[comptime] x_last: bool,
+        #[comptime] skip_last: bool,
+    ) {
+        let o = ABSOLUTE_POS;
+        if o >= out.len() {
+            terminate!();
+        }
+        let at = position(o as u32, c4, 2 * h, 2 * w, x_last);
+        let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
+        let (r, s) = (2 * at.y, 2 * at.x);
+        let p = upsampled(skip, b, c, r, s, h, w, c4, skip_last);
+        let q = upsampled(skip, b, c, r, s + 1, h, w, c4, skip_last);
+        let rr = upsampled(skip, b, c, r + 1, s, h, w, c4, skip_last);
+        let ss = upsampled(skip, b, c, r + 1, s + 1, h, w, c4, skip_last);
+        let (sign_q, sign_r) = (right_sign(band), bottom_sign(band));
+        let band_value = 0.5f32 * (p + sign_q * q + sign_r * rr + sign_q * sign_r * ss);
+        out[o] = x[o] + bias[at.channel as usize] + band_value;
+    }
+
+    /// Pixel `(i, j)` (of `2h × 2w`) of channel `c` of `upsample2_grad(inverse_haar(grad))`,
+    /// `grad` `[B, 4C, 2h, 2w]`: the weighted sum of the up to 4 × 4 pixels of the `4h × 4w`
+    /// synthesis that read it.
+    #[allow(clippy::too_many_arguments)]
+    #[cube]
+    fn upsampled_adjoint(
+        grad: &Tensor<f32>,
+        b: u32,
+        c: u32,
+        i: u32,
+        j: u32,
+        h: u32,
+        w: u32,
+        c4: u32,
+        #[comptime] last: bool,
+    ) -> f32 {
+        let mut sum = 0.0f32;
+        for ty in 0..4u32 {
+            let wy = upsample_adjoint_weight(i, 2 * h, ty);
+            if wy != 0.0 {
+                let oy = 2 * i + ty - 1;
+                let mut along = 0.0f32;
+                for tx in 0..4u32 {
+                    let wx = upsample_adjoint_weight(j, 2 * w, tx);
+                    if wx != 0.0 {
+                        let ox = 2 * j + tx - 1;
+                        along += wx * synthesised(grad, b, c, oy, ox, 2 * h, 2 * w, c4, last);
+                    }
+                }
+                sum += wy * along;
+            }
+        }
+        sum
+    }
+
+    /// `dskip = haar(upsample2_grad(inverse_haar(grad)))`, `[B, 4C, h, w]` in `grad`'s layout:
+    /// the adjoint of [`to_rgb_output`]'s skip path (Haar analysis and synthesis are each
+    /// other's adjoints).
+    #[cube(launch)]
+    pub fn to_rgb_skip_grad(
+        grad: &Tensor<f32>,
+        dskip: &mut Tensor<f32>,
+        c4: u32,
+        h: u32,
+        w: u32,
+        #[comptime] last: bool,
+    ) {
+        let o = ABSOLUTE_POS;
+        if o >= dskip.len() {
+            terminate!();
+        }
+        let at = position(o as u32, c4, h, w, last);
+        let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
+        let (i, j) = (2 * at.y, 2 * at.x);
+        let p = upsampled_adjoint(grad, b, c, i, j, h, w, c4, last);
+        let q = upsampled_adjoint(grad, b, c, i, j + 1, h, w, c4, last);
+        let r = upsampled_adjoint(grad, b, c, i + 1, j, h, w, c4, last);
+        let s = upsampled_adjoint(grad, b, c, i + 1, j + 1, h, w, c4, last);
+        let (sign_q, sign_r) = (right_sign(band), bottom_sign(band));
+        dskip[o] = 0.5f32 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
+    }
+}
+
+/// One kernel, in `x`'s layout.
+pub(super) fn to_rgb_output(
+    x: FloatTensor<CubeBackend>,
+    bias: FloatTensor<CubeBackend>,
+    skip: FloatTensor<CubeBackend>,
+) -> FloatTensor<CubeBackend> {
+    let shape = dims(&x);
+    let [batch, c4, height, width] = shape;
+    let [_, _, h, w] = dims(&skip);
+    assert_eq!(
+        dims(&skip),
+        [batch, c4, height / 2, width / 2],
+        "the skip is at half the size, in as many sub-bands"
+    );
+    assert!(
+        c4 % 4 == 0 && height == 2 * h && width == 2 * w,
+        "four sub-bands per channel, even sizes"
+    );
+    assert_eq!(
+        bias.shape().dims::<1>(),
+        [c4],
+        "one bias per sub-band channel"
+    );
+    let bias = into_contiguous(bias);
+    let ((x, x_last), (skip, skip_last)) = (readable(x), readable(skip));
+    let out = empty_in_layout(&x, shape, x_last);
+    one_thread_per_output(out, &x, |cubes, cube, out| {
+        kernels::to_rgb_output::launch(
+            &x.client,
+            cubes,
+            cube,
+            x.clone().into_tensor_arg(),
+            bias.into_tensor_arg(),
+            skip.into_tensor_arg(),
+            out.into_tensor_arg(),
+            u32_of(c4),
+            u32_of(h),
+            u32_of(w),
+            x_last,
+            skip_last,
+        )
+    })
+}
+
+/// One kernel, in `grad`'s layout.
+pub(super) fn to_rgb_skip_grad(grad: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [batch, c4, height, width] = dims(&grad);
+    assert!(
+        c4 % 4 == 0 && height % 2 == 0 && width % 2 == 0,
+        "four sub-bands per channel, even sizes"
+    );
+    let (h, w) = (height / 2, width / 2);
+    let (grad, last) = readable(grad);
+    let dskip = empty_in_layout(&grad, [batch, c4, h, w], last);
+    one_thread_per_output(dskip, &grad, |cubes, cube, dskip| {
+        kernels::to_rgb_skip_grad::launch(
+            &grad.client,
+            cubes,
+            cube,
+            grad.clone().into_tensor_arg(),
+            dskip.into_tensor_arg(),
+            u32_of(c4),
+            u32_of(h),
+            u32_of(w),
+            last,
+        )
+    })
+}
