@@ -1,5 +1,6 @@
 //! Bias + leaky ReLU (StyleGAN2's activation; LPIPS's bias + ReLU with slope 0): the forward and
-//! the input gradient one kernel each, the bias gradient Burn's reductions.
+//! the input gradient one kernel each, the bias gradient Burn's reductions, the noise strength's
+//! a kernel of partial sums and Burn's reduction of them.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
@@ -10,11 +11,14 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 
 use super::{dims, one_thread_per_output, u32_of};
+use crate::cube_grid::{UNITS, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, readable};
 
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
+
+    use super::super::sum::{cube_index, cube_sum};
 
     /// `out = gain · (x + bias[c])`, times `slope` where that is not positive; `c` is the
     /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
@@ -73,33 +77,44 @@ mod kernels {
         out[i] = gain * value;
     }
 
-    /// `out[p] = noise[p] · Σ_{b, c} grad[b, c, p]`, one thread per pixel `p` (`grad` row-major
-    /// or, with `channels_last`, channels-last).
+    /// `partials[k]`: over cube `k`'s pixels `p` ([`cube_index`], `units` pixels a cube), the
+    /// sum of `noise[p] · Σ_{b, c} grad[b, c, p]` (`grad` row-major or, with `channels_last`,
+    /// channels-last): a thread per pixel, then a pairwise sum in shared memory. Every unit
+    /// reaches its barriers: units past the pixels add zero, cubes past the partials write
+    /// nothing.
+    #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
-    pub fn noise_products(
+    pub fn noise_partials(
         grad: &Tensor<f32>,
         noise: &Tensor<f32>,
-        out: &mut Tensor<f32>,
+        partials: &mut Tensor<f32>,
+        pixels: u32,
         batch: u32,
         channels: u32,
         #[comptime] channels_last: bool,
+        #[comptime] units: u32,
     ) {
-        let p = ABSOLUTE_POS as u32;
-        let pixels = out.len() as u32;
-        if p >= pixels {
-            terminate!();
-        }
+        let k = cube_index();
+        let p = k * units + UNIT_POS;
         let mut sum = 0.0f32;
-        for b in 0..batch {
-            for c in 0..channels {
-                let mut at = (b * channels + c) * pixels + p;
-                if comptime![channels_last] {
-                    at = (b * pixels + p) * channels + c;
+        if p < pixels {
+            for b in 0..batch {
+                for c in 0..channels {
+                    let mut at = (b * channels + c) * pixels + p;
+                    if comptime![channels_last] {
+                        at = (b * pixels + p) * channels + c;
+                    }
+                    sum += grad[at as usize];
                 }
-                sum += grad[at as usize];
             }
+            sum *= noise[p as usize];
         }
-        out[p as usize] = sum * noise[p as usize];
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        partial[UNIT_POS as usize] = sum;
+        cube_sum(&mut partial, units);
+        if UNIT_POS == 0 && (k as usize) < partials.len() {
+            partials[k as usize] = partial[0];
+        }
     }
 
     /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
@@ -198,34 +213,41 @@ pub(super) fn noisy_bias_leaky_relu(
     })
 }
 
-/// The products with the noise per pixel in one kernel, summed by Burn's reduction.
+/// Two launches: the products with the noise summed per cube of pixels, then those partial
+/// sums by Burn's reduction (a pass over a few thousand values; before, the products were
+/// written per pixel and summed by Burn's `sum`, which fills its output first: three launches).
 pub(super) fn noise_strength_grad(
     grad: FloatTensor<CubeBackend>,
     noise: FloatTensor<CubeBackend>,
 ) -> FloatTensor<CubeBackend> {
     let [batch, channels, height, width] = dims(&grad);
+    let pixels = height * width;
     assert_eq!(
         noise.shape().num_elements(),
-        height * width,
+        pixels,
         "one noise value per pixel"
     );
+    u32_of(grad.shape().num_elements());
     let noise = into_contiguous(noise);
     let (grad, last) = readable(grad);
-    let products = empty_in_layout(&grad, [1, 1, height, width], false);
-    let products = one_thread_per_output(products, &grad, |cubes, cube, products| {
-        kernels::noise_products::launch(
-            &grad.client,
-            cubes,
-            cube,
-            grad.clone().into_tensor_arg(),
-            noise.into_tensor_arg(),
-            products.into_tensor_arg(),
-            u32_of(batch),
-            u32_of(channels),
-            last,
-        )
-    });
-    CubeBackend::float_reshape(CubeBackend::float_sum(products), Shape::new([1]))
+    let cubes = pixels.div_ceil(UNITS as usize).max(1);
+    let partials = empty_in_layout(&grad, [1, 1, 1, cubes], false);
+    let (grid, cube) = one_thread_per_value(pixels);
+    kernels::noise_partials::launch(
+        &grad.client,
+        grid,
+        cube,
+        grad.clone().into_tensor_arg(),
+        noise.into_tensor_arg(),
+        partials.clone().into_tensor_arg(),
+        u32_of(pixels),
+        u32_of(batch),
+        u32_of(channels),
+        last,
+        UNITS,
+    );
+    let partials = CubeBackend::float_reshape(partials, Shape::new([cubes]));
+    CubeBackend::float_sum_dim(partials, 0)
 }
 
 /// In the gradient's layout; the output is copied to it where the two differ.

@@ -2,7 +2,8 @@
 //! pairwise sum in shared memory. For sums of hundreds to thousands of terms per value over few
 //! values (a style vector's 512, a modulation's style gradient): one thread per value ran each
 //! sum serially on a couple of cubes, ≈ 100 µs a launch on an H200 for a few µs of arithmetic
-//! (BENCHMARKS, "GPU: an H200 lent on 2026-11-29").
+//! (BENCHMARKS, "GPU: an H200 lent on 2026-11-29"). The noise strength's gradient sums its
+//! per-pixel products the same way, a cube of pixels each (`bias_leaky_relu.rs`).
 //!
 //! Every unit of a cube reaches [`cube_sum`]'s barriers: a kernel never returns early around
 //! them (WGSL wants barriers in uniform control flow), it only leaves out the writes of cubes
