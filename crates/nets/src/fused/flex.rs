@@ -1,5 +1,10 @@
 //! `impl FusedBackend for Flex`: each op one loop over the `[B·C]` planes of row-major f32 data,
-//! planes in parallel, in f32 (the networks' only float type).
+//! planes in parallel, in f32 (the networks' only float type); LPIPS's comparison walks the
+//! channels over blocks of pixels, blocks in parallel, and a ToRGB's output composes the
+//! resampling ops.
+
+use std::borrow::Cow;
+use std::ops::Range;
 
 use burn::backend::Flex;
 use burn::backend::TensorMetadata;
@@ -569,9 +574,9 @@ const PIXEL_BLOCK: usize = 1024;
 
 /// The inputs of [`FusedBackend::lpips_distance`] as host values, row-major `[B, C, H·W]`.
 struct LpipsFeatures<'a> {
-    x: std::borrow::Cow<'a, [f32]>,
-    y: std::borrow::Cow<'a, [f32]>,
-    weight: std::borrow::Cow<'a, [f32]>,
+    x: Cow<'a, [f32]>,
+    y: Cow<'a, [f32]>,
+    weight: Cow<'a, [f32]>,
     batch: usize,
     channels: usize,
     plane: usize,
@@ -609,7 +614,7 @@ impl<'a> LpipsFeatures<'a> {
     }
 
     /// Channel `c` of batch item `b` over `pixels`, of `x` and of `y`.
-    fn channel(&self, b: usize, c: usize, pixels: std::ops::Range<usize>) -> (&[f32], &[f32]) {
+    fn channel(&self, b: usize, c: usize, pixels: Range<usize>) -> (&[f32], &[f32]) {
         let start = (b * self.channels + c) * self.plane;
         (
             &self.x[start + pixels.start..start + pixels.end],
@@ -619,7 +624,7 @@ impl<'a> LpipsFeatures<'a> {
 
     /// The norms over channels at each of `pixels` of batch item `b`, summed channel by
     /// channel in f32 (as the GPU kernel sums them).
-    fn norms(&self, b: usize, pixels: std::ops::Range<usize>) -> Vec<PixelNorms> {
+    fn norms(&self, b: usize, pixels: Range<usize>) -> Vec<PixelNorms> {
         let (mut sx, mut sy) = (vec![0.0f32; pixels.len()], vec![0.0f32; pixels.len()]);
         for c in 0..self.channels {
             let (xc, yc) = self.channel(b, c, pixels.clone());
