@@ -11,7 +11,7 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    use crate::fused::cube::position::{offset, position};
+    use crate::fused::cube::position::{analysed, offset, position, synthesised};
 
     /// `out` (`[B, 4C, h, w]`): channel `4c + k` holds sub-band `k ∈ (LL, LH, HL, HH)` of the
     /// 2 × 2 block `(p q / r s)` at `(2y, 2x)` of channel `c` of `x` (`[B, C, 2h, 2w]`, the same
@@ -37,16 +37,7 @@ mod kernels {
         let q = x[offset(b, c, y, x0 + 1, channels, h2, w2, channels_last)];
         let r = x[offset(b, c, y + 1, x0, channels, h2, w2, channels_last)];
         let s = x[offset(b, c, y + 1, x0 + 1, channels, h2, w2, channels_last)];
-        // LH negates the bottom row, HL the right column, HH both (s twice).
-        let mut sign_q = 1.0f32;
-        if band >= 2 {
-            sign_q = -1.0f32;
-        }
-        let mut sign_r = 1.0f32;
-        if band % 2 == 1 {
-            sign_r = -1.0f32;
-        }
-        out[o] = 0.5 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
+        out[o] = analysed(p, q, r, s, band);
     }
 
     /// `out` (`[B, C, 2h, 2w]`) from the four sub-bands `(a, b, c, d)` of `x` (`[B, 4C, h, w]`,
@@ -65,23 +56,17 @@ mod kernels {
             terminate!();
         }
         let at = position(o as u32, channels, 2 * h, 2 * w, channels_last);
-        let (batch, first) = (at.batch, 4 * at.channel);
-        let (y, x0) = (at.y / 2, at.x / 2);
-        let c4 = 4 * channels;
-        let a = x[offset(batch, first, y, x0, c4, h, w, channels_last)];
-        let b = x[offset(batch, first + 1, y, x0, c4, h, w, channels_last)];
-        let c = x[offset(batch, first + 2, y, x0, c4, h, w, channels_last)];
-        let d = x[offset(batch, first + 3, y, x0, c4, h, w, channels_last)];
-        // The bottom row negates LH, the right column HL, the corner both (HH twice).
-        let mut sign_b = 1.0f32;
-        if at.y % 2 == 1 {
-            sign_b = -1.0f32;
-        }
-        let mut sign_c = 1.0f32;
-        if at.x % 2 == 1 {
-            sign_c = -1.0f32;
-        }
-        out[o] = 0.5 * (a + sign_b * b + sign_c * c + sign_b * sign_c * d);
+        out[o] = synthesised(
+            x,
+            at.batch,
+            at.channel,
+            at.y,
+            at.x,
+            h,
+            w,
+            4 * channels,
+            channels_last,
+        );
     }
 }
 

@@ -1,6 +1,6 @@
 //! Where a value sits in the gapless `[B, C, H, W]` tensors the kernels read and write, stored
-//! row-major or channels-last (`crate::cube_layout`), and the ×2 up-sampling's taps: the index
-//! arithmetic the resampling kernels share.
+//! row-major or channels-last (`crate::cube_layout`), the ×2 up-sampling's taps and the Haar
+//! transform's sub-bands: the arithmetic the resampling kernels share.
 
 use burn_cubecl::cubecl;
 use burn_cubecl::cubecl::prelude::*;
@@ -101,4 +101,51 @@ pub(super) fn upsample_adjoint_weight(i: u32, n: u32, tap: u32) -> f32 {
         weight = 0.25;
     }
     weight
+}
+
+/// Sub-band `band` ∈ (LL, LH, HL, HH) of the 2 × 2 block `(p q / r s)`: `½(p ± q ± r ± s)`, HL
+/// and HH negating the right column (`q`, `s`), LH and HH the bottom row (`r`, `s`).
+#[cube]
+pub(super) fn analysed(p: f32, q: f32, r: f32, s: f32, band: u32) -> f32 {
+    let mut sign_q = 1.0f32;
+    if band >= 2 {
+        sign_q = -1.0f32;
+    }
+    let mut sign_r = 1.0f32;
+    if band % 2 == 1 {
+        sign_r = -1.0f32;
+    }
+    0.5f32 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s)
+}
+
+/// Pixel `(i, j)` of channel `c` of the Haar synthesis of `bands` (`[B, 4·channels, h, w]`,
+/// channels-last with `last`): `½(a ± b ± c ± d)` of the four sub-bands at `(i / 2, j / 2)`,
+/// the bottom row negating LH, the right column HL, the corner both (HH twice).
+#[allow(clippy::too_many_arguments)]
+#[cube]
+pub(super) fn synthesised(
+    bands: &Tensor<f32>,
+    batch: u32,
+    c: u32,
+    i: u32,
+    j: u32,
+    h: u32,
+    w: u32,
+    channels4: u32,
+    #[comptime] last: bool,
+) -> f32 {
+    let (y, x, first) = (i / 2, j / 2, 4 * c);
+    let ll = bands[offset(batch, first, y, x, channels4, h, w, last)];
+    let lh = bands[offset(batch, first + 1, y, x, channels4, h, w, last)];
+    let hl = bands[offset(batch, first + 2, y, x, channels4, h, w, last)];
+    let hh = bands[offset(batch, first + 3, y, x, channels4, h, w, last)];
+    let mut sign_b = 1.0f32;
+    if i % 2 == 1 {
+        sign_b = -1.0f32;
+    }
+    let mut sign_c = 1.0f32;
+    if j % 2 == 1 {
+        sign_c = -1.0f32;
+    }
+    0.5f32 * (ll + sign_b * lh + sign_c * hl + sign_b * sign_c * hh)
 }

@@ -1,8 +1,9 @@
 //! The tail of a Haar-domain ToRGB, `x + bias + haar(upsample2(inverse_haar(skip)))`, one
 //! thread per output value, and the skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`,
 //! one thread per value of the skip's gradient: each value gathers the few it depends on
-//! through the three maps (the composition of `haar.rs`'s and `upsample.rs`'s kernels, the same
-//! arithmetic), instead of three launches and two intermediate maps each way.
+//! through the three maps (`position.rs`'s Haar and up-sampling arithmetic, which `haar.rs`'s
+//! and `upsample.rs`'s kernels use too), instead of three launches and two intermediate maps
+//! each way.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
@@ -17,59 +18,8 @@ mod kernels {
     use burn_cubecl::cubecl::prelude::*;
 
     use crate::fused::cube::position::{
-        offset, position, upsample_adjoint_weight, upsample_neighbour,
+        analysed, position, synthesised, upsample_adjoint_weight, upsample_neighbour,
     };
-
-    /// The sign of sub-band `band` ∈ (LL, LH, HL, HH) at a 2 × 2 block's right column: HL and
-    /// HH negate it.
-    #[cube]
-    fn right_sign(band: u32) -> f32 {
-        let mut sign = 1.0f32;
-        if band >= 2 {
-            sign = -1.0f32;
-        }
-        sign
-    }
-
-    /// The sign of sub-band `band` at a 2 × 2 block's bottom row: LH and HH negate it.
-    #[cube]
-    fn bottom_sign(band: u32) -> f32 {
-        let mut sign = 1.0f32;
-        if band % 2 == 1 {
-            sign = -1.0f32;
-        }
-        sign
-    }
-
-    /// Pixel `(i, j)` of channel `c` of `inverse_haar(bands)`, `bands` `[B, 4C, h, w]`.
-    #[allow(clippy::too_many_arguments)]
-    #[cube]
-    fn synthesised(
-        bands: &Tensor<f32>,
-        b: u32,
-        c: u32,
-        i: u32,
-        j: u32,
-        h: u32,
-        w: u32,
-        c4: u32,
-        #[comptime] last: bool,
-    ) -> f32 {
-        let (y, x, first) = (i / 2, j / 2, 4 * c);
-        let ll = bands[offset(b, first, y, x, c4, h, w, last)];
-        let lh = bands[offset(b, first + 1, y, x, c4, h, w, last)];
-        let hl = bands[offset(b, first + 2, y, x, c4, h, w, last)];
-        let hh = bands[offset(b, first + 3, y, x, c4, h, w, last)];
-        let mut sign_b = 1.0f32;
-        if i % 2 == 1 {
-            sign_b = -1.0f32;
-        }
-        let mut sign_c = 1.0f32;
-        if j % 2 == 1 {
-            sign_c = -1.0f32;
-        }
-        0.5f32 * (ll + sign_b * lh + sign_c * hl + sign_b * sign_c * hh)
-    }
 
     /// Pixel `(r, s)` of channel `c` of `upsample2(inverse_haar(skip))` (`4h × 4w`), `skip`
     /// `[B, 4C, h, w]`.
@@ -121,9 +71,7 @@ mod kernels {
         let q = upsampled(skip, b, c, r, s + 1, h, w, c4, skip_last);
         let rr = upsampled(skip, b, c, r + 1, s, h, w, c4, skip_last);
         let ss = upsampled(skip, b, c, r + 1, s + 1, h, w, c4, skip_last);
-        let (sign_q, sign_r) = (right_sign(band), bottom_sign(band));
-        let band_value = 0.5f32 * (p + sign_q * q + sign_r * rr + sign_q * sign_r * ss);
-        out[o] = x[o] + bias[at.channel as usize] + band_value;
+        out[o] = x[o] + bias[at.channel as usize] + analysed(p, q, rr, ss, band);
     }
 
     /// Pixel `(i, j)` (of `2h × 2w`) of channel `c` of `upsample2_grad(inverse_haar(grad))`,
@@ -184,8 +132,7 @@ mod kernels {
         let q = upsampled_adjoint(grad, b, c, i, j + 1, h, w, c4, last);
         let r = upsampled_adjoint(grad, b, c, i + 1, j, h, w, c4, last);
         let s = upsampled_adjoint(grad, b, c, i + 1, j + 1, h, w, c4, last);
-        let (sign_q, sign_r) = (right_sign(band), bottom_sign(band));
-        dskip[o] = 0.5f32 * (p + sign_q * q + sign_r * r + sign_q * sign_r * s);
+        dskip[o] = analysed(p, q, r, s, band);
     }
 }
 
