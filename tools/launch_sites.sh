@@ -34,8 +34,8 @@ for line in sys.stdin:
 ' "$symbol")
 perf probe -q -d 'probe_f3g:*' 2>/dev/null || true
 perf probe -q -x "$f3g" --add "launch=$offset"
-F3G_KERNEL_CACHE=${F3G_KERNEL_CACHE:-target/kernel-cache} perf record -q -m 65536 \
-    -e probe_f3g:launch --call-graph dwarf,65528 -o "$out/perf.data" -- \
+F3G_KERNEL_CACHE=${F3G_KERNEL_CACHE:-target/kernel-cache} perf record -q -m ${F3G_PERF_PAGES:-65536} \
+    -e probe_f3g:launch --call-graph dwarf,${F3G_PERF_STACK:-65528} -o "$out/perf.data" -- \
     tools/cuda-offline.sh run "$f3g" bench train --preset paper --device cuda --steps 1 --warmup 1 \
     > "$out/bench.log" 2>&1
 perf probe -q -d 'probe_f3g:*'

@@ -19,6 +19,18 @@ pub(crate) fn channels_last(t: &FloatTensor<CubeBackend>) -> bool {
     t.meta.strides()[..] == [h * w * c, 1, w * c, c]
 }
 
+/// The values from one pixel to the next of a `t` (`[B, C, H, W]`) stored channels-last with
+/// gaps at most between pixels, `C` or more; `None` for any other layout. Why: CUDA pitches a
+/// convolution's output row to a power of two bytes, so a ToRGB's map of 12 channels comes
+/// back with 16 values a pixel, which a kernel that knows the stride reads without a copy.
+pub(crate) fn pixel_stride(t: &FloatTensor<CubeBackend>) -> Option<usize> {
+    let [_, c, h, w] = t.shape().dims();
+    let strides = t.meta.strides();
+    let pixel = strides[3];
+    (strides[1] == 1 && pixel >= c && strides[..] == [h * w * pixel, 1, w * pixel, pixel])
+        .then_some(pixel)
+}
+
 /// `t` as the kernels read it, and whether that is channels-last: a gapless channels-last
 /// tensor as it is, any other made row-major.
 pub(crate) fn readable(t: FloatTensor<CubeBackend>) -> (FloatTensor<CubeBackend>, bool) {

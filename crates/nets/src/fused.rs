@@ -188,6 +188,50 @@ pub fn to_rgb_output(x: Tensor<4>, bias: Tensor<1>, skip: Tensor<4>) -> Tensor<4
     }
 }
 
+/// `x + bias` with one bias per channel (`x` `[B, C, H, W]`, `bias` `[C]`): the first ToRGB's
+/// output, which has no previous level's to carry up. One op where it [`runs`] (one kernel
+/// forward; backward, `x`'s gradient passed on and the bias's [`FusedBackend::channel_sum`]), a
+/// broadcast add elsewhere. Why: on a GPU the op reads the convolution's 12-channel output in
+/// the pitched layout CUDA gives it, where the add's output, pitched alike, was copied by the
+/// next level's [`to_rgb_output`].
+pub fn add_channel_bias(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::add_channel_bias(
+            x.into_dispatch(),
+            bias.into_dispatch(),
+        ))
+    } else {
+        let channels = bias.dims()[0];
+        x + bias.reshape([1, channels, 1, 1])
+    }
+}
+
+/// `[first; second]` along the channels: `first` `[B, C₁, H, W]` and `second` `[B, C₂, H, W]`
+/// into `[B, C₁ + C₂, H, W]`, a decoder level's input from the level below and the encoder's
+/// skip. One op where it [`runs`] (one kernel each way; on a GPU the output channels-last if
+/// either input is, the layout the next convolution reads), Burn's `cat` elsewhere.
+///
+/// Why one op: Burn's `cat` writes a row-major output one input at a time (two launches), which
+/// the convolution after it copied to channels-last (a third), and its backward's two channel
+/// slices of a channels-last gradient were copied again by the ops that read them.
+pub fn cat_channels(first: Tensor<4>, second: Tensor<4>) -> Tensor<4> {
+    let ([b, _, h, w], [b2, _, h2, w2]) = (first.dims(), second.dims());
+    assert_eq!(
+        [b, h, w],
+        [b2, h2, w2],
+        "concatenated maps share batch and size"
+    );
+    let total = first.shape().num_elements() + second.shape().num_elements();
+    if runs(&first, total) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::cat_channels(
+            first.into_dispatch(),
+            second.into_dispatch(),
+        ))
+    } else {
+        Tensor::cat(vec![first, second], 1)
+    }
+}
+
 /// StyleGAN2's modulated convolution weight: each input channel `i` of `weight`
 /// (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then, with `demodulate`, each output
 /// channel divided by its norm `√(Σ w² + 10⁻⁸)`. One op where it [`runs`] (`weight`'s device),
@@ -395,6 +439,28 @@ pub trait FusedBackend: Backend {
 
     /// The modulated weight ([`modulate`]): `u = weight · style[i] · scale`, and with
     /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
+    /// [`add_channel_bias`].
+    #[fusion(dtype = x, shape = x)]
+    fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// [`cat_channels`].
+    #[fusion(dtype = first, shape = Shape::new([first[0], first[1] + second[1], first[2], first[3]]))]
+    fn cat_channels(first: FloatTensor<Self>, second: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// The gradient `[B, C, H, W]` of [`cat_channels`] cut into its first `first` channels' and
+    /// the rest's, each in `grad`'s layout.
+    #[fusion(meta = |grad, first| {
+        let part = |c: usize| {
+            let [b, _, h, w] = grad.shape.dims::<4>();
+            TensorSpec::new(Shape::new([b, c, h, w]), grad.dtype)
+        };
+        (part(*first), part(grad.shape[1] - *first))
+    })]
+    fn split_channels(
+        grad: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
     #[fusion(dtype = weight, shape = weight)]
     fn modulate(
         weight: FloatTensor<Self>,
@@ -698,6 +764,78 @@ mod tests {
                 for (a, e) in a.iter().zip(e) {
                     assert!((a - e).abs() < 1e-5, "{b}×{c4}×{h}×{w} {what}: {a} vs {e}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn cat_channels_and_the_channel_bias_match_the_tensor_ops() {
+        let device = Device::flex().autodiff();
+        let ramp = |n: usize, k: usize| -> Vec<f32> {
+            (0..n)
+                .map(|i| ((i * 7919 + k * 131) % 97) as f32 / 97.0 - 0.5)
+                .collect()
+        };
+        let tensor = |shape: [usize; 4], k: usize| {
+            let n = shape.iter().product();
+            Tensor::<4>::from_data(TensorData::new(ramp(n, k), shape), &device).require_grad()
+        };
+        let close = |what: &str, a: Vec<f32>, e: Vec<f32>| {
+            assert_eq!(a.len(), e.len(), "{what}");
+            for (a, e) in a.iter().zip(&e) {
+                assert!((a - e).abs() < 1e-6, "{what}: {a} vs {e}");
+            }
+        };
+        for [b, c1, c2, h, w] in [
+            [1, 1, 1, 1, 1],
+            [2, 3, 5, 4, 3],
+            [3, 4, 0, 2, 2],
+            [1, 0, 2, 3, 1],
+        ] {
+            let run = |op: &dyn Fn(Tensor<4>, Tensor<4>) -> Tensor<4>| {
+                let (first, second) = (tensor([b, c1, h, w], 1), tensor([b, c2, h, w], 2));
+                let y = op(first.clone(), second.clone());
+                let r = Tensor::<4>::from_data(
+                    TensorData::new(ramp(b * (c1 + c2) * h * w, 3), [b, c1 + c2, h, w]),
+                    &device,
+                );
+                let grads = (y.clone() * r).sum().backward();
+                let grad = |t: &Tensor<4>| t.grad(&grads).map(values).unwrap_or_default();
+                [values(y), grad(&first), grad(&second)]
+            };
+            let ours = run(&cat_channels);
+            let theirs = run(&|a, b| Tensor::cat(vec![a, b], 1));
+            for (what, (a, e)) in ["cat", "first's gradient", "second's gradient"]
+                .iter()
+                .zip(ours.into_iter().zip(theirs))
+            {
+                close(&format!("{b}×({c1}+{c2})×{h}×{w} {what}"), a, e);
+            }
+        }
+        for [b, c, h, w] in [[1, 1, 1, 1], [2, 12, 3, 5]] {
+            let run = |op: &dyn Fn(Tensor<4>, Tensor<1>) -> Tensor<4>| {
+                let x = tensor([b, c, h, w], 4);
+                let bias = Tensor::<1>::from_data(TensorData::new(ramp(c, 5), [c]), &device)
+                    .require_grad();
+                let r = Tensor::<4>::from_data(
+                    TensorData::new(ramp(b * c * h * w, 6), [b, c, h, w]),
+                    &device,
+                );
+                let y = op(x.clone(), bias.clone());
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(bias.grad(&grads).unwrap()),
+                ]
+            };
+            let ours = run(&add_channel_bias);
+            let theirs = run(&|x, bias| x + bias.reshape([1, c, 1, 1]));
+            for (what, (a, e)) in ["x + bias", "x's gradient", "the bias's gradient"]
+                .iter()
+                .zip(ours.into_iter().zip(theirs))
+            {
+                close(&format!("{b}×{c}×{h}×{w} {what}"), a, e);
             }
         }
     }

@@ -21,8 +21,8 @@ use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, bias_leaky_relu, blur, modulate, noisy_bias_leaky_relu, scale_weight,
-    scaled_linear, to_rgb_output, upsample2,
+    LinearScales, add_channel_bias, bias_leaky_relu, blur, modulate, noisy_bias_leaky_relu,
+    scale_weight, scaled_linear, to_rgb_output, upsample2,
 };
 use crate::init::Init;
 
@@ -307,10 +307,7 @@ impl ToRgb {
         let out = self.conv.forward(x, style);
         match skip {
             Some(s) => to_rgb_output(out, self.bias.val(), s),
-            None => {
-                let c = self.bias.dims()[0];
-                out + self.bias.val().reshape([1, c, 1, 1])
-            }
+            None => add_channel_bias(out, self.bias.val()),
         }
     }
 }

@@ -22,7 +22,7 @@ use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
-use crate::fused::{downsample2, inverse_haar};
+use crate::fused::{cat_channels, downsample2, inverse_haar};
 use crate::init::Init;
 use crate::layers::{ConvLayer, EqualConv2d, LRELU_SLOPE, Mapping, StyledConv, ToRgb, fused_lrelu};
 use crate::resample::resize;
@@ -321,7 +321,7 @@ impl Decoder {
         for (level, block) in self.blocks.iter().enumerate() {
             if level > 0 {
                 let skip = skips[skips.len() - 1 - level].clone();
-                x = Tensor::cat(vec![x, skip], 1);
+                x = cat_channels(x, skip);
             }
             x = block.comb.forward(x);
             x = block.up.forward(x, style.clone());

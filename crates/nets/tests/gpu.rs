@@ -858,6 +858,128 @@ fn the_fused_ops_match_the_cpu() {
             }
         }
     }
+    // The first ToRGB's bias, from either layout.
+    for shape in [[1, 12, 8, 8], [2, 3, 5, 7]] {
+        let channels = shape[1];
+        let add_bias = |x: Tensor<4>| {
+            let v = (0..channels).map(|c| 0.2 - 0.07 * c as f32).collect();
+            let bias =
+                Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [channels]), &x.device());
+            fused::add_channel_bias(x, bias)
+        };
+        compare(&add_bias, shape, "add_channel_bias");
+    }
+    // A decoder level's concatenation: each input and the output gradient in every layout, the
+    // gradients of both inputs; a single channel on one side and a batch of two.
+    for ([b, c1, c2, h, w], r_last) in [
+        ([1, 8, 8, 4, 4], true),
+        ([2, 3, 5, 3, 2], false),
+        ([1, 1, 6, 5, 3], true),
+    ] {
+        for (first_last, second_last) in LAYOUTS {
+            let run = |device: &Device| {
+                let first = laid_out([b, c1, h, w], device, first_last).require_grad();
+                let second = (laid_out([b, c2, h, w], device, second_last) * 3.0).require_grad();
+                let y = fused::cat_channels(first.clone(), second.clone());
+                let r = (laid_out([b, c1 + c2, h, w], device, r_last) * 37.0).sin();
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(first.grad(&grads).unwrap()),
+                    values(second.grad(&grads).unwrap()),
+                ]
+            };
+            let (got, expected) = (run(&gpu), run(&cpu));
+            for (what, (g, e)) in ["output", "first's gradient", "second's gradient"]
+                .iter()
+                .zip(got.iter().zip(&expected))
+            {
+                let what = format!(
+                    "cat_channels {:?}, channels-last {first_last}/{second_last}/{r_last}: {what}",
+                    [b, c1, c2, h, w]
+                );
+                assert_close(g, e, 1e-6, &what);
+            }
+        }
+    }
+}
+
+/// A ToRGB's 12-channel convolution output as CUDA allocates it (channels-last, each pixel's
+/// row pitched to 16 values), read by the two ToRGB ops without a copy: the same sums as from
+/// the gapless map on the CPU. Built by hand on the device (wgpu does not pitch), with the
+/// pitch's 4 values per pixel set far off so that a kernel that read them would fail.
+#[test]
+fn the_to_rgb_ops_read_a_pitched_map() {
+    use burn::backend::Flex;
+    use burn::backend::ops::FloatTensorOps;
+    use burn::tensor::TensorData;
+    use burn_cubecl::CubeBackend;
+    use f3g_nets::fused::FusedBackend;
+
+    let device = match test_device().as_dispatch() {
+        burn::backend::DispatchDevice::Cube(d) => d.clone(),
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
+    };
+    let [b, c4, pitch, h, w] = [2, 12, 16, 6, 4];
+    let value = |n: usize, c: usize, y: usize, x: usize| {
+        (((n * 7 + c) * 13 + y * 5 + x * 3) % 29) as f32 / 29.0 - 0.5
+    };
+    let mut pitched = vec![1.0e6f32; b * h * w * pitch];
+    let mut gapless = vec![0.0f32; b * c4 * h * w];
+    for n in 0..b {
+        for c in 0..c4 {
+            for y in 0..h {
+                for x in 0..w {
+                    pitched[((n * h + y) * w + x) * pitch + c] = value(n, c, y, x);
+                    gapless[((n * c4 + c) * h + y) * w + x] = value(n, c, y, x);
+                }
+            }
+        }
+    }
+    let bias: Vec<f32> = (0..c4).map(|c| 0.1 * c as f32 - 0.4).collect();
+    let skip: Vec<f32> = (0..b * c4 * h * w / 4)
+        .map(|i| (i % 11) as f32 / 11.0)
+        .collect();
+    let skip_shape = [b, c4, h / 2, w / 2];
+
+    let mut x = CubeBackend::float_from_data(TensorData::new(pitched, [b, h, w, pitch]), &device);
+    x.meta.shape_mut()[3] = c4;
+    let x = CubeBackend::float_permute(x, &[0, 3, 1, 2]);
+    let on_gpu = |t: TensorData| CubeBackend::float_from_data(t, &device);
+    let read = |t: <CubeBackend as burn::backend::BackendTypes>::FloatTensorPrimitive| {
+        let data = burn::tensor::read_sync(CubeBackend::float_into_data(t)).unwrap();
+        data.convert::<f32>().try_to_vec::<f32>().unwrap()
+    };
+    let flex = Default::default();
+    let on_cpu = |t: TensorData| Flex::float_from_data(t, &flex);
+    let read_cpu = |t: <Flex as burn::backend::BackendTypes>::FloatTensorPrimitive| {
+        let data = burn::tensor::read_sync(Flex::float_into_data(t)).unwrap();
+        data.convert::<f32>().try_to_vec::<f32>().unwrap()
+    };
+    let gapless_x = || on_cpu(TensorData::new(gapless.clone(), [b, c4, h, w]));
+
+    let got = read(CubeBackend::add_channel_bias(
+        x.clone(),
+        on_gpu(TensorData::new(bias.clone(), [c4])),
+    ));
+    let expected = read_cpu(Flex::add_channel_bias(
+        gapless_x(),
+        on_cpu(TensorData::new(bias.clone(), [c4])),
+    ));
+    assert_close(&got, &expected, 1e-6, "add_channel_bias of a pitched map");
+
+    let got = read(CubeBackend::to_rgb_output(
+        x,
+        on_gpu(TensorData::new(bias.clone(), [c4])),
+        on_gpu(TensorData::new(skip.clone(), skip_shape)),
+    ));
+    let expected = read_cpu(Flex::to_rgb_output(
+        gapless_x(),
+        on_cpu(TensorData::new(bias, [c4])),
+        on_cpu(TensorData::new(skip, skip_shape)),
+    ));
+    assert_close(&got, &expected, 1e-5, "to_rgb_output of a pitched map");
 }
 
 /// LPIPS's comparison of one tap (`fused::lpips_distance`): distances and both maps'

@@ -194,6 +194,54 @@ impl<B: Backend + FusedBackend> Backward<B, 3> for ToRgbOutputBackward {
 }
 
 #[derive(Debug)]
+struct AddChannelBiasBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for AddChannelBiasBackward {
+    type State = ();
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let [x_node, bias_node] = ops.parents;
+        if let Some(node) = bias_node {
+            grads.register::<B>(node.id, B::channel_sum(grad.clone()));
+        }
+        if let Some(node) = x_node {
+            grads.register::<B>(node.id, grad);
+        }
+    }
+}
+
+#[derive(Debug)]
+struct CatChannelsBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for CatChannelsBackward {
+    /// The first input's channels.
+    type State = usize;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (first, second) = B::split_channels(grad, ops.state);
+        let [first_node, second_node] = ops.parents;
+        if let Some(node) = first_node {
+            grads.register::<B>(node.id, first);
+        }
+        if let Some(node) = second_node {
+            grads.register::<B>(node.id, second);
+        }
+    }
+}
+
+#[derive(Debug)]
 struct ModulateBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
@@ -436,6 +484,42 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
 
     fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::to_rgb_skip_grad(grad.into_primitive()))
+    }
+
+    fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node(), bias.node()];
+        AddChannelBiasBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::add_channel_bias(
+                x.into_primitive(),
+                bias.into_primitive(),
+            ))
+    }
+
+    fn cat_channels(first: FloatTensor<Self>, second: FloatTensor<Self>) -> FloatTensor<Self> {
+        let channels = first.shape().dims::<4>()[1];
+        let nodes = [first.node(), second.node()];
+        let out = B::cat_channels(first.into_primitive(), second.into_primitive());
+        match CatChannelsBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(channels, out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn split_channels(
+        grad: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let (a, b) = B::split_channels(grad.into_primitive(), first);
+        (
+            Autodiff::<B, C>::from_inner(a),
+            Autodiff::<B, C>::from_inner(b),
+        )
     }
 
     fn modulate(

@@ -29,6 +29,7 @@ use crate::cube_grid::one_thread_per_value;
 
 mod bias_leaky_relu;
 mod blur;
+mod cat;
 mod downsample;
 mod haar;
 mod linear;
@@ -135,11 +136,26 @@ impl FusedBackend for CubeBackend {
         bias: FloatTensor<Self>,
         skip: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
-        to_rgb::to_rgb_output(x, bias, skip)
+        to_rgb::to_rgb_output(x, bias, Some(skip))
     }
 
     fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self> {
         to_rgb::to_rgb_skip_grad(grad)
+    }
+
+    fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        to_rgb::to_rgb_output(x, bias, None)
+    }
+
+    fn cat_channels(first: FloatTensor<Self>, second: FloatTensor<Self>) -> FloatTensor<Self> {
+        cat::cat_channels(first, second)
+    }
+
+    fn split_channels(
+        grad: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        cat::split_channels(grad, first)
     }
 
     fn modulate(

@@ -326,6 +326,50 @@ impl FusedBackend for Flex {
         Self::haar(Self::upsample2_grad(Self::inverse_haar(grad)))
     }
 
+    fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::bias_leaky_relu(x, bias, 1.0, 1.0)
+    }
+
+    fn cat_channels(first: FloatTensor<Self>, second: FloatTensor<Self>) -> FloatTensor<Self> {
+        let ([batch, c1, height, width], [_, c2, ..]) = (dims(&first), dims(&second));
+        let plane = height * width;
+        let (first, second) = (host_f32(&first), host_f32(&second));
+        let (n1, n2) = (c1 * plane, c2 * plane);
+        let mut out = vec![0.0f32; first.len() + second.len()];
+        if n1 + n2 > 0 {
+            out.par_chunks_mut(n1 + n2)
+                .enumerate()
+                .for_each(|(b, item)| {
+                    item[..n1].copy_from_slice(&first[b * n1..(b + 1) * n1]);
+                    item[n1..].copy_from_slice(&second[b * n2..(b + 1) * n2]);
+                });
+        }
+        from_values(out, vec![batch, c1 + c2, height, width])
+    }
+
+    fn split_channels(
+        grad: FloatTensor<Self>,
+        first: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let [batch, channels, height, width] = dims(&grad);
+        assert!(
+            first <= channels,
+            "the first part's channels are the gradient's"
+        );
+        let plane = height * width;
+        let (n1, n2) = (first * plane, (channels - first) * plane);
+        let grad = host_f32(&grad);
+        let mut parts = (vec![0.0f32; batch * n1], vec![0.0f32; batch * n2]);
+        for (b, item) in grad.chunks(n1 + n2).take(batch).enumerate() {
+            parts.0[b * n1..(b + 1) * n1].copy_from_slice(&item[..n1]);
+            parts.1[b * n2..(b + 1) * n2].copy_from_slice(&item[n1..]);
+        }
+        (
+            from_values(parts.0, vec![batch, first, height, width]),
+            from_values(parts.1, vec![batch, channels - first, height, width]),
+        )
+    }
+
     fn modulate(
         weight: FloatTensor<Self>,
         style: FloatTensor<Self>,

@@ -11,7 +11,7 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 
 use super::{dims, one_thread_per_output, u32_of};
-use crate::cube_layout::{empty_in_layout, readable};
+use crate::cube_layout::{empty_in_layout, pixel_stride, readable};
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -45,8 +45,11 @@ mod kernels {
         0.75f32 * near + 0.25f32 * far
     }
 
-    /// `out = x + bias[channel] + haar(upsample2(inverse_haar(skip)))`: `x` and `out`
-    /// `[B, 4C, 2h, 2w]` in one layout, `skip` `[B, 4C, h, w]` in its own.
+    /// `out = x + bias[channel] + haar(upsample2(inverse_haar(skip)))`, or without `has_skip`
+    /// `x + bias[channel]`: `out` `[B, 4C, height, width]` gapless in `x`'s layout, `x`
+    /// channels-last with `x_pixel` values from one pixel to the next (the channels or more:
+    /// CUDA pitches the rows of a convolution's output of 12 channels to 16) or row-major;
+    /// `skip` `[B, 4C, height / 2, width / 2]` in its own layout.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn to_rgb_output(
@@ -55,23 +58,34 @@ mod kernels {
         skip: &Tensor<f32>,
         out: &mut Tensor<f32>,
         c4: u32,
-        h: u32,
-        w: u32,
+        height: u32,
+        width: u32,
+        x_pixel: u32,
         #[comptime] x_last: bool,
         #[comptime] skip_last: bool,
+        #[comptime] has_skip: bool,
     ) {
         let o = ABSOLUTE_POS;
         if o >= out.len() {
             terminate!();
         }
-        let at = position(o as u32, c4, 2 * h, 2 * w, x_last);
-        let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
-        let (r, s) = (2 * at.y, 2 * at.x);
-        let p = upsampled(skip, b, c, r, s, h, w, c4, skip_last);
-        let q = upsampled(skip, b, c, r, s + 1, h, w, c4, skip_last);
-        let rr = upsampled(skip, b, c, r + 1, s, h, w, c4, skip_last);
-        let ss = upsampled(skip, b, c, r + 1, s + 1, h, w, c4, skip_last);
-        out[o] = x[o] + bias[at.channel as usize] + analysed(p, q, rr, ss, band);
+        let at = position(o as u32, c4, height, width, x_last);
+        let mut read = o as u32;
+        if comptime![x_last] {
+            read = (read / c4) * x_pixel + read % c4;
+        }
+        let mut value = x[read as usize] + bias[at.channel as usize];
+        if comptime![has_skip] {
+            let (h, w) = (height / 2, width / 2);
+            let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
+            let (r, s) = (2 * at.y, 2 * at.x);
+            let p = upsampled(skip, b, c, r, s, h, w, c4, skip_last);
+            let q = upsampled(skip, b, c, r, s + 1, h, w, c4, skip_last);
+            let rr = upsampled(skip, b, c, r + 1, s, h, w, c4, skip_last);
+            let ss = upsampled(skip, b, c, r + 1, s + 1, h, w, c4, skip_last);
+            value += analysed(p, q, rr, ss, band);
+        }
+        out[o] = value;
     }
 
     /// Pixel `(i, j)` (of `2h × 2w`) of channel `c` of `upsample2_grad(inverse_haar(grad))`,
@@ -136,31 +150,37 @@ mod kernels {
     }
 }
 
-/// One kernel, in `x`'s layout.
+/// One kernel, in `x`'s layout (gapless); with no `skip`, `x + bias` alone.
 pub(super) fn to_rgb_output(
     x: FloatTensor<CubeBackend>,
     bias: FloatTensor<CubeBackend>,
-    skip: FloatTensor<CubeBackend>,
+    skip: Option<FloatTensor<CubeBackend>>,
 ) -> FloatTensor<CubeBackend> {
     let shape = dims(&x);
     let [batch, c4, height, width] = shape;
-    let [_, _, h, w] = dims(&skip);
-    assert_eq!(
-        dims(&skip),
-        [batch, c4, height / 2, width / 2],
-        "the skip is at half the size, in as many sub-bands"
-    );
-    assert!(
-        c4 % 4 == 0 && height == 2 * h && width == 2 * w,
-        "four sub-bands per channel, even sizes"
-    );
-    assert_eq!(
-        bias.shape().dims::<1>(),
-        [c4],
-        "one bias per sub-band channel"
-    );
+    if let Some(skip) = &skip {
+        assert_eq!(
+            dims(skip),
+            [batch, c4, height / 2, width / 2],
+            "the skip is at half the size, in as many sub-bands"
+        );
+        assert!(
+            c4 % 4 == 0 && height % 2 == 0 && width % 2 == 0,
+            "four sub-bands per channel, even sizes"
+        );
+    }
+    assert_eq!(bias.shape().dims::<1>(), [c4], "one bias per channel");
     let bias = into_contiguous(bias);
-    let ((x, x_last), (skip, skip_last)) = (readable(x), readable(skip));
+    let (x, x_last, x_pixel) = match pixel_stride(&x) {
+        Some(pixel) => (x, true, pixel),
+        None => (into_contiguous(x), false, c4),
+    };
+    let has_skip = skip.is_some();
+    let (skip, skip_last) = match skip {
+        Some(skip) => readable(skip),
+        // Never read: the kernel takes a tensor all the same.
+        None => (x.clone(), false),
+    };
     let out = empty_in_layout(&x, shape, x_last);
     one_thread_per_output(out, &x, |cubes, cube, out| {
         kernels::to_rgb_output::launch(
@@ -172,10 +192,12 @@ pub(super) fn to_rgb_output(
             skip.into_tensor_arg(),
             out.into_tensor_arg(),
             u32_of(c4),
-            u32_of(h),
-            u32_of(w),
+            u32_of(height),
+            u32_of(width),
+            u32_of(x_pixel),
             x_last,
             skip_last,
+            has_skip,
         )
     })
 }
