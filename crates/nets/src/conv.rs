@@ -12,8 +12,9 @@
 //! `Σ G · X̂ᵀ`, each one well-shaped GEMM per tile of output positions.
 //!
 //! `Cube` devices use Burn's kernels for all three, with the algorithm chosen in [`cube`] (implicit
-//! GEMMs on matrix units where the device has them) unless Burn's `autotune` is on, where Burn's
-//! own choice stands; under Burn's `fusion` each is a lazy operation of the fusion stream.
+//! GEMMs on matrix units where the device has them; a strided input gradient as a GEMM and
+//! [`strided`]'s col2im, a long weight gradient in [`bands`]) unless Burn's `autotune` is on,
+//! where Burn's own choice stands; under Burn's `fusion` each is a lazy operation of the fusion stream.
 //! `Autodiff` records one node whose backward asks the inner backend for each gradient a parent
 //! needs. Layouts are Burn's: `x` `[B, C_in, H, W]`, `weight` `[C_out, C_in / groups, kh, kw]`.
 
@@ -33,6 +34,8 @@ mod cube;
 pub use cube::{GemmChoice, gemm_choices};
 mod flex;
 pub mod profile;
+#[cfg(any(feature = "gpu", feature = "cuda"))]
+pub mod strided;
 
 /// A 2-D convolution whose gradients the backend computes ([`ConvBackend`]); `bias` (`[C_out]`)
 /// is added by broadcasting.

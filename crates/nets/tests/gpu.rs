@@ -265,6 +265,95 @@ fn the_convolution_and_its_gradients_match_the_cpu_for_every_stride() {
     }
 }
 
+/// The test device as the CubeCL device its kernels run on.
+fn cube_device() -> burn_cubecl::CubeDevice {
+    match test_device().as_dispatch() {
+        burn::backend::DispatchDevice::Cube(d) => d.clone(),
+        #[allow(unreachable_patterns)]
+        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
+    }
+}
+
+/// Row-major `[B, C, H, W]` values on `device`, stored row-major or channels-last (a permuted
+/// view of `[B, H, W, C]`, as Burn's convolutions leave their outputs and input gradients).
+fn upload(
+    values: &[f32],
+    [b, c, h, w]: [usize; 4],
+    channels_last: bool,
+    device: &burn_cubecl::CubeDevice,
+) -> <burn_cubecl::CubeBackend as burn::backend::BackendTypes>::FloatTensorPrimitive {
+    use burn::backend::ops::FloatTensorOps;
+    use burn::tensor::TensorData;
+    use burn_cubecl::CubeBackend;
+    if !channels_last {
+        let data = TensorData::new(values.to_vec(), [b, c, h, w]);
+        return CubeBackend::float_from_data(data, device);
+    }
+    let mut nhwc = vec![0.0f32; values.len()];
+    for (i, &v) in values.iter().enumerate() {
+        let (x, y, ch, n) = (i % w, (i / w) % h, (i / (w * h)) % c, i / (w * h * c));
+        nhwc[((n * h + y) * w + x) * c + ch] = v;
+    }
+    let data = TensorData::new(nhwc, [b, h, w, c]);
+    CubeBackend::float_permute(CubeBackend::float_from_data(data, device), &[0, 3, 1, 2])
+}
+
+/// The input gradient of strided convolutions as a GEMM and a col2im (`conv::strided`): strides
+/// 2 and 3, padding, dilation, a 4×4 kernel, the blurred `2n + 1` sides the down-sampling layers
+/// see, a batch of two — from output gradients and weights in either layout (channels-last, as
+/// the activations' backward and `fused::scale_weight` leave them) — against Burn's on the CPU.
+#[test]
+fn the_strided_input_gradient_matches_the_cpu_from_either_layout() {
+    use burn::backend::ops::{FloatTensorOps, ModuleOps};
+    use burn::tensor::TensorData;
+    use burn::tensor::ops::ConvOptions;
+    use burn_cubecl::CubeBackend;
+    use f3g_nets::conv::strided::strided_input_grad;
+    type Flex = burn::backend::Flex;
+    let device = cube_device();
+    let ramp_values = |n: usize, phase: f32| -> Vec<f32> {
+        (0..n).map(|i| (i as f32 * 0.37 + phase).sin()).collect()
+    };
+    // (batch, in, out, size, kernel, stride, padding, dilation)
+    let cases = [
+        (1, 8, 16, 17, 3, 2, 0, 1),
+        (2, 3, 5, 9, 4, 2, 1, 1),
+        (1, 4, 6, 13, 3, 3, 1, 2),
+        (1, 2, 3, 1, 3, 2, 1, 1),
+    ];
+    for case @ (b, cin, cout, size, k, stride, pad, dil) in cases {
+        let options = ConvOptions::new([stride; 2], [pad; 2], [dil; 2], 1);
+        let out = (size + 2 * pad - dil * (k - 1) - 1) / stride + 1;
+        let (x_shape, g_shape, w_shape) =
+            ([b, cin, size, size], [b, cout, out, out], [cout, cin, k, k]);
+        let g = ramp_values(g_shape.iter().product(), 0.7);
+        let w = ramp_values(w_shape.iter().product(), 0.2);
+        let flex = Default::default();
+        let cpu = Flex::conv2d_x_backward(
+            Flex::float_zeros(x_shape.into(), &flex, burn::tensor::DType::F32.into()),
+            Flex::float_from_data(TensorData::new(w.clone(), w_shape), &flex),
+            Flex::float_from_data(TensorData::new(g.clone(), g_shape), &flex),
+            options.clone(),
+        );
+        let read =
+            |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
+        let cpu = read(burn::tensor::read_sync(Flex::float_into_data(cpu)).unwrap());
+        for (g_last, w_last) in [(false, false), (true, true), (true, false), (false, true)] {
+            let cube = strided_input_grad(
+                x_shape.into(),
+                upload(&w, w_shape, w_last, &device),
+                upload(&g, g_shape, g_last, &device),
+                &options,
+            )
+            .expect("small tensors");
+            let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
+            let layouts = format!("channels-last gradient {g_last}, weight {w_last}");
+            // The matmul runs on TF32 tensor cores on CUDA.
+            assert_close(&cube, &cpu, 3e-4, &format!("{case:?}, {layouts}"));
+        }
+    }
+}
+
 /// The banded weight gradient with bands of every kind: one band per launch, several per launch
 /// with a short last launch, bands crossing batch items, a strided dilated kernel, padding —
 /// from row-major and channels-last inputs and gradients — against Burn's own weight gradient
@@ -277,11 +366,7 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
     use burn_cubecl::CubeBackend;
     use f3g_nets::conv::bands::{Bands, weight_grad_in_bands};
     type Flex = burn::backend::Flex;
-    let device = match test_device().as_dispatch() {
-        burn::backend::DispatchDevice::Cube(d) => d.clone(),
-        #[allow(unreachable_patterns)]
-        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
-    };
+    let device = cube_device();
     let ramp_values = |n: usize, phase: f32| -> Vec<f32> {
         (0..n).map(|i| (i as f32 * 0.37 + phase).sin()).collect()
     };
@@ -311,21 +396,7 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
         let read =
             |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
         let cpu = read(burn::tensor::read_sync(Flex::float_into_data(cpu)).unwrap());
-        // `[B, C, H, W]` values on the device, row-major or channels-last (a permuted view of
-        // `[B, H, W, C]`, as Burn's convolutions leave their outputs and input gradients).
-        let upload = |values: &[f32], [b, c, h, w]: [usize; 4], channels_last: bool| {
-            if !channels_last {
-                let data = TensorData::new(values.to_vec(), [b, c, h, w]);
-                return CubeBackend::float_from_data(data, &device);
-            }
-            let mut nhwc = vec![0.0f32; values.len()];
-            for (i, &v) in values.iter().enumerate() {
-                let (x, y, ch, n) = (i % w, (i / w) % h, (i / (w * h)) % c, i / (w * h * c));
-                nhwc[((n * h + y) * w + x) * c + ch] = v;
-            }
-            let data = TensorData::new(nhwc, [b, h, w, c]);
-            CubeBackend::float_permute(CubeBackend::float_from_data(data, &device), &[0, 3, 1, 2])
-        };
+        let upload = |values: &[f32], shape, last| upload(values, shape, last, &device);
         for (x_last, g_last) in [(false, false), (true, true), (true, false), (false, true)] {
             let cube = weight_grad_in_bands(
                 upload(&x, x_shape, x_last),
@@ -916,11 +987,7 @@ fn the_to_rgb_ops_read_a_pitched_map() {
     use burn_cubecl::CubeBackend;
     use f3g_nets::fused::FusedBackend;
 
-    let device = match test_device().as_dispatch() {
-        burn::backend::DispatchDevice::Cube(d) => d.clone(),
-        #[allow(unreachable_patterns)]
-        _ => unreachable!("wgpu and CUDA devices are cubecl devices"),
-    };
+    let device = cube_device();
     let [b, c4, pitch, h, w] = [2, 12, 16, 6, 4];
     let value = |n: usize, c: usize, y: usize, x: usize| {
         (((n * 7 + c) * 13 + y * 5 + x * 3) % 29) as f32 / 29.0 - 0.5

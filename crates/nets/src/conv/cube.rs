@@ -7,8 +7,8 @@
 //! (BENCHMARKS "GPU: an H200"). Here, on a device with matrix units (CMMA), the output and the
 //! weight gradient run as implicit GEMMs (`ConvStrategy::ImplicitGemm`; on CUDA, f32 as TF32 on
 //! tensor cores, as cuDNN does by default), the input gradient as an implicit GEMM at stride 1
-//! and as the transposed convolution's matmul + col2im at other strides (the implicit GEMM has
-//! no strided input gradient). On a device without matrix units (Mesa lavapipe), where Burn's
+//! and at other strides as a matmul and our col2im, channels-last ([`super::strided`]; the
+//! implicit GEMM has no strided input gradient). On a device without matrix units (Mesa lavapipe), where Burn's
 //! setup declines, and for grouped or asymmetrically padded convolutions, the direct kernels run
 //! as before. A weight gradient whose implicit GEMM would have too few tiles for its long
 //! reduction (few channels at a high resolution) runs split into bands of positions instead,
@@ -20,16 +20,17 @@
 use burn::backend::TensorMetadata;
 use burn::backend::ops::ModuleOps;
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
+use burn::tensor::ops::ConvOptions;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::conv::{
-    AcceleratedTileKind, ConvAlgorithm, ConvStrategy, ConvTranspose2dStrategy, conv_data_backward,
-    conv_forward, conv_transpose2d, conv_weight_backward,
+    AcceleratedTileKind, ConvAlgorithm, ConvStrategy, conv_data_backward, conv_forward,
+    conv_weight_backward,
 };
 use std::sync::{Mutex, OnceLock};
 
 use super::ConvBackend;
 use super::bands::weight_grad_split;
+use super::strided::strided_input_grad;
 
 /// Whether to pick the algorithm here: Burn's default is `Direct` unless its `autotune` is on.
 fn choose_here(options: &ConvOptions<2>) -> bool {
@@ -167,15 +168,9 @@ impl ConvBackend for CubeBackend {
     ) -> FloatTensor<Self> {
         if choose_here(&options) {
             let unit_stride = options.stride.iter().all(|&s| s == 1);
-            // The strided path is a plain matmul: it runs on any device.
+            // The strided path is a plain matmul and a col2im: it runs on any device.
             let fast = if !unit_stride {
-                Some(conv_transpose2d(
-                    grad.clone(),
-                    weight.clone(),
-                    None,
-                    transpose_options(&x, &grad, &weight, &options),
-                    ConvTranspose2dStrategy::Gemm,
-                ))
+                strided_input_grad(x.shape(), weight.clone(), grad.clone(), &options).map(Ok)
             } else if has_matrix_units(&x) {
                 Some(with_gemm(Pass::InputGrad, |strategy| {
                     conv_data_backward(
@@ -224,28 +219,4 @@ impl ConvBackend for CubeBackend {
         }
         <Self as ModuleOps<Self>>::conv2d_weight_backward(x, weight, grad, options)
     }
-}
-
-/// The transposed convolution whose output is the input gradient of a (symmetric) `options`
-/// convolution of `x`: `padding_out` restores the rows and columns a strided convolution drops.
-fn transpose_options(
-    x: &FloatTensor<CubeBackend>,
-    grad: &FloatTensor<CubeBackend>,
-    weight: &FloatTensor<CubeBackend>,
-    options: &ConvOptions<2>,
-) -> ConvTransposeOptions<2> {
-    let (x, grad, weight) = (x.shape(), grad.shape(), weight.shape());
-    let padding = options.padding.map(|(begin, _)| begin);
-    let padding_out = std::array::from_fn(|i| {
-        let covered =
-            (grad[2 + i] - 1) * options.stride[i] + options.dilation[i] * (weight[2 + i] - 1) + 1;
-        (x[2 + i] + 2 * padding[i]).saturating_sub(covered)
-    });
-    ConvTransposeOptions::new(
-        options.stride,
-        padding,
-        padding_out,
-        options.dilation,
-        options.groups,
-    )
 }
