@@ -132,6 +132,29 @@ pub fn weights_file(net: LpipsNet) -> String {
     format!("lpips-{net}.safetensors")
 }
 
+/// A convolution weight `[C_out, C_in, kh, kw]` from its row-major values: stored so on the
+/// CPU, channels-last (`[C_out, kh, kw, C_in]` in memory) on a GPU, the layout Burn's
+/// implicit-GEMM convolution reads a weight in forward and for the input gradient (each
+/// convolution copied a row-major weight first: about 80 launches per `paper` step).
+fn conv_weight(values: Vec<f32>, shape: [usize; 4], device: &Device) -> Tensor<4> {
+    if device.clone().without_autodiff() == Device::flex() {
+        return Tensor::from_data(TensorData::new(values, shape), device);
+    }
+    let [c_out, c_in, kh, kw] = shape;
+    let mut stored = vec![0.0f32; values.len()];
+    for (i, v) in values.into_iter().enumerate() {
+        let (x, y, c, o) = (
+            i % kw,
+            (i / kw) % kh,
+            (i / (kw * kh)) % c_in,
+            i / (kw * kh * c_in),
+        );
+        stored[((o * kh + y) * kw + x) * c_in + c] = v;
+    }
+    Tensor::<4>::from_data(TensorData::new(stored, [c_out, kh, kw, c_in]), device)
+        .permute([0, 3, 1, 2])
+}
+
 /// LPIPS with frozen weights (constant tensors: gradients flow to the images only).
 #[derive(Clone, Debug)]
 pub struct Lpips {
@@ -211,7 +234,7 @@ impl Lpips {
             let w = tensor(&format!("features.{i}.weight"), &shape)?;
             let b = tensor(&format!("features.{i}.bias"), &[s.out])?;
             convs.push((
-                Tensor::from_data(TensorData::new(w, shape), device),
+                conv_weight(w, shape, device),
                 Tensor::from_data(TensorData::new(b, [s.out]), device),
             ));
             cin = s.out;

@@ -355,8 +355,9 @@ fn the_strided_input_gradient_matches_the_cpu_from_either_layout() {
 }
 
 /// The banded weight gradient with bands of every kind: one band per launch, several per launch
-/// with a short last launch, bands crossing batch items, a strided dilated kernel, padding —
-/// from row-major and channels-last inputs and gradients — against Burn's own weight gradient
+/// with a short last launch, bands crossing batch items, a strided dilated kernel, padding,
+/// bands that divide the positions (a channels-last gradient then read as it is) — from
+/// row-major and channels-last inputs and gradients — against Burn's own weight gradient
 /// on the CPU (`conv2d_weight_backward`).
 #[test]
 fn the_weight_gradient_in_bands_matches_the_cpu() {
@@ -376,6 +377,10 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
         (2, 4, 6, 17, 3, 2, 1, 1, 96, 3),
         (3, 2, 7, 15, 5, 1, 2, 2, 32, 4),
         (1, 5, 3, 16, 1, 1, 0, 1, 50, 2),
+        // Bands that divide the positions: a channels-last gradient's rows are read as they
+        // are, one band per launch and two per launch.
+        (1, 3, 5, 16, 3, 1, 1, 1, 64, 1),
+        (2, 4, 6, 16, 3, 2, 1, 1, 32, 2),
     ];
     for case @ (b, cin, cout, size, k, stride, pad, dil, band, per_launch) in cases {
         let options = ConvOptions::new([stride; 2], [pad; 2], [dil; 2], 1);
@@ -451,6 +456,7 @@ fn weight_gradients_are_split_where_the_tiles_are_few() {
     );
     let bands = (1usize << 20).div_ceil(plan.band);
     assert!(bands * 5 >= 1024, "{plan:?}: {bands} bands");
+    assert!((1usize << 20).is_multiple_of(plan.band), "{plan:?}: bands that divide");
     assert!(plan.bands_per_launch * 288 * plan.band <= MAX_COLUMN_VALUES);
     // 512 → 512 at 32²: many tiles, a short reduction.
     assert_eq!(Bands::plan(1024, 512, 4608), None);

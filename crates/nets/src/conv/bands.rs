@@ -7,9 +7,11 @@
 //! million positions alone: on an H200 such launches took 2–16 ms on 2–36 cubes and the weight
 //! gradients half the `paper` step's convolution time (BENCHMARKS "Where the device time goes").
 //! Here the positions are cut into bands of `band` consecutive positions (flattened over batch,
-//! rows, columns; the last band padded with zeros), [`kernels::band_columns`] writes the im2col
-//! of every band (`[bands, N, band]`), [`kernels::band_gradient`] the output gradient's
-//! (`[bands, C_out, band]`), one batched matmul multiplies each band's pair (`[bands, C_out, N]`,
+//! rows, columns; a length that divides them where one is near, else the last band padded with
+//! zeros), [`kernels::band_columns`] writes the im2col of every band (`[bands, N, band]`),
+//! [`kernels::band_gradient`] the output gradient's (`[bands, C_out, band]`) — unless the
+//! gradient is channels-last and the bands divide it, when its rows are the bands as they are
+//! (a launch and a copy of the gradient fewer) — one batched matmul multiplies each band's pair (`[bands, C_out, N]`,
 //! `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
 //! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
 //! several launches, summed).
@@ -26,9 +28,10 @@ use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::ops::ConvOptions;
-use burn::tensor::{DType, Shape};
+use burn::tensor::{DType, Shape, Slice};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
+use burn_cubecl::ops::permute_nchw_to_nhwc;
 
 use crate::cube_grid::one_thread_per_value;
 use crate::cube_layout::readable;
@@ -64,6 +67,13 @@ impl Bands {
             .div_ceil(wanted)
             .max(MIN_BAND)
             .next_multiple_of(32);
+        // A band that divides the positions, if one is within half of the planned length: a
+        // channels-last gradient is then its bands as it is ([`weight_grad_in_bands`]).
+        let band = (band / 2..=band)
+            .rev()
+            .step_by(32)
+            .find(|&b| b >= MIN_BAND && positions.is_multiple_of(b))
+            .unwrap_or(band);
         let bands = positions.div_ceil(band);
         (bands >= 2).then(|| Self {
             band,
@@ -228,6 +238,12 @@ pub fn weight_grad_in_bands(
     let ((x, x_last), (grad, grad_last)) = (readable(x), readable(grad));
     let (client, device) = (x.client.clone(), x.device.clone());
     let per_launch = bands.bands_per_launch.max(1);
+    // A channels-last gradient is `[positions, C_out]` row-major: where whole bands cover the
+    // positions, `[bands, band, C_out]` as it is, and no copy into bands is needed.
+    let grad_bands = (grad_last && positions == band_count * bands.band).then(|| {
+        let rows = permute_nchw_to_nhwc(grad.clone());
+        CubeBackend::float_reshape(rows, Shape::new([band_count, bands.band, c_out]))
+    });
     // Bands `first..first + count`: `[C_out, N]`, their share of the sum.
     let partial = |first: usize| {
         let count = per_launch.min(band_count - first);
@@ -240,7 +256,7 @@ pub fn weight_grad_in_bands(
             };
             empty_device_contiguous_dtype(client.clone(), device.clone(), shape.into(), DType::F32)
         };
-        let (cols, gradient) = (empty(columns, x_last), empty(c_out, grad_last));
+        let cols = empty(columns, x_last);
         let (cubes, cube) = one_thread_per_value(count * columns * bands.band);
         kernels::band_columns::launch(
             &client,
@@ -266,20 +282,30 @@ pub fn weight_grad_in_bands(
             u(options.dilation[1]),
             x_last,
         );
-        let (cubes, cube) = one_thread_per_value(count * c_out * bands.band);
-        kernels::band_gradient::launch(
-            &client,
-            cubes,
-            cube,
-            grad.clone().into_tensor_arg(),
-            gradient.clone().into_tensor_arg(),
-            u(first),
-            u(bands.band),
-            u(positions),
-            u(c_out),
-            u(h_out * w_out),
-            grad_last,
-        );
+        let gradient = match &grad_bands {
+            // Bands `first..first + count` of the gradient's rows, a view where aligned.
+            Some(all) => {
+                CubeBackend::float_slice(all.clone(), &[Slice::from(first..first + count)])
+            }
+            None => {
+                let gradient = empty(c_out, grad_last);
+                let (cubes, cube) = one_thread_per_value(count * c_out * bands.band);
+                kernels::band_gradient::launch(
+                    &client,
+                    cubes,
+                    cube,
+                    grad.clone().into_tensor_arg(),
+                    gradient.clone().into_tensor_arg(),
+                    u(first),
+                    u(bands.band),
+                    u(positions),
+                    u(c_out),
+                    u(h_out * w_out),
+                    grad_last,
+                );
+                gradient
+            }
+        };
         // [count, C_out, band] × [count, band, N] → [count, C_out, N], summed over the bands;
         // the operands stored the other way round are transposed views the matmul reads as
         // they are.
