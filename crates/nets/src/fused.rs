@@ -392,6 +392,35 @@ pub trait FusedBackend: Backend {
     #[fusion(dtype = x, shape = Shape::new([x[1]]))]
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
+    /// The backward of [`bias_leaky_relu`] for a learned bias: the input's gradient
+    /// ([`FusedBackend::bias_leaky_relu_grad`]) and the bias's (its
+    /// [`FusedBackend::channel_sum`]). Why one op: on a GPU one kernel writes the first and each
+    /// cube's share of the second, where the two ops read the gradient twice in two or three
+    /// launches.
+    #[fusion(meta = |output, _grad, _slope, _gain| {
+        (output.clone(), TensorSpec::new(Shape::new([output.shape[1]]), output.dtype))
+    })]
+    fn bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
+    /// [`FusedBackend::bias_leaky_relu_backward`] for [`noisy_bias_leaky_relu`], with the noise
+    /// strength's gradient ([`FusedBackend::noise_strength_grad`]) from the same pass.
+    #[fusion(meta = |output, _grad, _noise, _slope, _gain| {
+        let vector = |n: usize| TensorSpec::new(Shape::new([n]), output.dtype);
+        (output.clone(), vector(output.shape[1]), vector(1))
+    })]
+    fn noisy_bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+
     /// `[B, C, H, W] → [B, C, 2H, 2W]`, bilinear.
     #[fusion(dtype = x, shape = scaled(x, 2, 1))]
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self>;

@@ -456,7 +456,10 @@ fn weight_gradients_are_split_where_the_tiles_are_few() {
     );
     let bands = (1usize << 20).div_ceil(plan.band);
     assert!(bands * 5 >= 1024, "{plan:?}: {bands} bands");
-    assert!((1usize << 20).is_multiple_of(plan.band), "{plan:?}: bands that divide");
+    assert!(
+        (1usize << 20).is_multiple_of(plan.band),
+        "{plan:?}: bands that divide"
+    );
     assert!(plan.bands_per_launch * 288 * plan.band <= MAX_COLUMN_VALUES);
     // 512 → 512 at 32²: many tiles, a short reduction.
     assert_eq!(Bands::plan(1024, 512, 4608), None);
@@ -624,18 +627,21 @@ fn the_fused_ops_match_the_cpu() {
     };
     // The bias's gradient of a long map over few channels, summed in segments and then over
     // them (`channel_sum`), from either layout; a batch of two row-major.
+    // Channels-last over a power-of-two channel count, the input gradient and each cube's share
+    // of the bias's come from one pass (`bias_leaky_relu_grads`): over many cubes, the last
+    // one short, and with a cube of 1 024 units.
     for (shape, x_last, r_last) in [
         ([1, 3, 256, 256], false, false),
         ([1, 3, 256, 256], true, true),
         ([2, 3, 256, 256], false, true),
+        ([2, 16, 100, 30], true, true),
+        ([1, 1024, 3, 5], true, true),
     ] {
         let run = |device: &Device| {
             let x = laid_out(shape, device, x_last);
-            let b = Tensor::<1>::from_data(
-                burn::tensor::TensorData::new(vec![0.3f32, -0.1, 0.05], [3]),
-                device,
-            )
-            .require_grad();
+            let v = (0..shape[1]).map(|c| 0.3 - 0.2 * (c % 3) as f32).collect();
+            let b = Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [shape[1]]), device)
+                .require_grad();
             let y = fused::bias_leaky_relu(x, b.clone(), 0.2, 1.5);
             let r = (laid_out(shape, device, r_last) * 37.0).sin();
             values(b.grad(&(y * r).sum().backward()).unwrap())
@@ -644,8 +650,18 @@ fn the_fused_ops_match_the_cpu() {
         assert_close(&run(&gpu), &run(&cpu), 1e-4, &what);
     }
     // 40 × 30: the noise strength's gradient summed over several cubes of pixels, the last
-    // one partly past them.
-    for shape in [[1, 1, 1, 1], [2, 3, 5, 7], [1, 32, 16, 16], [2, 3, 40, 30]] {
+    // one partly past them; from a channels-last map of 8, 512 or 4 channels, the three
+    // gradients from one pass over the batch's positions, cubes of 256 and 512 units and a
+    // thousand cubes.
+    for shape in [
+        [1, 1, 1, 1],
+        [2, 3, 5, 7],
+        [1, 32, 16, 16],
+        [2, 3, 40, 30],
+        [2, 8, 40, 30],
+        [1, 512, 6, 5],
+        [1, 4, 256, 256],
+    ] {
         let channels = shape[1];
         let bias = |device: &Device| {
             let v = (0..channels).map(|c| 0.3 - 0.17 * c as f32).collect();

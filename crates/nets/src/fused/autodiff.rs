@@ -27,11 +27,15 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
     ) {
         let grad = grads.consume::<B>(&ops.node);
         let (output, slope, gain) = ops.state;
-        let pre_activation = B::bias_leaky_relu_grad(output, grad, slope, gain);
         let [x_node, bias_node] = ops.parents;
-        if let Some(node) = bias_node {
-            grads.register::<B>(node.id, B::channel_sum(pre_activation.clone()));
-        }
+        let pre_activation = match bias_node {
+            Some(node) => {
+                let (dx, d_bias) = B::bias_leaky_relu_backward(output, grad, slope, gain);
+                grads.register::<B>(node.id, d_bias);
+                dx
+            }
+            None => B::bias_leaky_relu_grad(output, grad, slope, gain),
+        };
         if let Some(node) = x_node {
             grads.register::<B>(node.id, pre_activation);
         }
@@ -54,13 +58,14 @@ impl<B: Backend + FusedBackend> Backward<B, 4> for NoisyBiasLeakyReluBackward {
     ) {
         let grad = grads.consume::<B>(&ops.node);
         let (output, noise, strength, slope, gain) = ops.state;
-        let pre_activation = B::bias_leaky_relu_grad(output, grad, slope, gain);
         let [x_node, noise_node, strength_node, bias_node] = ops.parents;
+        // The networks learn both: one pass for the three gradients.
+        let (pre_activation, d_bias, d_strength) =
+            B::noisy_bias_leaky_relu_backward(output, grad, noise, slope, gain);
         if let Some(node) = bias_node {
-            grads.register::<B>(node.id, B::channel_sum(pre_activation.clone()));
+            grads.register::<B>(node.id, d_bias);
         }
         if let Some(node) = strength_node {
-            let d_strength = B::noise_strength_grad(pre_activation.clone(), noise);
             grads.register::<B>(node.id, d_strength);
         }
         if let Some(node) = noise_node {
@@ -409,6 +414,45 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
 
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::channel_sum(x.into_primitive()))
+    }
+
+    fn bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let (dx, d_bias) = B::bias_leaky_relu_backward(
+            output.into_primitive(),
+            grad.into_primitive(),
+            slope,
+            gain,
+        );
+        (
+            Autodiff::<B, C>::from_inner(dx),
+            Autodiff::<B, C>::from_inner(d_bias),
+        )
+    }
+
+    fn noisy_bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let (dx, d_bias, d_strength) = B::noisy_bias_leaky_relu_backward(
+            output.into_primitive(),
+            grad.into_primitive(),
+            noise.into_primitive(),
+            slope,
+            gain,
+        );
+        (
+            Autodiff::<B, C>::from_inner(dx),
+            Autodiff::<B, C>::from_inner(d_bias),
+            Autodiff::<B, C>::from_inner(d_strength),
+        )
     }
 
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -103,6 +103,38 @@ impl FusedBackend for CubeBackend {
         bias_leaky_relu::channel_sum(x)
     }
 
+    fn bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        match bias_leaky_relu::gradients(&output, &grad, None, slope, gain) {
+            Some((dx, d_bias, _)) => (dx, d_bias),
+            None => {
+                let dx = bias_leaky_relu::bias_leaky_relu_grad(output, grad, slope, gain);
+                (dx.clone(), bias_leaky_relu::channel_sum(dx))
+            }
+        }
+    }
+
+    fn noisy_bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        match bias_leaky_relu::gradients(&output, &grad, Some(&noise), slope, gain) {
+            Some((dx, d_bias, Some(d_strength))) => (dx, d_bias, d_strength),
+            _ => {
+                let dx = bias_leaky_relu::bias_leaky_relu_grad(output, grad, slope, gain);
+                let d_strength = bias_leaky_relu::noise_strength_grad(dx.clone(), noise);
+                (dx.clone(), bias_leaky_relu::channel_sum(dx), d_strength)
+            }
+        }
+    }
+
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {
         upsample::upsample2(x)
     }

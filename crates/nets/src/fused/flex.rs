@@ -110,6 +110,28 @@ impl FusedBackend for Flex {
         from_values(vec![sum as f32], vec![1])
     }
 
+    fn bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let dx = Self::bias_leaky_relu_grad(output, grad, slope, gain);
+        (dx.clone(), Self::channel_sum(dx))
+    }
+
+    fn noisy_bias_leaky_relu_backward(
+        output: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        slope: f32,
+        gain: f32,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
+        let dx = Self::bias_leaky_relu_grad(output, grad, slope, gain);
+        let strength = Self::noise_strength_grad(dx.clone(), noise);
+        (dx.clone(), Self::channel_sum(dx), strength)
+    }
+
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels, height, width] = dims(&x);
         let plane = height * width;

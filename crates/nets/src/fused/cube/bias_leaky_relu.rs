@@ -1,6 +1,8 @@
 //! Bias + leaky ReLU (StyleGAN2's activation; LPIPS's bias + ReLU with slope 0): the forward and
 //! the input gradient one kernel each, the bias gradient Burn's reductions, the noise strength's
-//! a kernel of partial sums and Burn's reduction of them.
+//! a kernel of partial sums and Burn's reduction of them — or, for a channels-last gradient of
+//! a power-of-two channel count (the networks' own), the three gradients from one kernel that
+//! also sums each cube's share of the last two, and Burn's reductions of those shares.
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
@@ -10,8 +12,10 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 
+use burn_cubecl::cubecl::CubeDim;
+
 use super::{dims, one_thread_per_output, u32_of};
-use crate::cube_grid::{UNITS, one_thread_per_value};
+use crate::cube_grid::{UNITS, cubes_in_rows, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, readable};
 
 mod kernels {
@@ -114,6 +118,93 @@ mod kernels {
         cube_sum(&mut partial, units);
         if UNIT_POS == 0 && (k as usize) < partials.len() {
             partials[k as usize] = partial[0];
+        }
+    }
+
+    /// The activation's gradient at one value, as [`bias_leaky_relu_grad`] computes it.
+    #[cube]
+    fn activation_grad(output: f32, grad: f32, gain: f32, slope: f32) -> f32 {
+        let mut value = 0.0f32;
+        if output > 0.0 {
+            value = gain * grad;
+        } else if slope != 0.0 {
+            value = gain * slope * grad;
+        }
+        value
+    }
+
+    /// [`bias_leaky_relu_grad`] on channels-last `[positions, channels]` values (`channels` a
+    /// power of two dividing `units`), with each cube's sums for the bias gradient and, if
+    /// `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes positions `k ·
+    /// block..(k + 1) · block`, unit `t` channel `t % channels` of every `units / channels`-th
+    /// of them; `bias_partials[k, c]` is the sum of the block's `dx[·, c]`, `noise_partials[k]`
+    /// that of `dx · noise[position % pixels]`. The units holding one channel are then summed
+    /// pairwise in shared memory. Every unit reaches every barrier; cubes past the blocks
+    /// write nothing.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn bias_leaky_relu_grads(
+        output: &Tensor<f32>,
+        grad: &Tensor<f32>,
+        noise: &Tensor<f32>,
+        dx: &mut Tensor<f32>,
+        bias_partials: &mut Tensor<f32>,
+        noise_partials: &mut Tensor<f32>,
+        positions: u32,
+        pixels: u32,
+        channels: u32,
+        block: u32,
+        blocks: u32,
+        gain: f32,
+        slope: f32,
+        #[comptime] noisy: bool,
+        #[comptime] units: u32,
+    ) {
+        let k = cube_index();
+        let t = UNIT_POS;
+        let c = t % channels;
+        let lanes = units / channels;
+        let first = k * block;
+        let mut end = first + block;
+        if end > positions {
+            end = positions;
+        }
+        let mut bias_sum = 0.0f32;
+        let mut noise_sum = 0.0f32;
+        let mut p = first + t / channels;
+        while p < end {
+            let at = (p * channels + c) as usize;
+            let g = activation_grad(output[at], grad[at], gain, slope);
+            dx[at] = g;
+            bias_sum += g;
+            if comptime![noisy] {
+                noise_sum += g * noise[(p % pixels) as usize];
+            }
+            p += lanes;
+        }
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        partial[t as usize] = bias_sum;
+        sync_cube();
+        // Pairwise with doubling strides from the channel count: unit `t` ends holding the sum
+        // of the units `t + j · channels`.
+        let mut stride = channels;
+        while stride < units {
+            if t % (2 * stride) < stride {
+                partial[t as usize] += partial[(t + stride) as usize];
+            }
+            sync_cube();
+            stride *= 2;
+        }
+        if t < channels && k < blocks {
+            bias_partials[(k * channels + t) as usize] = partial[t as usize];
+        }
+        if comptime![noisy] {
+            let mut products = Shared::<[f32]>::new_slice(comptime![units as usize]);
+            products[t as usize] = noise_sum;
+            cube_sum(&mut products, units);
+            if t == 0 && k < blocks {
+                noise_partials[k as usize] = products[0];
+            }
         }
     }
 
@@ -278,6 +369,105 @@ pub(super) fn bias_leaky_relu_grad(
             slope,
         )
     })
+}
+
+/// The most units a cube of [`kernels::bias_leaky_relu_grads`] has: a channel count up to this
+/// (a power of two) is one channel per unit or fewer.
+const MAX_GRAD_UNITS: usize = 1024;
+/// Positions per cube of [`kernels::bias_leaky_relu_grads`], at fewest: a cube's sums end in
+/// a few values, summed again by Burn's reduction.
+const MIN_BLOCK: usize = 64;
+/// Cubes [`kernels::bias_leaky_relu_grads`] aims for, about eight per multiprocessor of an
+/// H100/H200, as the banded weight gradient does.
+const TARGET_BLOCKS: usize = 1024;
+
+/// The input gradient of [`bias_leaky_relu`] (or its noisy form) with the bias's gradient and,
+/// given the `noise`, the strength's, from one pass over a channels-last `grad` and `output`
+/// ([`kernels::bias_leaky_relu_grads`]) and Burn's sums of each cube's partial sums: two
+/// launches (three with noise) where the separate ops took three to five. `None` where the
+/// pass does not apply (another layout, a channel count that is not a power of two up to
+/// 1 024, 2³² values or more): the caller runs the separate ops.
+#[allow(clippy::type_complexity)]
+pub(super) fn gradients(
+    output: &FloatTensor<CubeBackend>,
+    grad: &FloatTensor<CubeBackend>,
+    noise: Option<&FloatTensor<CubeBackend>>,
+    slope: f32,
+    gain: f32,
+) -> Option<(
+    FloatTensor<CubeBackend>,
+    FloatTensor<CubeBackend>,
+    Option<FloatTensor<CubeBackend>>,
+)> {
+    let shape @ [batch, channels, height, width] = dims(grad);
+    let (pixels, positions) = (height * width, batch * height * width);
+    let fits = u32::try_from(grad.shape().num_elements()).is_ok();
+    if dims(output) != shape
+        || !channels_last(grad)
+        || !channels_last(output)
+        || !channels.is_power_of_two()
+        || channels > MAX_GRAD_UNITS
+        || positions == 0
+        || !fits
+    {
+        return None;
+    }
+    if let Some(noise) = noise {
+        assert_eq!(
+            noise.shape().num_elements(),
+            pixels,
+            "one noise value per pixel"
+        );
+    }
+    let units = channels.max(UNITS as usize);
+    let lanes = units / channels;
+    let block = positions
+        .div_ceil(TARGET_BLOCKS)
+        .max(MIN_BLOCK)
+        .next_multiple_of(lanes);
+    let blocks = positions.div_ceil(block);
+    let noise = noise.map(|n| into_contiguous(n.clone()));
+    let dx = empty_in_layout(grad, shape, true);
+    let bias_partials = empty_in_layout(grad, [1, 1, blocks, channels], false);
+    let noise_partials = empty_in_layout(grad, [1, 1, 1, blocks], false);
+    let u = |v: usize| v as u32;
+    kernels::bias_leaky_relu_grads::launch(
+        &grad.client,
+        cubes_in_rows(blocks),
+        CubeDim::new_1d(u(units)),
+        output.clone().into_tensor_arg(),
+        grad.clone().into_tensor_arg(),
+        // Never read without noise: the kernel takes a tensor all the same.
+        noise
+            .clone()
+            .unwrap_or_else(|| grad.clone())
+            .into_tensor_arg(),
+        dx.clone().into_tensor_arg(),
+        bias_partials.clone().into_tensor_arg(),
+        noise_partials.clone().into_tensor_arg(),
+        u(positions),
+        u(pixels).max(1),
+        u(channels),
+        u(block),
+        u(blocks),
+        gain,
+        slope,
+        noise.is_some(),
+        u(units),
+    );
+    // Each sum over the cubes' partial sums is one launch, none for a single cube.
+    let summed = |partials: FloatTensor<CubeBackend>, values: usize| {
+        let rows = CubeBackend::float_reshape(partials, Shape::new([blocks, values]));
+        let sums = if blocks > 1 {
+            CubeBackend::float_sum_dim(rows, 0)
+        } else {
+            rows
+        };
+        CubeBackend::float_reshape(sums, Shape::new([values]))
+    };
+    let d_bias = summed(bias_partials, channels);
+    let d_strength = noise.is_some().then(|| summed(noise_partials, 1));
+    Some((dx, d_bias, d_strength))
 }
 
 /// Burn's reductions (the patched `burn-cubecl` picks a plane per channel for the long
