@@ -12,6 +12,9 @@
 # compiles), counted by kernel and by the first f3g function up the stack; and `stacks.txt`,
 # every launch's stack (perf script's text) for questions the counts do not answer.
 # perf drops samples when its buffer fills (it says how many): the counts are then shares.
+# F3G_PERF_PAGES (perf's buffer in pages, default 65536) and F3G_PERF_STACK (bytes of stack
+# kept per launch, default 65528): 262144 and 40960 record every launch of a `paper` step, but
+# some stacks through CubeK's convolutions then end before reaching f3g's frames.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 f3g=$(realpath "${1:?a cuda build of f3g}")

@@ -15,7 +15,8 @@
 //! pooling and input size. A ToRGB's output (its bias and the previous level's output carried
 //! up through three resampling ops) and LPIPS's comparison of a tap (each feature map
 //! normalised over channels, the difference weighted by a 1×1 convolution, the mean) were five
-//! and about fifteen ops forward, twice as many backward. Here each is one backend op
+//! and about fifteen ops forward, twice as many backward; a decoder level's concatenation was
+//! Burn's `cat`, whose row-major output the next convolution copied. Here each is one backend op
 //! with a hand-written backward ([`FusedBackend`]); on `Flex` each forward and backward is one
 //! loop over the planes, in parallel (`flex`), and on `Cube` devices (wgpu, CUDA) one kernel
 //! (`cube`, a file per op). Under Burn's `fusion` each op is a lazy operation of the fusion

@@ -11,8 +11,8 @@
 //! zeros), [`kernels::band_columns`] writes the im2col of every band (`[bands, N, band]`),
 //! [`kernels::band_gradient`] the output gradient's (`[bands, C_out, band]`) — unless the
 //! gradient is channels-last and the bands divide it, when its rows are the bands as they are
-//! (a launch and a copy of the gradient fewer) — one batched matmul multiplies each band's pair (`[bands, C_out, N]`,
-//! `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
+//! (a launch and a copy of the gradient fewer) — one batched matmul multiplies each band's
+//! pair (`[bands, C_out, N]`, `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
 //! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
 //! several launches, summed).
 //!

@@ -104,7 +104,7 @@ pub fn strided_input_grad(
     }
     // `[B, C, H, W]` as the `[B·H·W, C]` matrix of its channels-last storage: a view where it
     // is stored so, else a copy.
-    let rows = |t: FloatTensor<CubeBackend>, rows: usize, columns: usize| {
+    let as_matrix = |t: FloatTensor<CubeBackend>, rows: usize, columns: usize| {
         let nhwc = if channels_last(&t) {
             permute_nchw_to_nhwc(t)
         } else {
@@ -112,8 +112,8 @@ pub fn strided_input_grad(
         };
         CubeBackend::float_reshape(nhwc, Shape::new([rows, columns]))
     };
-    let grad = rows(grad, positions, c_out);
-    let weight = rows(weight, c_out, taps);
+    let grad = as_matrix(grad, positions, c_out);
+    let weight = as_matrix(weight, c_out, taps);
     let columns = CubeBackend::float_matmul(grad, weight);
     let row_stride = columns.meta.strides()[0];
     debug_assert_eq!(columns.meta.strides()[1], 1, "matmul writes rows");

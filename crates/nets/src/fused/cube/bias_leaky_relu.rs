@@ -18,11 +18,31 @@ use super::{dims, one_thread_per_output, u32_of};
 use crate::cube_grid::{UNITS, cubes_in_rows, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, readable};
 
-mod kernels {
+/// The kernels; `activation_grad` is shared with the linear layer's (`linear.rs`).
+pub(super) mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
     use super::super::sum::{cube_index, cube_sum};
+
+    /// The activation's gradient at one value: `grad · gain`, times `slope` where the output
+    /// is not positive; with slope 0 a selection, as `fused::flex`'s `leaky_relu_grad`, so that
+    /// a non-finite gradient where the output is zero does not pass.
+    #[cube]
+    pub(in crate::fused::cube) fn activation_grad(
+        grad: f32,
+        output: f32,
+        slope: f32,
+        gain: f32,
+    ) -> f32 {
+        let mut value = 0.0f32;
+        if output > 0.0 {
+            value = gain * grad;
+        } else if slope != 0.0 {
+            value = gain * slope * grad;
+        }
+        value
+    }
 
     /// `out = gain · (x + bias[c])`, times `slope` where that is not positive; `c` is the
     /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
@@ -121,18 +141,6 @@ mod kernels {
         }
     }
 
-    /// The activation's gradient at one value, as [`bias_leaky_relu_grad`] computes it.
-    #[cube]
-    fn activation_grad(output: f32, grad: f32, gain: f32, slope: f32) -> f32 {
-        let mut value = 0.0f32;
-        if output > 0.0 {
-            value = gain * grad;
-        } else if slope != 0.0 {
-            value = gain * slope * grad;
-        }
-        value
-    }
-
     /// [`bias_leaky_relu_grad`] on channels-last `[positions, channels]` values (`channels` a
     /// power of two dividing `units`), with each cube's sums for the bias gradient and, if
     /// `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes positions `k ·
@@ -174,7 +182,7 @@ mod kernels {
         let mut p = first + t / channels;
         while p < end {
             let at = (p * channels + c) as usize;
-            let g = activation_grad(output[at], grad[at], gain, slope);
+            let g = activation_grad(grad[at], output[at], slope, gain);
             dx[at] = g;
             bias_sum += g;
             if comptime![noisy] {
@@ -208,9 +216,8 @@ mod kernels {
         }
     }
 
-    /// `dx = grad · gain · (1 where the output is positive, else slope)`, buffer offset by buffer
-    /// offset (the three share one gapless layout); with slope 0 a selection, as `fused::flex`'s
-    /// `leaky_relu_grad`, so that a non-finite gradient where the output is zero does not pass.
+    /// `dx` = [`activation_grad`], buffer offset by buffer offset (the three share one gapless
+    /// layout).
     #[cube(launch)]
     pub fn bias_leaky_relu_grad(
         output: &Tensor<f32>,
@@ -223,13 +230,7 @@ mod kernels {
         if i >= dx.len() {
             terminate!();
         }
-        let mut value = 0.0f32;
-        if output[i] > 0.0 {
-            value = gain * grad[i];
-        } else if slope != 0.0 {
-            value = gain * slope * grad[i];
-        }
-        dx[i] = value;
+        dx[i] = activation_grad(grad[i], output[i], slope, gain);
     }
 }
 

@@ -20,19 +20,8 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
+    use super::super::bias_leaky_relu::kernels::activation_grad;
     use super::super::sum::{cube_index, cube_sum};
-
-    /// The activation's gradient, as `bias_leaky_relu_grad`'s: with slope 0 a selection.
-    #[cube]
-    fn activation_grad(grad: f32, output: f32, slope: f32, gain: f32) -> f32 {
-        let mut value = 0.0f32;
-        if output > 0.0 {
-            value = gain * grad;
-        } else if slope != 0.0 {
-            value = gain * slope * grad;
-        }
-        value
-    }
 
     /// `out[b, o] = gain · leaky_relu(Σ_i x[b, i] · weight[o, i] · weight_scale + bias[o] ·
     /// bias_scale, slope)`, one cube per output value `k = b · outputs + o` ([`cube_index`];

@@ -1,5 +1,5 @@
-//! The tail of a Haar-domain ToRGB, `x + bias + haar(upsample2(inverse_haar(skip)))`, one
-//! thread per output value, and the skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`,
+//! The tail of a Haar-domain ToRGB, `x + bias + haar(upsample2(inverse_haar(skip)))` (the first
+//! level's `x + bias` alone, `fused::add_channel_bias`), one thread per output value, and the skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`,
 //! one thread per value of the skip's gradient: each value gathers the few it depends on
 //! through the three maps (`position.rs`'s Haar and up-sampling arithmetic, which `haar.rs`'s
 //! and `upsample.rs`'s kernels use too), instead of three launches and two intermediate maps
@@ -175,6 +175,8 @@ pub(super) fn to_rgb_output(
         Some(pixel) => (x, true, pixel),
         None => (into_contiguous(x), false, c4),
     };
+    // The kernel indexes `x`'s buffer, gaps included, with 32 bits.
+    u32_of(batch * height * width * x_pixel);
     let has_skip = skip.is_some();
     let (skip, skip_last) = match skip {
         Some(skip) => readable(skip),
