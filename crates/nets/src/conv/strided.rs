@@ -114,9 +114,12 @@ pub fn strided_input_grad(
     };
     let grad = as_matrix(grad, positions, c_out);
     let weight = as_matrix(weight, c_out, taps);
-    let columns = CubeBackend::float_matmul(grad, weight);
+    let mut columns = CubeBackend::float_matmul(grad, weight);
+    if columns.meta.strides()[1] != 1 {
+        // The kernel reads rows (a matmul writes them; a transposed result is copied).
+        columns = into_contiguous(columns);
+    }
     let row_stride = columns.meta.strides()[0];
-    debug_assert_eq!(columns.meta.strides()[1], 1, "matmul writes rows");
     let dx = empty_in_layout(&columns, [batch, c_in, h, w], true);
     let values = dx.shape().num_elements();
     if values > 0 {
