@@ -18,7 +18,7 @@
 //! where its features reach `S/2` (AG adds them at 256² for S = 512).
 
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
@@ -371,11 +371,19 @@ impl DualStyleUNet {
         serde_json::from_str(&self.config_json).expect("written by init")
     }
 
-    /// The constant style through the mapping network: `[1, style_dim]`.
+    /// The constant style through the mapping network: `[1, style_dim]`. Its input is the
+    /// constant `z = 1/√d` after the mapping's pixel norm (`z / √(mean(z²) + 10⁻⁸)`, as
+    /// [`crate::layers::pixel_norm`] computes it), made here instead of on the device: on a GPU
+    /// the fill and the norm were seven launches per network and step.
     fn style(&self, device: &Device) -> Tensor<2> {
         let d = self.mapping_dim();
-        let z = Tensor::<2>::ones([1, d], device) / (d as f32).sqrt();
-        self.mapping.forward(z)
+        let z = 1.0 / (d as f32).sqrt();
+        let normed = z / (z * z + 1e-8).sqrt();
+        let z = Tensor::<2>::from_data(TensorData::new(vec![normed; d], [1, d]), device);
+        self.mapping
+            .layers
+            .iter()
+            .fold(z, |x, layer| layer.forward(x))
     }
 
     fn mapping_dim(&self) -> usize {
