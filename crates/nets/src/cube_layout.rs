@@ -11,12 +11,20 @@ use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
-use burn_cubecl::ops::permute_nhwc_to_nchw;
+use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
 
 /// Whether `t` (`[B, C, H, W]`) is stored channels-last without gaps.
 pub(crate) fn channels_last(t: &FloatTensor<CubeBackend>) -> bool {
-    let [_, c, h, w] = t.shape().dims();
-    t.meta.strides()[..] == [h * w * c, 1, w * c, c]
+    pixel_stride(t) == Some(t.shape()[1])
+}
+
+/// `t` stored channels-last without gaps: as it is where it is so, else copied.
+pub(crate) fn into_channels_last(t: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    if channels_last(&t) {
+        t
+    } else {
+        permute_nhwc_to_nchw(into_contiguous(permute_nchw_to_nhwc(t)))
+    }
 }
 
 /// The values from one pixel to the next of a `t` (`[B, C, H, W]`) stored channels-last with

@@ -568,6 +568,19 @@ pub trait FusedBackend: Backend {
 
 /// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
 /// each op's output shape before running it).
+/// The activation's input and bias gradients as the separate ops give them
+/// ([`FusedBackend::bias_leaky_relu_grad`], then its [`FusedBackend::channel_sum`]): the CPU's
+/// backward, and a GPU's where its one-pass kernel does not apply.
+fn separate_bias_leaky_relu_grads<B: FusedBackend>(
+    output: FloatTensor<B>,
+    grad: FloatTensor<B>,
+    slope: f32,
+    gain: f32,
+) -> (FloatTensor<B>, FloatTensor<B>) {
+    let dx = B::bias_leaky_relu_grad(output, grad, slope, gain);
+    (dx.clone(), B::channel_sum(dx))
+}
+
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 fn scaled(x: &Shape, times: usize, by: usize) -> Shape {
     Shape::new([x[0], x[1], x[2] * times / by, x[3] * times / by])

@@ -21,7 +21,7 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
 use crate::cube_grid::one_thread_per_value;
-use crate::cube_layout::{channels_last, empty_in_layout};
+use crate::cube_layout::{empty_in_layout, into_channels_last};
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -105,11 +105,7 @@ pub fn strided_input_grad(
     // `[B, C, H, W]` as the `[B·H·W, C]` matrix of its channels-last storage: a view where it
     // is stored so, else a copy.
     let as_matrix = |t: FloatTensor<CubeBackend>, rows: usize, columns: usize| {
-        let nhwc = if channels_last(&t) {
-            permute_nchw_to_nhwc(t)
-        } else {
-            into_contiguous(permute_nchw_to_nhwc(t))
-        };
+        let nhwc = permute_nchw_to_nhwc(into_channels_last(t));
         CubeBackend::float_reshape(nhwc, Shape::new([rows, columns]))
     };
     let grad = as_matrix(grad, positions, c_out);

@@ -24,7 +24,7 @@ use burn::backend::tensor::FloatTensor;
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
-use super::{FusedBackend, LinearScales};
+use super::{FusedBackend, LinearScales, separate_bias_leaky_relu_grads};
 use crate::cube_grid::one_thread_per_value;
 
 mod bias_leaky_relu;
@@ -111,10 +111,7 @@ impl FusedBackend for CubeBackend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         match bias_leaky_relu::gradients(&output, &grad, None, slope, gain) {
             Some((dx, d_bias, _)) => (dx, d_bias),
-            None => {
-                let dx = bias_leaky_relu::bias_leaky_relu_grad(output, grad, slope, gain);
-                (dx.clone(), bias_leaky_relu::channel_sum(dx))
-            }
+            None => separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain),
         }
     }
 
@@ -128,9 +125,10 @@ impl FusedBackend for CubeBackend {
         match bias_leaky_relu::gradients(&output, &grad, Some(&noise), slope, gain) {
             Some((dx, d_bias, Some(d_strength))) => (dx, d_bias, d_strength),
             _ => {
-                let dx = bias_leaky_relu::bias_leaky_relu_grad(output, grad, slope, gain);
+                let (dx, d_bias) =
+                    separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain);
                 let d_strength = bias_leaky_relu::noise_strength_grad(dx.clone(), noise);
-                (dx.clone(), bias_leaky_relu::channel_sum(dx), d_strength)
+                (dx, d_bias, d_strength)
             }
         }
     }

@@ -12,7 +12,10 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use rayon::prelude::*;
 
-use super::{DEMODULATION_EPSILON, FusedBackend, LPIPS_EPSILON, LinearScales, blurred_side};
+use super::{
+    DEMODULATION_EPSILON, FusedBackend, LPIPS_EPSILON, LinearScales, blurred_side,
+    separate_bias_leaky_relu_grads,
+};
 use crate::host::{from_values, host_f32};
 
 /// The blur's taps.
@@ -116,8 +119,7 @@ impl FusedBackend for Flex {
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let dx = Self::bias_leaky_relu_grad(output, grad, slope, gain);
-        (dx.clone(), Self::channel_sum(dx))
+        separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain)
     }
 
     fn noisy_bias_leaky_relu_backward(
@@ -127,9 +129,9 @@ impl FusedBackend for Flex {
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let dx = Self::bias_leaky_relu_grad(output, grad, slope, gain);
-        let strength = Self::noise_strength_grad(dx.clone(), noise);
-        (dx.clone(), Self::channel_sum(dx), strength)
+        let (dx, d_bias) = separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain);
+        let d_strength = Self::noise_strength_grad(dx.clone(), noise);
+        (dx, d_bias, d_strength)
     }
 
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {

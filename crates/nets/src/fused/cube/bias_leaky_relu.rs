@@ -9,14 +9,13 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
-use burn_cubecl::kernel::into_contiguous;
-use burn_cubecl::ops::{permute_nchw_to_nhwc, permute_nhwc_to_nchw};
-
 use burn_cubecl::cubecl::CubeDim;
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::permute_nchw_to_nhwc;
 
 use super::{dims, one_thread_per_output, u32_of};
 use crate::cube_grid::{UNITS, cubes_in_rows, one_thread_per_value};
-use crate::cube_layout::{channels_last, empty_in_layout, readable};
+use crate::cube_layout::{channels_last, empty_in_layout, into_channels_last, readable};
 
 /// The kernels; `activation_grad` is shared with the linear layer's (`linear.rs`).
 pub(super) mod kernels {
@@ -352,10 +351,10 @@ pub(super) fn bias_leaky_relu_grad(
     let shape = dims(&grad);
     assert_eq!(dims(&output), shape, "output and gradient shapes");
     let (grad, last) = readable(grad);
-    let output = match (channels_last(&output), last) {
-        (true, true) => output,
-        (_, false) => into_contiguous(output),
-        (false, true) => permute_nhwc_to_nchw(into_contiguous(permute_nchw_to_nhwc(output))),
+    let output = if last {
+        into_channels_last(output)
+    } else {
+        into_contiguous(output)
     };
     let dx = empty_in_layout(&grad, shape, last);
     one_thread_per_output(dx, &grad, |cubes, cube, dx| {
