@@ -772,13 +772,13 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     let camera =
         f3g_splat::Camera::look_at([0.4, 0.2, 3.0], [0.0; 3], [0.0, 1.0, 0.0], 90.0, 64, 96);
     let unlit = avatar.render(&frame, &camera, [1.0; 3], false).unwrap();
-    // `s = 1 + 1.22·y + 0.73·z` for a normal (x, y, z): the neutral light's constant term and
-    // coefficients −2.5 on `Y_1 = −C1·y`, 1.5 on `Y_2 = C1·z`, as parameters (the change from
+    // `s = 1 + 1.71·y + 1.03·z` for a normal (x, y, z): the neutral light's constant term and
+    // coefficients −3.5 on `Y_1 = −C1·y`, 2.1 on `Y_2 = C1·z`, as parameters (the change from
     // the neutral light over the shading's step).
     use f3g_avatar::model::shading::SHADING_STEP;
     let mut light = vec![0.0f32; 27];
-    light[3..6].fill(-2.5 / SHADING_STEP);
-    light[6..9].fill(1.5 / SHADING_STEP);
+    light[3..6].fill(-3.5 / SHADING_STEP);
+    light[6..9].fill(2.1 / SHADING_STEP);
     let light = Tensor::<2>::from_data(
         burn::tensor::TensorData::new(light, [9, 3]),
         &Device::flex(),
@@ -786,6 +786,7 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     avatar.nets.body.shading = Some(Param::from_tensor(light));
     let lit = avatar.render(&frame, &camera, [1.0; 3], false).unwrap();
     let psnr = f3g_nets::metrics::psnr(&unlit, &lit).unwrap();
+    println!("the light changes the render: {psnr:.1} dB");
     assert!(psnr < 20.0, "the light changes the render: {psnr} dB");
     // The run keeps its training poses.
     let poses = avatar.training_poses().unwrap();
@@ -870,6 +871,7 @@ fn a_run_bakes_into_an_avatar_file_that_reads_back_and_renders_like_its_networks
     let networks = avatar.render(frame, &camera, [1.0; 3], false).unwrap();
     let rendered = back.render(frame, &camera, [1.0; 3]).unwrap();
     let psnr = f3g_nets::metrics::psnr(&networks, &rendered).unwrap();
+    println!("baked vs networks: {psnr:.1} dB");
     assert!(psnr > 25.0, "baked vs networks: {psnr} dB");
 
     // The compressed file is smaller and renders like the float one (its quantisation only),

@@ -207,10 +207,11 @@ fn the_phase_trace_places_every_launch_in_its_phase() {
 /// level's concatenation one op, the strided convolutions' input gradients a GEMM and our
 /// col2im, the banded weight gradients reading a channels-last gradient as it is and the
 /// activation's three gradients from one pass, 6 829 with the mapping's constant input
-/// normalised on the host (2026-11-30); the target is 3 000. The bound
-/// keeps what was won.
+/// normalised on the host (2026-11-30), 6 092 with the equalised convolutions' scale applied in
+/// their activations, Adam keeping a weight channels-last and a network's styles one linear
+/// layer (2026-11-30); the target is 3 000. The bound keeps what was won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_7_200() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_6_500() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -242,7 +243,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_7_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (5_000..=7_200).contains(&per_step),
+        (5_000..=6_500).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }

@@ -26,7 +26,8 @@
 //! fusion, fixed").
 //!
 //! Layouts: `[B, C, H, W]` (row-major on the CPU; on a GPU row-major or channels-last, see
-//! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `[C_in]`.
+//! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `C_in` values of a
+//! network's style vector.
 
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 use burn::backend::fusion::custom::TensorSpec;
@@ -70,15 +71,31 @@ pub fn runs<const D: usize>(x: &Tensor<D>, largest: usize) -> bool {
 /// `slope` not negative (the fused backward reads the slope from the output's sign). One op
 /// where it [`runs`], [`portable::bias_leaky_relu`] elsewhere.
 pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> Tensor<4> {
+    scaled_bias_leaky_relu(x, 1.0, bias, slope, gain)
+}
+
+/// [`bias_leaky_relu`] of `input_scale · x` (`input_scale > 0`): an equalised convolution's
+/// weight scale applied in its activation's pass, `leaky_relu(conv(x, s·W) + b) =
+/// leaky_relu(s · conv(x, W) + b)`, instead of to the weight by an op of its own each way.
+pub fn scaled_bias_leaky_relu(
+    x: Tensor<4>,
+    input_scale: f32,
+    bias: Tensor<1>,
+    slope: f64,
+    gain: f32,
+) -> Tensor<4> {
     if runs(&x, 0) {
         Tensor::from_dispatch(<Dispatch as FusedBackend>::bias_leaky_relu(
             x.into_dispatch(),
+            input_scale,
             bias.into_dispatch(),
             slope as f32,
             gain,
         ))
-    } else {
+    } else if input_scale == 1.0 {
         portable::bias_leaky_relu(x, bias, slope, gain)
+    } else {
+        portable::bias_leaky_relu(x * input_scale, bias, slope, gain)
     }
 }
 
@@ -234,19 +251,28 @@ pub fn cat_channels(first: Tensor<4>, second: Tensor<4>) -> Tensor<4> {
 }
 
 /// StyleGAN2's modulated convolution weight: each input channel `i` of `weight`
-/// (`[C_out, C_in, kh, kw]`) scaled by `style[i] · scale`, then, with `demodulate`, each output
-/// channel divided by its norm `√(Σ w² + 10⁻⁸)`. One op where it [`runs`] (`weight`'s device),
-/// [`portable::modulate`] elsewhere.
-pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: bool) -> Tensor<4> {
+/// (`[C_out, C_in, kh, kw]`) scaled by `styles[first + i] · scale`, then, with `demodulate`, each
+/// output channel divided by its norm `√(Σ w² + 10⁻⁸)`. `styles` holds every modulated layer's
+/// style of a network, `first` is where this layer's begin: one linear layer makes them all
+/// ([`crate::DualStyleUNet`]), where a layer each was two launches per layer and step on a
+/// GPU. One op where it [`runs`] (`weight`'s device), [`portable::modulate`] elsewhere.
+pub fn modulate(
+    weight: Tensor<4>,
+    styles: Tensor<1>,
+    first: usize,
+    scale: f32,
+    demodulate: bool,
+) -> Tensor<4> {
     if runs(&weight, 0) {
         Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate(
             weight.into_dispatch(),
-            style.into_dispatch(),
+            styles.into_dispatch(),
+            first,
             scale,
             demodulate,
         ))
     } else {
-        portable::modulate(weight, style, scale, demodulate)
+        portable::modulate(weight, styles, first, scale, demodulate)
     }
 }
 
@@ -352,10 +378,12 @@ pub fn lpips_distance(x: Tensor<4>, y: Tensor<4>, weight: Tensor<1>) -> Tensor<1
     Fusion: cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))
 )]
 pub trait FusedBackend: Backend {
-    /// `gain · leaky_relu(x + bias, slope)` (`gain > 0`, `slope ≥ 0`).
+    /// `gain · leaky_relu(input_scale · x + bias, slope)` (`gain > 0`, `input_scale > 0`,
+    /// `slope ≥ 0`).
     #[fusion(dtype = x, shape = x)]
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
+        input_scale: f32,
         bias: FloatTensor<Self>,
         slope: f32,
         gain: f32,
@@ -393,17 +421,19 @@ pub trait FusedBackend: Backend {
     #[fusion(dtype = x, shape = Shape::new([x[1]]))]
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
-    /// The backward of [`bias_leaky_relu`] for a learned bias: the input's gradient
-    /// ([`FusedBackend::bias_leaky_relu_grad`]) and the bias's (its
+    /// The backward of [`FusedBackend::bias_leaky_relu`] for a learned bias: the input's
+    /// gradient (`input_scale ·` the pre-activation's, [`FusedBackend::bias_leaky_relu_grad`]
+    /// with the gain times `input_scale`) and the bias's (the pre-activation's,
     /// [`FusedBackend::channel_sum`]). Why one op: on a GPU one kernel writes the first and each
     /// cube's share of the second, where the two ops read the gradient twice in two or three
     /// launches.
-    #[fusion(meta = |output, _grad, _slope, _gain| {
+    #[fusion(meta = |output, _grad, _input_scale, _slope, _gain| {
         (output.clone(), TensorSpec::new(Shape::new([output.shape[1]]), output.dtype))
     })]
     fn bias_leaky_relu_backward(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        input_scale: f32,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
@@ -467,8 +497,6 @@ pub trait FusedBackend: Backend {
     #[fusion(dtype = grad, shape = scaled(grad, 1, 2))]
     fn to_rgb_skip_grad(grad: FloatTensor<Self>) -> FloatTensor<Self>;
 
-    /// The modulated weight ([`modulate`]): `u = weight · style[i] · scale`, and with
-    /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
     /// [`add_channel_bias`].
     #[fusion(dtype = x, shape = x)]
     fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
@@ -491,22 +519,29 @@ pub trait FusedBackend: Backend {
         first: usize,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
+    /// The modulated weight ([`modulate`]): `u = weight · styles[first + i] · scale`, and with
+    /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
     #[fusion(dtype = weight, shape = weight)]
     fn modulate(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self>;
 
-    /// The gradients of `weight` and `style` given the output gradient `grad`. With
+    /// The gradients of `weight` and `styles` given the output gradient `grad`. With
     /// demodulation, the gradient of `u` is `d · (g − u · d² · Σ g·u)` (sums per output channel);
-    /// then `∂weight = ∂u · style[i] · scale` and `∂style[i] = Σ_{o,taps} ∂u · weight · scale`.
-    #[fusion(meta = |weight, style, _grad, _scale, _demodulate| (weight.clone(), style.clone()))]
+    /// then `∂weight = ∂u · styles[first + i] · scale` and `∂styles[first + i] = Σ_{o,taps} ∂u ·
+    /// weight · scale`, the styles' gradient zero outside the layer's range.
+    #[fusion(meta = |weight, styles, _grad, _first, _scale, _demodulate| {
+        (weight.clone(), styles.clone())
+    })]
     fn modulate_grad(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
@@ -569,16 +604,24 @@ pub trait FusedBackend: Backend {
 /// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
 /// each op's output shape before running it).
 /// The activation's input and bias gradients as the separate ops give them
-/// ([`FusedBackend::bias_leaky_relu_grad`], then its [`FusedBackend::channel_sum`]): the CPU's
-/// backward, and a GPU's where its one-pass kernel does not apply.
+/// ([`FusedBackend::bias_leaky_relu_grad`], then its [`FusedBackend::channel_sum`], divided by
+/// `input_scale` on the `[C]` sums): the CPU's backward, and a GPU's where its one-pass kernel
+/// does not apply.
 fn separate_bias_leaky_relu_grads<B: FusedBackend>(
     output: FloatTensor<B>,
     grad: FloatTensor<B>,
+    input_scale: f32,
     slope: f32,
     gain: f32,
 ) -> (FloatTensor<B>, FloatTensor<B>) {
-    let dx = B::bias_leaky_relu_grad(output, grad, slope, gain);
-    (dx.clone(), B::channel_sum(dx))
+    let dx = B::bias_leaky_relu_grad(output, grad, slope, gain * input_scale);
+    let sums = B::channel_sum(dx.clone());
+    let d_bias = if input_scale == 1.0 {
+        sums
+    } else {
+        B::float_div_scalar(sums, input_scale.into())
+    };
+    (dx, d_bias)
 }
 
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]

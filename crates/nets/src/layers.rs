@@ -21,8 +21,8 @@ use burn::tensor::ops::ConvOptions;
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, add_channel_bias, bias_leaky_relu, blur, modulate, noisy_bias_leaky_relu,
-    scale_weight, scaled_linear, to_rgb_output, upsample2,
+    LinearScales, add_channel_bias, blur, modulate, noisy_bias_leaky_relu, scale_weight,
+    scaled_bias_leaky_relu, scaled_linear, to_rgb_output, upsample2,
 };
 use crate::init::Init;
 
@@ -33,11 +33,6 @@ pub use crate::resample::resize;
 pub const LRELU_SLOPE: f64 = 0.2;
 /// Gain that keeps the variance of leaky ReLU(0.2) activations at one.
 pub const LRELU_GAIN: f32 = std::f32::consts::SQRT_2;
-
-/// `leaky_relu(x + bias, 0.2) · √2` with a per-channel bias (StyleGAN2's fused activation).
-pub fn fused_lrelu(x: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
-    bias_leaky_relu(x, bias, LRELU_SLOPE, LRELU_GAIN)
-}
 
 /// A convolution with equalised learning rate.
 #[derive(Module, Debug)]
@@ -77,14 +72,28 @@ impl EqualConv2d {
         )
     }
 
+    /// `gain · leaky_relu(conv(x) + bias, slope)` with an activation `bias` (this layer's own
+    /// is not added), computed as `gain · leaky_relu(scale · conv(x, weight) + bias, slope)`:
+    /// the equalised scale is applied in the activation's pass ([`scaled_bias_leaky_relu`]),
+    /// so the weight is convolved as stored — on a GPU no launch scales it, and none scales
+    /// its gradient back.
+    pub fn forward_activated(
+        &self,
+        x: Tensor<4>,
+        bias: Tensor<1>,
+        slope: f64,
+        gain: f32,
+    ) -> Tensor<4> {
+        let y = conv2d(x, self.weight.val(), None, self.options());
+        scaled_bias_leaky_relu(y, self.scale, bias, slope, gain)
+    }
+
     /// The convolution, then `leaky_relu(·, slope)` with the bias added in the activation's
-    /// single pass ([`bias_leaky_relu`]).
+    /// single pass ([`Self::forward_activated`]).
     pub fn forward_leaky_relu(&self, x: Tensor<4>, slope: f64) -> Tensor<4> {
-        let weight = scale_weight(self.weight.val(), self.scale);
-        let y = conv2d(x, weight, None, self.options());
         match &self.bias {
-            Some(bias) => bias_leaky_relu(y, bias.val(), slope, 1.0),
-            None => leaky_relu(y, slope),
+            Some(bias) => self.forward_activated(x, bias.val(), slope, 1.0),
+            None => leaky_relu(self.forward(x), slope),
         }
     }
 
@@ -172,21 +181,45 @@ impl ConvLayer {
         } else {
             x
         };
-        let y = self.conv.forward(x);
         match &self.activation_bias {
-            Some(b) => fused_lrelu(y, b.val()),
-            None => y,
+            Some(b) => self
+                .conv
+                .forward_activated(x, b.val(), LRELU_SLOPE, LRELU_GAIN),
+            None => self.conv.forward(x),
         }
     }
 }
 
-/// A convolution whose weights are scaled per input channel by a style vector and, optionally,
-/// demodulated per output channel (StyleGAN2). The style is one vector shared by the whole
-/// batch (the StyleUNets use a constant style), so the modulated weights are computed once.
+/// Hands out each modulated layer's range of its network's style vector, in the order the
+/// layers are built: the network makes every style with one linear layer of `total` outputs
+/// ([`crate::DualStyleUNet`]).
+#[derive(Debug, Default)]
+pub struct StyleRanges {
+    total: usize,
+}
+
+impl StyleRanges {
+    /// The first of `inputs` fresh styles.
+    fn take(&mut self, inputs: usize) -> usize {
+        let first = self.total;
+        self.total += inputs;
+        first
+    }
+
+    /// Styles handed out so far.
+    pub fn total(&self) -> usize {
+        self.total
+    }
+}
+
+/// A convolution whose weights are scaled per input channel by a style and, optionally,
+/// demodulated per output channel (StyleGAN2). Its styles are `C_in` values of its network's
+/// style vector from `first` on ([`StyleRanges`]), one vector shared by the whole batch (the
+/// StyleUNets use a constant style), so the modulated weights are computed once.
 #[derive(Module, Debug)]
 pub struct ModulatedConv2d {
     pub weight: Param<Tensor<4>>,
-    pub modulation: EqualLinear,
+    first: usize,
     scale: f32,
     demodulate: bool,
     upsample: bool,
@@ -197,25 +230,30 @@ impl ModulatedConv2d {
         init: &mut Init,
         channels: [usize; 2],
         kernel: usize,
-        style_dim: usize,
+        styles: &mut StyleRanges,
         demodulate: bool,
         upsample: bool,
     ) -> Self {
         let [cin, cout] = channels;
         Self {
             weight: init.normal([cout, cin, kernel, kernel], 1.0),
-            modulation: EqualLinear::new(init, [style_dim, cin], 1.0, 1.0, false),
+            first: styles.take(cin),
             scale: 1.0 / ((cin * kernel * kernel) as f32).sqrt(),
             demodulate,
             upsample,
         }
     }
 
-    /// `x`: `[B, in, H, W]`, `style`: `[1, style_dim]`.
-    pub fn forward(&self, x: Tensor<4>, style: Tensor<2>) -> Tensor<4> {
-        let [_, cin, k, _] = self.weight.dims();
-        let s = self.modulation.forward(style).reshape([cin]);
-        let w = modulate(self.weight.val(), s, self.scale, self.demodulate);
+    /// `x`: `[B, in, H, W]`, `styles`: the network's style vector.
+    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>) -> Tensor<4> {
+        let k = self.weight.dims()[2];
+        let w = modulate(
+            self.weight.val(),
+            styles,
+            self.first,
+            self.scale,
+            self.demodulate,
+        );
         let x = if self.upsample { upsample2(x) } else { x };
         conv2d(
             x,
@@ -256,20 +294,20 @@ impl StyledConv {
     pub fn new(
         init: &mut Init,
         channels: [usize; 2],
-        style_dim: usize,
+        styles: &mut StyleRanges,
         upsample: bool,
         out_size: usize,
     ) -> Self {
         Self {
-            conv: ModulatedConv2d::new(init, channels, 3, style_dim, true, upsample),
+            conv: ModulatedConv2d::new(init, channels, 3, styles, true, upsample),
             noise: NoiseInjection::new(init, out_size),
             bias: init.constant([channels[1]], 0.0),
         }
     }
 
-    pub fn forward(&self, x: Tensor<4>, style: Tensor<2>) -> Tensor<4> {
+    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>) -> Tensor<4> {
         noisy_bias_leaky_relu(
-            self.conv.forward(x, style),
+            self.conv.forward(x, styles),
             self.noise.noise.val(),
             self.noise.strength.val(),
             self.bias.val(),
@@ -289,13 +327,18 @@ pub struct ToRgb {
 }
 
 impl ToRgb {
-    pub fn new(init: &mut Init, in_channels: usize, out_channels: usize, style_dim: usize) -> Self {
+    pub fn new(
+        init: &mut Init,
+        in_channels: usize,
+        out_channels: usize,
+        styles: &mut StyleRanges,
+    ) -> Self {
         Self {
             conv: ModulatedConv2d::new(
                 init,
                 [in_channels, 4 * out_channels],
                 1,
-                style_dim,
+                styles,
                 false,
                 false,
             ),
@@ -303,8 +346,8 @@ impl ToRgb {
         }
     }
 
-    pub fn forward(&self, x: Tensor<4>, style: Tensor<2>, skip: Option<Tensor<4>>) -> Tensor<4> {
-        let out = self.conv.forward(x, style);
+    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>, skip: Option<Tensor<4>>) -> Tensor<4> {
+        let out = self.conv.forward(x, styles);
         match skip {
             Some(s) => to_rgb_output(out, self.bias.val(), s),
             None => add_channel_bias(out, self.bias.val()),
@@ -367,6 +410,71 @@ mod tests {
         assert_eq!(out.dims(), [1, 4, 4, 4]);
     }
 
+    /// The equalised scale applied in the activation's pass equals the scaled weight convolved
+    /// (StyleGAN2's formulation): output and the input's, weight's and bias's gradients, with
+    /// and without the blur + stride-2 down-sampling.
+    #[test]
+    fn an_activated_layer_equals_its_scaled_weight_convolved() {
+        let device = Device::flex().autodiff();
+        for downsample in [false, true] {
+            let mut init = Init::new(11, &device);
+            let layer = ConvLayer::new(&mut init, [3, 5], 3, downsample, true);
+            let bias_values = init.normal_values(5, 0.3);
+            let layer = ConvLayer {
+                activation_bias: Some(Param::from_tensor(init.tensor(bias_values, [5]))),
+                ..layer
+            };
+            let x_values = init.normal_values(2 * 3 * 8 * 8, 1.0);
+            let run = |reference: bool| {
+                let x = init.tensor(x_values.clone(), [2, 3, 8, 8]).require_grad();
+                let y = if reference {
+                    let x = if downsample {
+                        blur(x.clone(), 2, 2)
+                    } else {
+                        x.clone()
+                    };
+                    let w = scale_weight(layer.conv.weight.val(), layer.conv.scale);
+                    let y = conv2d(x, w, None, layer.conv.options());
+                    let bias = layer.activation_bias.as_ref().unwrap().val();
+                    crate::fused::bias_leaky_relu(y, bias, LRELU_SLOPE, LRELU_GAIN)
+                } else {
+                    layer.forward(x.clone())
+                };
+                let n = y.shape().num_elements();
+                let r = (0..n).map(|i| ((i * 7) % 11) as f32 - 5.0).collect();
+                let r = init.tensor(r, y.dims());
+                let grads = (y.clone() * r).sum().backward();
+                [
+                    values(y),
+                    values(x.grad(&grads).unwrap()),
+                    values(layer.conv.weight.val().grad(&grads).unwrap()),
+                    values(
+                        layer
+                            .activation_bias
+                            .as_ref()
+                            .unwrap()
+                            .val()
+                            .grad(&grads)
+                            .unwrap(),
+                    ),
+                ]
+            };
+            let (ours, reference) = (run(false), run(true));
+            for (what, (got, expected)) in ["y", "dx", "dw", "db"]
+                .iter()
+                .zip(ours.iter().zip(&reference))
+            {
+                assert_eq!(got.len(), expected.len());
+                for (g, e) in got.iter().zip(expected) {
+                    assert!(
+                        (g - e).abs() <= 1e-4 * (1.0 + e.abs()),
+                        "{what} (down-sampling {downsample}): {g}, the scaled weight gives {e}"
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn demodulation_normalises_output_channels() {
         // With demodulation, each output channel's effective weights have unit norm: the
@@ -374,9 +482,12 @@ mod tests {
         // output channel, whatever the style.
         let device = Device::flex();
         let mut init = Init::new(5, &device);
-        let conv = ModulatedConv2d::new(&mut init, [4, 3], 3, 8, true, false);
+        // The layer's styles from the third on of a vector of eight.
+        let mut styles = StyleRanges::default();
+        styles.take(2);
+        let conv = ModulatedConv2d::new(&mut init, [4, 3], 3, &mut styles, true, false);
         let style_values = init.normal_values(8, 3.0);
-        let style = init.tensor(style_values, [1, 8]);
+        let style = init.tensor(style_values, [8]);
         let mut energy = [0.0f32; 3];
         for c in 0..4 {
             let mut x = vec![0.0f32; 4 * 9 * 9];

@@ -13,7 +13,8 @@
 //! Channels per resolution follow StyleGAN2: `min(max_channels, channel_base · cm / r)`
 //! (paper values: base 16384, max 512, so cm 2 gives 512 up to 64², then 256, 128, 64, 32).
 //! The style is a constant `1/√d` vector through the learned mapping network, the same for every
-//! layer (n_latent collapses to one w); noise maps are fixed. The optional view branch (the
+//! layer (n_latent collapses to one w); each modulated layer's affine map of w is a range of one
+//! linear layer's outputs (StyleGAN2's per-layer maps stacked); noise maps are fixed. The optional view branch (the
 //! colour networks) turns a map of `n · v` per side into features added to that side's decoder
 //! where its features reach `S/2` (AG adds them at 256² for S = 512).
 
@@ -24,7 +25,10 @@ use serde::{Deserialize, Serialize};
 use crate::NetsError;
 use crate::fused::{cat_channels, downsample2, inverse_haar};
 use crate::init::Init;
-use crate::layers::{ConvLayer, EqualConv2d, LRELU_SLOPE, Mapping, StyledConv, ToRgb, fused_lrelu};
+use crate::layers::{
+    ConvLayer, EqualConv2d, EqualLinear, LRELU_GAIN, LRELU_SLOPE, Mapping, StyleRanges, StyledConv,
+    ToRgb,
+};
 use crate::resample::resize;
 
 /// Architecture of a [`DualStyleUNet`].
@@ -237,8 +241,9 @@ impl StyleUNetConfig {
             });
             r /= 2;
         }
-        let front = Decoder::new(&mut init, self);
-        let back = Decoder::new(&mut init, self);
+        let mut styles = StyleRanges::default();
+        let front = Decoder::new(&mut init, self, &mut styles);
+        let back = Decoder::new(&mut init, self, &mut styles);
         let view = self.view_conditioned.then(|| {
             let c = ch(s / 2);
             ViewBranch {
@@ -249,6 +254,7 @@ impl StyleUNetConfig {
         let style_dim = self.style_dim;
         Ok(DualStyleUNet {
             mapping: Mapping::new(&mut init, style_dim, self.n_mlp, 0.01),
+            styles: EqualLinear::new(&mut init, [style_dim, styles.total()], 1.0, 1.0, false),
             conv_in,
             from_rgb,
             encoder,
@@ -290,7 +296,7 @@ pub struct Decoder {
 }
 
 impl Decoder {
-    fn new(init: &mut Init, c: &StyleUNetConfig) -> Self {
+    fn new(init: &mut Init, c: &StyleUNetConfig, styles: &mut StyleRanges) -> Self {
         let ch = |r| c.channels(r);
         let mut blocks = Vec::new();
         let mut r = c.middle_size;
@@ -298,9 +304,9 @@ impl Decoder {
             let comb_in = if r == c.middle_size { ch(r) } else { 2 * ch(r) };
             blocks.push(DecoderBlock {
                 comb: ConvLayer::new(init, [comb_in, ch(r)], 3, false, true),
-                up: StyledConv::new(init, [ch(r), ch(2 * r)], c.style_dim, true, 2 * r),
-                conv: StyledConv::new(init, [ch(2 * r), ch(2 * r)], c.style_dim, false, 2 * r),
-                to_rgb: ToRgb::new(init, ch(2 * r), c.out_channels, c.style_dim),
+                up: StyledConv::new(init, [ch(r), ch(2 * r)], styles, true, 2 * r),
+                conv: StyledConv::new(init, [ch(2 * r), ch(2 * r)], styles, false, 2 * r),
+                to_rgb: ToRgb::new(init, ch(2 * r), c.out_channels, styles),
             });
             r *= 2;
         }
@@ -310,7 +316,7 @@ impl Decoder {
     fn forward(
         &self,
         skips: &[Tensor<4>],
-        style: Tensor<2>,
+        styles: Tensor<1>,
         view: Option<Tensor<4>>,
         view_level: usize,
     ) -> Tensor<4> {
@@ -324,14 +330,14 @@ impl Decoder {
                 x = cat_channels(x, skip);
             }
             x = block.comb.forward(x);
-            x = block.up.forward(x, style.clone());
-            x = block.conv.forward(x, style.clone());
+            x = block.up.forward(x, styles.clone());
+            x = block.conv.forward(x, styles.clone());
             if level == view_level
                 && let Some(v) = view.take()
             {
                 x = x + v;
             }
-            rgb = Some(block.to_rgb.forward(x.clone(), style.clone(), rgb));
+            rgb = Some(block.to_rgb.forward(x.clone(), styles.clone(), rgb));
         }
         inverse_haar(rgb.expect("at least one decoder block"))
     }
@@ -348,6 +354,10 @@ pub struct ViewBranch {
 #[derive(Module, Debug)]
 pub struct DualStyleUNet {
     pub mapping: Mapping,
+    /// Every modulated layer's style from the mapping's output, one linear layer for all
+    /// (each layer reads its range, [`StyleRanges`]): StyleGAN2's per-layer affine maps
+    /// stacked, so that a GPU makes them in one launch each way instead of one per layer.
+    pub styles: EqualLinear,
     pub conv_in: ConvLayer,
     pub from_rgb: Vec<FromRgb>,
     pub encoder: Vec<ConvBlock>,
@@ -371,23 +381,28 @@ impl DualStyleUNet {
         serde_json::from_str(&self.config_json).expect("written by init")
     }
 
-    /// The constant style through the mapping network: `[1, style_dim]`. Its input is the
+    /// The constant style through the mapping network and every layer's affine map: `[total]`
+    /// ([`StyleRanges`]). The mapping's input is the
     /// constant `z = 1/√d` after the mapping's pixel norm (`z / √(mean(z²) + 10⁻⁸)`, as
     /// [`crate::layers::pixel_norm`] computes it), made here instead of on the device: on a GPU
     /// the fill and the norm were seven launches per network and step.
-    fn style(&self, device: &Device) -> Tensor<2> {
+    fn style_vector(&self, device: &Device) -> Tensor<1> {
         let d = self.mapping_dim();
         let z = 1.0 / (d as f32).sqrt();
         let normed = z / (z * z + 1e-8).sqrt();
         let z = Tensor::<2>::from_data(TensorData::new(vec![normed; d], [1, d]), device);
-        self.mapping
+        let w = self
+            .mapping
             .layers
             .iter()
-            .fold(z, |x, layer| layer.forward(x))
+            .fold(z, |x, layer| layer.forward(x));
+        let styles = self.styles.forward(w);
+        let total = styles.dims()[1];
+        styles.reshape([total])
     }
 
     fn mapping_dim(&self) -> usize {
-        self.front.blocks[0].up.conv.modulation.weight.dims()[1]
+        self.styles.weight.dims()[1]
     }
 
     /// Runs the network. `input`: `[B, in, S, S]`; `view`: `(front, back)` maps of `n · v`,
@@ -413,14 +428,19 @@ impl DualStyleUNet {
             }));
         }
         let device = input.device();
-        let style = self.style(&device);
+        let styles = self.style_vector(&device);
         let mut skips = Vec::new();
         let mut x = self.conv_in.forward(input.clone());
         // The input at each encoder level's size, each level the 2 × 2 mean of the one above.
         let mut small = input.clone();
         for (rgb, block) in self.from_rgb.iter().zip(&self.encoder) {
             small = downsample2(small);
-            x = x + fused_lrelu(rgb.conv.forward(small.clone()), rgb.bias.val());
+            x = x + rgb.conv.forward_activated(
+                small.clone(),
+                rgb.bias.val(),
+                LRELU_SLOPE,
+                LRELU_GAIN,
+            );
             skips.push(x.clone());
             x = block.conv1.forward(x);
             x = block.conv2.forward(x);
@@ -447,8 +467,8 @@ impl DualStyleUNet {
             _ => (None, None),
         };
         Ok(DualOutput {
-            front: self.front.forward(&skips, style.clone(), vf, view_level),
-            back: self.back.forward(&skips, style, vb, view_level),
+            front: self.front.forward(&skips, styles.clone(), vf, view_level),
+            back: self.back.forward(&skips, styles, vb, view_level),
         })
     }
 }

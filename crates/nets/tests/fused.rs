@@ -45,27 +45,33 @@ fn bias(channels: usize, device: &Device) -> Tensor<1> {
 
 #[test]
 fn bias_leaky_relu_matches_the_tensor_ops() {
-    type Op = fn(Tensor<4>, Tensor<1>, f64, f32) -> Tensor<4>;
     let device = Device::flex().autodiff();
-    // StyleGAN2's activation and a convolution's bias + ReLU.
+    // StyleGAN2's activation and a convolution's bias + ReLU, of the input as it is and scaled
+    // (an equalised convolution's weight scale, 1/√(9·32)).
     for (slope, gain) in [(LRELU_SLOPE, LRELU_GAIN), (0.0, 1.0)] {
-        for shape in [[1, 3, 5, 7], [2, 4, 1, 1], [2, 32, 16, 16]] {
-            let run = |op: Op| {
-                let b = bias(shape[1], &device).require_grad();
-                let x = ramp(shape, &device).require_grad();
-                let y = op(x.clone(), b.clone(), slope, gain);
-                let grads = (y.clone() * weights(shape, &device)).sum().backward();
-                [
-                    values(y),
-                    values(x.grad(&grads).unwrap()),
-                    values(b.grad(&grads).unwrap()),
-                ]
-            };
-            let ours = run(fused::bias_leaky_relu);
-            let theirs = run(portable::bias_leaky_relu);
-            for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "db"]) {
-                let what = format!("{what} of {shape:?}, slope {slope}, gain {gain}");
-                assert_close(got, expected, &what);
+        for input_scale in [1.0, 0.059] {
+            for shape in [[1, 3, 5, 7], [2, 4, 1, 1], [2, 32, 16, 16]] {
+                let run = |op: &dyn Fn(Tensor<4>, Tensor<1>) -> Tensor<4>| {
+                    let b = bias(shape[1], &device).require_grad();
+                    let x = ramp(shape, &device).require_grad();
+                    let y = op(x.clone(), b.clone());
+                    let grads = (y.clone() * weights(shape, &device)).sum().backward();
+                    [
+                        values(y),
+                        values(x.grad(&grads).unwrap()),
+                        values(b.grad(&grads).unwrap()),
+                    ]
+                };
+                let ours =
+                    run(&|x, b| fused::scaled_bias_leaky_relu(x, input_scale, b, slope, gain));
+                let theirs =
+                    run(&|x, b| portable::bias_leaky_relu(x * input_scale, b, slope, gain));
+                for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dx", "db"]) {
+                    let what = format!(
+                        "{what} of {shape:?}, input scale {input_scale}, slope {slope}, gain {gain}"
+                    );
+                    assert_close(got, expected, &what);
+                }
             }
         }
     }
@@ -192,9 +198,31 @@ fn every_backward_matches_central_differences() {
     };
     central_differences::check(
         &bias_loss,
-        b.reshape([1, 3, 1, 1]),
+        b.clone().reshape([1, 3, 1, 1]),
         kink_free,
         "db of bias_leaky_relu",
+    );
+    // With the input scaled by 2 the kink is as far from every scaled x + b.
+    let scaled = |x: Tensor<4>, b: Tensor<1>| {
+        squared(fused::scaled_bias_leaky_relu(
+            x,
+            2.0,
+            b,
+            LRELU_SLOPE,
+            LRELU_GAIN,
+        ))
+    };
+    central_differences::check(
+        &|x| scaled(x, b.clone() * 2.0),
+        x0.clone(),
+        kink_free / 2.0,
+        "dx of scaled_bias_leaky_relu",
+    );
+    central_differences::check(
+        &|b: Tensor<4>| scaled(x0.clone(), b.reshape([3]) * 2.0),
+        b.reshape([1, 3, 1, 1]),
+        kink_free,
+        "db of scaled_bias_leaky_relu",
     );
     central_differences::check(
         &|x| squared(fused::upsample2(x)),
@@ -227,36 +255,44 @@ fn every_backward_matches_central_differences() {
     }
 }
 
-/// The modulated weight's output and the gradients of weight and style of `sum(op(w, s) · r)`.
+/// A modulated weight's op: weight, the network's styles, where the layer's begin, scale,
+/// whether to demodulate.
+type Modulation = fn(Tensor<4>, Tensor<1>, usize, f32, bool) -> Tensor<4>;
+
+/// The modulated weight's output and the gradients of weight and styles of `sum(op(w, s) · r)`,
+/// the layer's styles from `first` on in a vector with `more` after them.
 fn modulated(
-    op: fn(Tensor<4>, Tensor<1>, f32, bool) -> Tensor<4>,
+    op: Modulation,
     shape: [usize; 4],
+    [first, more]: [usize; 2],
     demodulate: bool,
 ) -> [Vec<f32>; 3] {
     let device = Device::flex().autodiff();
     let weight = ramp(shape, &device).require_grad();
-    let style = bias(shape[1], &device).require_grad();
-    let y = op(weight.clone(), style.clone(), 0.37, demodulate);
+    let styles = bias(first + shape[1] + more, &device).require_grad();
+    let y = op(weight.clone(), styles.clone(), first, 0.37, demodulate);
     let grads = (y.clone() * weights(shape, &device)).sum().backward();
     [
         values(y),
         values(weight.grad(&grads).unwrap()),
-        values(style.grad(&grads).unwrap()),
+        values(styles.grad(&grads).unwrap()),
     ]
 }
 
 #[test]
 fn modulation_matches_the_tensor_ops() {
     for shape in [[4, 3, 3, 3], [12, 8, 1, 1], [1, 1, 1, 1], [3, 300, 3, 3]] {
-        for demodulate in [true, false] {
-            let ours = modulated(fused::modulate, shape, demodulate);
-            let theirs = modulated(portable::modulate, shape, demodulate);
-            for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dw", "ds"]) {
-                assert_close(
-                    got,
-                    expected,
-                    &format!("{what} of {shape:?} ({demodulate})"),
-                );
+        for range in [[0, 0], [5, 2]] {
+            for demodulate in [true, false] {
+                let ours = modulated(fused::modulate, shape, range, demodulate);
+                let theirs = modulated(portable::modulate, shape, range, demodulate);
+                for ((got, expected), what) in ours.iter().zip(&theirs).zip(["y", "dw", "ds"]) {
+                    assert_close(
+                        got,
+                        expected,
+                        &format!("{what} of {shape:?}, styles {range:?} ({demodulate})"),
+                    );
+                }
             }
         }
     }
@@ -270,10 +306,11 @@ fn the_modulations_backward_matches_central_differences() {
         (y.clone() * y * r).sum()
     };
     let weight = ramp([3, 4, 3, 3], &device);
-    let style = bias(4, &device);
+    // The layer's four styles are the second to fifth of six.
+    let styles = bias(6, &device);
     for demodulate in [true, false] {
         central_differences::check(
-            &|w| squared(fused::modulate(w, style.clone(), 0.37, demodulate)),
+            &|w| squared(fused::modulate(w, styles.clone(), 1, 0.37, demodulate)),
             weight.clone(),
             1e-2,
             &format!("weight gradient ({demodulate})"),
@@ -282,12 +319,13 @@ fn the_modulations_backward_matches_central_differences() {
             &|s| {
                 squared(fused::modulate(
                     weight.clone(),
-                    s.reshape([4]),
+                    s.reshape([6]),
+                    1,
                     0.37,
                     demodulate,
                 ))
             },
-            style.clone().reshape([1, 4, 1, 1]),
+            styles.clone().reshape([1, 6, 1, 1]),
             1e-2,
             &format!("style gradient ({demodulate})"),
         );

@@ -501,6 +501,9 @@ fn adam_in_one_pass_matches_the_cpu() {
 /// [`f3g_nets::adam::ModuleAdam`] on the device launches the updates of up to `MAX_PER_LAUNCH`
 /// parameters per kernel (one grid layer each, sorted by size): three steps of a module with
 /// more parameters than two launches hold, of many sizes, equal the CPU's one-by-one updates.
+/// Convolution weights among them get channels-last gradients (as the implicit GEMM hands
+/// them back) for two steps, which the update keeps the weight and its moments in, then a
+/// row-major one.
 #[test]
 fn adam_over_a_module_in_shared_launches_matches_the_cpu() {
     use burn::module::Param;
@@ -510,16 +513,22 @@ fn adam_over_a_module_in_shared_launches_matches_the_cpu() {
     #[derive(Module, Debug)]
     struct Many {
         rows: Vec<Param<Tensor<4>>>,
+        weights: Vec<Param<Tensor<4>>>,
     }
     let sizes: Vec<usize> = (0..2 * MAX_PER_LAUNCH + 5)
         .map(|i| 1 + (i * i * 37) % 3001 + if i == 7 { 90_000 } else { 0 })
         .collect();
+    let weight_shapes = [[5, 3, 3, 3], [8, 6, 3, 3], [4, 16, 1, 1], [2, 1, 4, 4]];
     let run = |device: &Device| {
         let device = device.clone().autodiff();
         let mut many = Many {
             rows: sizes
                 .iter()
                 .map(|&n| Param::from_tensor(ramp([1, 1, 1, n], &device)))
+                .collect(),
+            weights: weight_shapes
+                .iter()
+                .map(|&shape| Param::from_tensor(ramp(shape, &device)))
                 .collect(),
         };
         let mut adam = FusedAdam {
@@ -529,18 +538,28 @@ fn adam_over_a_module_in_shared_launches_matches_the_cpu() {
         }
         .init();
         for step in 0..3 {
-            let loss = many
+            let rows = many
                 .rows
                 .iter()
                 .enumerate()
-                .map(|(i, p)| (p.val() * (step + i % 5) as f32).sin().sum())
-                .reduce(|a, b| a + b)
-                .unwrap();
+                .map(|(i, p)| (p.val() * (step + i % 5) as f32).sin().sum());
+            // The gradient of a permuted view is the permuted gradient: `[O, kh, kw, I]`
+            // row-major, a channels-last `[O, I, kh, kw]`.
+            let weights = many.weights.iter().map(|p| {
+                let w = p.val() * (step + 2) as f32;
+                if step < 2 {
+                    w.permute([0, 2, 3, 1]).sin().sum()
+                } else {
+                    w.sin().sum()
+                }
+            });
+            let loss = rows.chain(weights).reduce(|a, b| a + b).unwrap();
             let grads = GradientsParams::from_grads(loss.backward(), &many);
             many = adam.step(1e-2, many, grads);
         }
         many.rows
             .iter()
+            .chain(&many.weights)
             .flat_map(|p| values(p.val().inner()))
             .collect::<Vec<_>>()
     };
@@ -668,13 +687,16 @@ fn the_fused_ops_match_the_cpu() {
             Tensor::<1>::from_data(burn::tensor::TensorData::new(v, [channels]), device)
         };
         // The bias's gradient too: the op's second parent. StyleGAN2's activation, and bias +
-        // ReLU on the second pairing.
+        // ReLU on the second pairing; the input scaled (an equalised convolution's weight
+        // scale) on the second and fourth.
         for (pairing, (x_last, r_last)) in LAYOUTS.into_iter().enumerate() {
             let (slope, gain) = if pairing == 1 { (0.0, 1.0) } else { (0.2, 1.5) };
+            let input_scale = [1.0, 0.37, 1.0, 0.059][pairing];
             let run = |device: &Device| {
                 let x = laid_out(shape, device, x_last).require_grad();
                 let b = bias(device).require_grad();
-                let y = fused::bias_leaky_relu(x.clone(), b.clone(), slope, gain);
+                let y =
+                    fused::scaled_bias_leaky_relu(x.clone(), input_scale, b.clone(), slope, gain);
                 let r = (laid_out(shape, device, r_last) * 37.0).sin();
                 let grads = (y.clone() * r).sum().backward();
                 [
@@ -693,7 +715,10 @@ fn the_fused_ops_match_the_cpu() {
                     g,
                     e,
                     1e-5,
-                    &format!("bias_leaky_relu {shape:?} ({slope}, {gain}), {layouts}: {what}"),
+                    &format!(
+                        "bias_leaky_relu {shape:?} ({input_scale}, {slope}, {gain}), {layouts}: \
+                         {what}"
+                    ),
                 );
             }
         }
@@ -765,19 +790,21 @@ fn the_fused_ops_match_the_cpu() {
     }
     // The modulated weight, both gradients: a 3×3 layer of the paper's widths (4 608 values per
     // output channel, 18 per cube unit), a 1×1 ToRGB, and fewer values than a cube has units;
-    // the output gradient row-major, and channels-last as the weight-gradient GEMM gives it.
-    for (shape, demodulate, r_last) in [
-        ([16, 512, 3, 3], true, false),
-        ([16, 512, 3, 3], true, true),
-        ([12, 64, 1, 1], false, false),
-        ([3, 5, 3, 3], true, true),
-        ([3, 5, 3, 3], false, true),
+    // the output gradient row-major, and channels-last as the weight-gradient GEMM gives it;
+    // the layer's styles alone or a range of a longer vector (zeros in more than one cube).
+    let style_vector =
+        |device: &Device, count: usize| ramp([1, 1, 1, count], device).reshape([count]) * 3.0 + 1.0;
+    for (shape, demodulate, r_last, [first, more]) in [
+        ([16, 512, 3, 3], true, false, [0, 0]),
+        ([16, 512, 3, 3], true, true, [300, 40]),
+        ([12, 64, 1, 1], false, false, [7, 600]),
+        ([3, 5, 3, 3], true, true, [0, 3]),
+        ([3, 5, 3, 3], false, true, [2, 0]),
     ] {
         let run = |device: &Device| {
             let weight = ramp(shape, device).require_grad();
-            let style =
-                (ramp([1, 1, 1, shape[1]], device).reshape([shape[1]]) * 3.0 + 1.0).require_grad();
-            let y = fused::modulate(weight.clone(), style.clone(), 0.05, demodulate);
+            let style = style_vector(device, first + shape[1] + more).require_grad();
+            let y = fused::modulate(weight.clone(), style.clone(), first, 0.05, demodulate);
             let r = (laid_out(shape, device, r_last) * 37.0).sin();
             let grads = (y.clone() * r).sum().backward();
             [
@@ -796,7 +823,8 @@ fn the_fused_ops_match_the_cpu() {
                 e,
                 1e-5,
                 &format!(
-                    "modulate {shape:?} ({demodulate}, gradient channels-last {r_last}): {what}"
+                    "modulate {shape:?}, styles {first} + {more} ({demodulate}, gradient \
+                     channels-last {r_last}): {what}"
                 ),
             );
         }
@@ -809,12 +837,13 @@ fn the_fused_ops_match_the_cpu() {
         let shape = [6, 7, 3, 3];
         let grads = |device: &Device| {
             let weight = ramp(shape, device);
-            let style = ramp([1, 1, 1, shape[1]], device).reshape([shape[1]]) * 3.0 + 1.0;
+            let style = style_vector(device, shape[1] + 4);
             let grad = (laid_out(shape, device, true) * 37.0).sin();
             let (d_weight, d_style) = <Dispatch as FusedBackend>::modulate_grad(
                 weight.into_dispatch(),
                 style.into_dispatch(),
                 grad.into_dispatch(),
+                4,
                 0.05,
                 true,
             );

@@ -30,8 +30,9 @@ use crate::model::FaceBase;
 use f3g_template::PosePca;
 
 /// The layout of run folders this version writes and reads: `run.json`'s `format`. Runs
-/// without the key were made before it existed.
-pub const RUN_FORMAT: u64 = 1;
+/// without the key were made before it existed; format 1's networks held one style layer per
+/// modulated convolution, format 2's one per network (`f3g_nets::DualStyleUNet::styles`).
+pub const RUN_FORMAT: u64 = 2;
 
 /// Where a run came from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -129,9 +130,8 @@ impl Run {
                     &self.dir,
                     format!(
                         "is a run folder of format {older}, made by an older f3g; this version \
-                         reads format {RUN_FORMAT}, whose runs keep everything inference needs \
-                         (the stored setup and the training poses): retrain with this version \
-                         of f3g (`f3g train`)"
+                         reads format {RUN_FORMAT} (its networks' parameters are laid out \
+                         differently): retrain with this version of f3g (`f3g train`)"
                     ),
                 ));
             }

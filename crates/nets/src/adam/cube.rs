@@ -25,6 +25,7 @@ use burn_cubecl::tensor::CubeTensor;
 
 use super::{AdamBackend, AdamCoefficients, MAX_PER_LAUNCH};
 use crate::cube_grid::one_thread_per_value_in_layers;
+use crate::cube_layout::{empty_in_layout, into_channels_last, pixel_stride};
 
 mod kernels {
     use burn_cubecl::cubecl;
@@ -113,7 +114,12 @@ struct Queued {
 }
 
 impl Queued {
-    /// The update of one parameter, its outputs allocated (contiguous) and not yet written.
+    /// The update of one parameter, its outputs allocated (gapless) and not yet written, every
+    /// tensor in the gradient's layout: channels-last for a convolution weight, whose gradient
+    /// the implicit GEMM hands back so, row-major otherwise. Why: a weight kept channels-last
+    /// is read by the next forward and input gradient as it is, where a row-major one was
+    /// copied before each (the update reads and writes by buffer offset, so one layout for
+    /// all is all it needs). A parameter changes layout once, at its first update.
     fn new(
         param: CubeTensor,
         grad: CubeTensor,
@@ -122,9 +128,28 @@ impl Queued {
         coefficients: AdamCoefficients,
     ) -> Self {
         let shape = param.shape();
-        let (client, device) = (param.client.clone(), param.device.clone());
+        // A gradient of few input channels comes back pitched (CUDA pads a row of 3 values to
+        // 4): made gapless channels-last all the same, for the forward's sake.
+        let last = shape.num_dims() == 4 && pixel_stride(&grad).is_some();
+        let arranged = |t: CubeTensor| {
+            if last {
+                into_channels_last(t)
+            } else {
+                into_contiguous(t)
+            }
+        };
+        let [param, grad, moment_1, moment_2] = [param, grad, moment_1, moment_2].map(arranged);
         let empty = || {
-            empty_device_contiguous_dtype(client.clone(), device.clone(), shape.clone(), DType::F32)
+            if last {
+                empty_in_layout(&param, shape.dims(), true)
+            } else {
+                empty_device_contiguous_dtype(
+                    param.client.clone(),
+                    param.device.clone(),
+                    shape.clone(),
+                    DType::F32,
+                )
+            }
         };
         let (p, m, v) = (empty(), empty(), empty());
         Self {
@@ -250,7 +275,7 @@ fn launch(client: &Client, chunk: &[Queued], c: AdamCoefficients) {
     let (mut inputs, mut outputs) = (SequenceArg::new(), SequenceArg::new());
     for q in chunk {
         for input in &q.tensors[..4] {
-            inputs.push(into_contiguous(input.clone()).into_tensor_arg());
+            inputs.push(input.clone().into_tensor_arg());
         }
         for output in &q.tensors[4..] {
             outputs.push(output.clone().into_tensor_arg());

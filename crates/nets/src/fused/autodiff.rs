@@ -16,8 +16,8 @@ use super::{FusedBackend, LinearScales};
 struct BiasLeakyReluBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
-    /// The op's output (its sign gives the slope), the slope and the gain.
-    type State = (FloatTensor<B>, f32, f32);
+    /// The op's output (its sign gives the slope), the input scale, the slope and the gain.
+    type State = (FloatTensor<B>, f32, f32, f32);
 
     fn backward(
         self,
@@ -26,18 +26,19 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (output, slope, gain) = ops.state;
+        let (output, input_scale, slope, gain) = ops.state;
         let [x_node, bias_node] = ops.parents;
-        let pre_activation = match bias_node {
+        let dx = match bias_node {
             Some(node) => {
-                let (dx, d_bias) = B::bias_leaky_relu_backward(output, grad, slope, gain);
+                let (dx, d_bias) =
+                    B::bias_leaky_relu_backward(output, grad, input_scale, slope, gain);
                 grads.register::<B>(node.id, d_bias);
                 dx
             }
-            None => B::bias_leaky_relu_grad(output, grad, slope, gain),
+            None => B::bias_leaky_relu_grad(output, grad, slope, gain * input_scale),
         };
         if let Some(node) = x_node {
-            grads.register::<B>(node.id, pre_activation);
+            grads.register::<B>(node.id, dx);
         }
     }
 }
@@ -250,8 +251,9 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for CatChannelsBackward {
 struct ModulateBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
-    /// The weight and the style, the scale and whether the op demodulates.
-    type State = (FloatTensor<B>, FloatTensor<B>, f32, bool);
+    /// The weight and the styles, where the layer's begin, the scale and whether the op
+    /// demodulates.
+    type State = (FloatTensor<B>, FloatTensor<B>, usize, f32, bool);
 
     fn backward(
         self,
@@ -260,8 +262,8 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (weight, style, scale, demodulate) = ops.state;
-        let (d_weight, d_style) = B::modulate_grad(weight, style, grad, scale, demodulate);
+        let (weight, styles, first, scale, demodulate) = ops.state;
+        let (d_weight, d_style) = B::modulate_grad(weight, styles, grad, first, scale, demodulate);
         let [weight_node, style_node] = ops.parents;
         if let Some(node) = weight_node {
             grads.register::<B>(node.id, d_weight);
@@ -347,18 +349,25 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for LpipsDistanceBackward {
 impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff<B, C> {
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
+        input_scale: f32,
         bias: FloatTensor<Self>,
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
         let nodes = [x.node(), bias.node()];
-        let out = B::bias_leaky_relu(x.into_primitive(), bias.into_primitive(), slope, gain);
+        let out = B::bias_leaky_relu(
+            x.into_primitive(),
+            input_scale,
+            bias.into_primitive(),
+            slope,
+            gain,
+        );
         match BiasLeakyReluBackward
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish((out.clone(), slope, gain), out),
+            OpsKind::Tracked(prep) => prep.finish((out.clone(), input_scale, slope, gain), out),
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
@@ -419,12 +428,14 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
     fn bias_leaky_relu_backward(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        input_scale: f32,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let (dx, d_bias) = B::bias_leaky_relu_backward(
             output.into_primitive(),
             grad.into_primitive(),
+            input_scale,
             slope,
             gain,
         );
@@ -568,34 +579,37 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
 
     fn modulate(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self> {
-        let nodes = [weight.node(), style.node()];
-        let (weight, style) = (weight.into_primitive(), style.into_primitive());
-        let out = B::modulate(weight.clone(), style.clone(), scale, demodulate);
+        let nodes = [weight.node(), styles.node()];
+        let (weight, styles) = (weight.into_primitive(), styles.into_primitive());
+        let out = B::modulate(weight.clone(), styles.clone(), first, scale, demodulate);
         match ModulateBackward
             .prepare::<C>(nodes)
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish((weight, style, scale, demodulate), out),
+            OpsKind::Tracked(prep) => prep.finish((weight, styles, first, scale, demodulate), out),
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
 
     fn modulate_grad(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let (d_weight, d_style) = B::modulate_grad(
             weight.into_primitive(),
-            style.into_primitive(),
+            styles.into_primitive(),
             grad.into_primitive(),
+            first,
             scale,
             demodulate,
         );

@@ -68,11 +68,12 @@ fn one_thread_per_output(
 impl FusedBackend for CubeBackend {
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
+        input_scale: f32,
         bias: FloatTensor<Self>,
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
-        bias_leaky_relu::bias_leaky_relu(x, bias, slope, gain)
+        bias_leaky_relu::bias_leaky_relu(x, input_scale, bias, slope, gain)
     }
 
     fn bias_leaky_relu_grad(
@@ -106,12 +107,13 @@ impl FusedBackend for CubeBackend {
     fn bias_leaky_relu_backward(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        input_scale: f32,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        match bias_leaky_relu::gradients(&output, &grad, None, slope, gain) {
+        match bias_leaky_relu::gradients(&output, &grad, None, input_scale, slope, gain) {
             Some((dx, d_bias, _)) => (dx, d_bias),
-            None => separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain),
+            None => separate_bias_leaky_relu_grads::<Self>(output, grad, input_scale, slope, gain),
         }
     }
 
@@ -122,11 +124,11 @@ impl FusedBackend for CubeBackend {
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        match bias_leaky_relu::gradients(&output, &grad, Some(&noise), slope, gain) {
+        match bias_leaky_relu::gradients(&output, &grad, Some(&noise), 1.0, slope, gain) {
             Some((dx, d_bias, Some(d_strength))) => (dx, d_bias, d_strength),
             _ => {
                 let (dx, d_bias) =
-                    separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain);
+                    separate_bias_leaky_relu_grads::<Self>(output, grad, 1.0, slope, gain);
                 let d_strength = bias_leaky_relu::noise_strength_grad(dx.clone(), noise);
                 (dx, d_bias, d_strength)
             }
@@ -190,21 +192,23 @@ impl FusedBackend for CubeBackend {
 
     fn modulate(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self> {
-        modulate::modulate(weight, style, scale, demodulate)
+        modulate::modulate(weight, styles, first, scale, demodulate)
     }
 
     fn modulate_grad(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        modulate::modulate_grad(weight, style, grad, scale, demodulate)
+        modulate::modulate_grad(weight, styles, grad, first, scale, demodulate)
     }
 
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {

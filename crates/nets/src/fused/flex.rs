@@ -24,6 +24,7 @@ const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
 impl FusedBackend for Flex {
     fn bias_leaky_relu(
         x: FloatTensor<Self>,
+        input_scale: f32,
         bias: FloatTensor<Self>,
         slope: f32,
         gain: f32,
@@ -38,7 +39,7 @@ impl FusedBackend for Flex {
             .for_each(|(index, values)| {
                 let b = bias[index % channels];
                 for v in values {
-                    let pre = *v + b;
+                    let pre = input_scale * *v + b;
                     *v = gain * if pre > 0.0 { pre } else { slope * pre };
                 }
             });
@@ -116,10 +117,11 @@ impl FusedBackend for Flex {
     fn bias_leaky_relu_backward(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        input_scale: f32,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain)
+        separate_bias_leaky_relu_grads::<Self>(output, grad, input_scale, slope, gain)
     }
 
     fn noisy_bias_leaky_relu_backward(
@@ -129,7 +131,7 @@ impl FusedBackend for Flex {
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let (dx, d_bias) = separate_bias_leaky_relu_grads::<Self>(output, grad, slope, gain);
+        let (dx, d_bias) = separate_bias_leaky_relu_grads::<Self>(output, grad, 1.0, slope, gain);
         let d_strength = Self::noise_strength_grad(dx.clone(), noise);
         (dx, d_bias, d_strength)
     }
@@ -351,7 +353,7 @@ impl FusedBackend for Flex {
     }
 
     fn add_channel_bias(x: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
-        Self::bias_leaky_relu(x, bias, 1.0, 1.0)
+        Self::bias_leaky_relu(x, 1.0, bias, 1.0, 1.0)
     }
 
     fn cat_channels(first: FloatTensor<Self>, second: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -396,15 +398,16 @@ impl FusedBackend for Flex {
 
     fn modulate(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self> {
         let shape = dims(&weight);
         let per_output = shape[1] * shape[2] * shape[3];
         let taps = shape[2] * shape[3];
-        let style = host_f32(&style);
-        assert_eq!(style.len(), shape[1], "one style value per input channel");
+        let styles = host_f32(&styles);
+        let style = layer_styles(&styles, first, shape[1]);
         let mut out = host_f32(&weight).into_owned();
         out.par_chunks_mut(per_output.max(1)).for_each(|u| {
             for (j, v) in u.iter_mut().enumerate() {
@@ -420,15 +423,17 @@ impl FusedBackend for Flex {
 
     fn modulate_grad(
         weight: FloatTensor<Self>,
-        style: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
         grad: FloatTensor<Self>,
+        first: usize,
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         let shape = dims(&weight);
         let (c_in, taps) = (shape[1], shape[2] * shape[3]);
         let per_output = (c_in * taps).max(1);
-        let (weight, style, grad) = (host_f32(&weight), host_f32(&style), host_f32(&grad));
+        let (weight, styles, grad) = (host_f32(&weight), host_f32(&styles), host_f32(&grad));
+        let style = layer_styles(&styles, first, c_in);
         assert_eq!(weight.len(), grad.len(), "weight and gradient shapes");
         let mut d_weight = vec![0.0f32; weight.len()];
         // Per output channel: ∂weight, and its share of ∂style.
@@ -462,12 +467,13 @@ impl FusedBackend for Flex {
                 share
             })
             .collect();
-        let d_style = (0..c_in)
-            .map(|i| style_shares.iter().map(|share| share[i]).sum::<f64>() as f32)
-            .collect();
+        let mut d_styles = vec![0.0f32; styles.len()];
+        for (i, d) in d_styles[first..first + c_in].iter_mut().enumerate() {
+            *d = style_shares.iter().map(|share| share[i]).sum::<f64>() as f32;
+        }
         (
             from_values(d_weight, shape.to_vec()),
-            from_values(d_style, vec![c_in]),
+            from_values(d_styles, vec![styles.len()]),
         )
     }
 
@@ -721,6 +727,17 @@ fn linear_dims(x: &FloatTensor<Flex>, weight: &FloatTensor<Flex>) -> (usize, usi
     let [outputs, weight_inputs] = weight.shape().dims();
     assert_eq!(weight_inputs, inputs, "the weight's inputs are the input's");
     (batch, inputs, outputs)
+}
+
+/// A layer's `inputs` styles, from `first` on in a network's `styles`.
+fn layer_styles(styles: &[f32], first: usize, inputs: usize) -> &[f32] {
+    assert!(
+        first + inputs <= styles.len(),
+        "styles {first}..{} of {}",
+        first + inputs,
+        styles.len()
+    );
+    &styles[first..first + inputs]
 }
 
 /// `(Σ u² + 10⁻⁸)^(−½)` over one output channel's modulated weights.

@@ -43,10 +43,17 @@ pub fn scaled_linear(
     }
 }
 
-/// StyleGAN2's modulated weight: `weight · style[i] · scale`, then with `demodulate` each
-/// output channel divided by `√(Σ w² + 10⁻⁸)`.
-pub fn modulate(weight: Tensor<4>, style: Tensor<1>, scale: f32, demodulate: bool) -> Tensor<4> {
+/// StyleGAN2's modulated weight: `weight · styles[first + i] · scale`, then with `demodulate`
+/// each output channel divided by `√(Σ w² + 10⁻⁸)`.
+pub fn modulate(
+    weight: Tensor<4>,
+    styles: Tensor<1>,
+    first: usize,
+    scale: f32,
+    demodulate: bool,
+) -> Tensor<4> {
     let [c_out, c_in, _, _] = weight.dims();
+    let style = styles.narrow(0, first, c_in);
     let w = weight * style.reshape([1, c_in, 1, 1]) * scale;
     if !demodulate {
         return w;

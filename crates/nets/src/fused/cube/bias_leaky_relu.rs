@@ -43,7 +43,7 @@ pub(super) mod kernels {
         value
     }
 
-    /// `out = gain · (x + bias[c])`, times `slope` where that is not positive; `c` is the
+    /// `out = gain · (input_scale · x + bias[c])`, times `slope` where that is not positive; `c` is the
     /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
     /// share one gapless layout).
     #[cube(launch)]
@@ -53,6 +53,7 @@ pub(super) mod kernels {
         out: &mut Tensor<f32>,
         channel_stride: u32,
         channels: u32,
+        input_scale: f32,
         gain: f32,
         slope: f32,
     ) {
@@ -61,7 +62,7 @@ pub(super) mod kernels {
             terminate!();
         }
         let c = (i as u32 / channel_stride) % channels;
-        let pre = x[i] + bias[c as usize];
+        let pre = input_scale * x[i] + bias[c as usize];
         let mut value = pre;
         if pre <= 0.0 {
             value = slope * pre;
@@ -141,11 +142,12 @@ pub(super) mod kernels {
     }
 
     /// [`bias_leaky_relu_grad`] on channels-last `[positions, channels]` values (`channels` a
-    /// power of two dividing `units`), with each cube's sums for the bias gradient and, if
-    /// `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes positions `k ·
-    /// block..(k + 1) · block`, unit `t` channel `t % channels` of every `units / channels`-th
-    /// of them; `bias_partials[k, c]` is the sum of the block's `dx[·, c]`, `noise_partials[k]`
-    /// that of `dx · noise[position % pixels]`. The units holding one channel are then summed
+    /// power of two dividing `units`), times `input_scale` in `dx`, with each cube's sums for
+    /// the bias gradient and, if `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes
+    /// positions `k · block..(k + 1) · block`, unit `t` channel `t % channels` of every
+    /// `units / channels`-th of them; `bias_partials[k, c]` is the sum of the block's
+    /// pre-activation gradients `dx[·, c] / input_scale`, `noise_partials[k]` that of
+    /// `dx · noise[position % pixels]` (the noisy form's scale is 1). The units holding one channel are then summed
     /// pairwise in shared memory. Every unit reaches every barrier; cubes past the blocks
     /// write nothing.
     #[allow(clippy::too_many_arguments)]
@@ -162,6 +164,7 @@ pub(super) mod kernels {
         channels: u32,
         block: u32,
         blocks: u32,
+        input_scale: f32,
         gain: f32,
         slope: f32,
         #[comptime] noisy: bool,
@@ -182,7 +185,7 @@ pub(super) mod kernels {
         while p < end {
             let at = (p * channels + c) as usize;
             let g = activation_grad(grad[at], output[at], slope, gain);
-            dx[at] = g;
+            dx[at] = input_scale * g;
             bias_sum += g;
             if comptime![noisy] {
                 noise_sum += g * noise[(p % pixels) as usize];
@@ -236,6 +239,7 @@ pub(super) mod kernels {
 /// One kernel, in `x`'s layout.
 pub(super) fn bias_leaky_relu(
     x: FloatTensor<CubeBackend>,
+    input_scale: f32,
     bias: FloatTensor<CubeBackend>,
     slope: f32,
     gain: f32,
@@ -256,6 +260,7 @@ pub(super) fn bias_leaky_relu(
             out.into_tensor_arg(),
             u32_of(channel_stride).max(1),
             u32_of(shape[1]).max(1),
+            input_scale,
             gain,
             slope,
         )
@@ -381,7 +386,7 @@ const MIN_BLOCK: usize = 64;
 /// H100/H200, as the banded weight gradient does.
 const TARGET_BLOCKS: usize = 1024;
 
-/// The input gradient of [`bias_leaky_relu`] (or its noisy form) with the bias's gradient and,
+/// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's gradient and,
 /// given the `noise`, the strength's, from one pass over a channels-last `grad` and `output`
 /// ([`kernels::bias_leaky_relu_grads`]) and Burn's sums of each cube's partial sums: two
 /// launches (three with noise) where the separate ops took three to five. `None` where the
@@ -392,6 +397,7 @@ pub(super) fn gradients(
     output: &FloatTensor<CubeBackend>,
     grad: &FloatTensor<CubeBackend>,
     noise: Option<&FloatTensor<CubeBackend>>,
+    input_scale: f32,
     slope: f32,
     gain: f32,
 ) -> Option<(
@@ -450,6 +456,7 @@ pub(super) fn gradients(
         u(channels),
         u(block),
         u(blocks),
+        input_scale,
         gain,
         slope,
         noise.is_some(),

@@ -1,6 +1,8 @@
 //! StyleGAN2's modulated weight and its gradients: one cube per output channel, which sums the
 //! demodulation's squares (and, backward, its projection) in shared memory; the style's gradient
-//! a second kernel, one cube per input channel summing over output channels and taps.
+//! a second kernel, one cube per input channel summing over output channels and taps (and a
+//! few more writing the zeros of the network's other styles: the layer reads its style from
+//! the network's vector of them all, `fused::modulate`).
 //!
 //! The modulated weight (and an equalised convolution's scaled weight, [`scale_weight`]) is
 //! written channels-last (`[C_out, kh, kw, C_in]` in memory), the layout
@@ -40,17 +42,18 @@ mod kernels {
         at
     }
 
-    /// One cube per output channel `o` (`CUBE_POS_X`): `out[o, j] = weight[o, j] · style[j /
-    /// taps] · scale`, times `(Σ_j (weight · style · scale)² + epsilon)^(−½)` if `demodulate`
-    /// (`j` over the channel's `per_output` values); `out` channels-last.
+    /// One cube per output channel `o` (`CUBE_POS_X`): `out[o, j] = weight[o, j] ·
+    /// styles[first + j / taps] · scale`, times `(Σ_j (weight · style · scale)² + epsilon)^(−½)`
+    /// if `demodulate` (`j` over the channel's `per_output` values); `out` channels-last.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn modulate(
         weight: &Tensor<f32>,
-        style: &Tensor<f32>,
+        styles: &Tensor<f32>,
         out: &mut Tensor<f32>,
         per_output: u32,
         taps: u32,
+        first: u32,
         scale: f32,
         epsilon: f32,
         #[comptime] demodulate: bool,
@@ -65,7 +68,7 @@ mod kernels {
             let mut sum = 0.0f32;
             let mut j = t;
             while j < per_output {
-                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                let u = weight[(base + j) as usize] * styles[(first + j / taps) as usize] * scale;
                 sum += u * u;
                 j += units;
             }
@@ -75,7 +78,7 @@ mod kernels {
         }
         let mut j = t;
         while j < per_output {
-            let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+            let u = weight[(base + j) as usize] * styles[(first + j / taps) as usize] * scale;
             out[offset(base, j, taps, inputs, true) as usize] = u * d;
             j += units;
         }
@@ -88,12 +91,13 @@ mod kernels {
     #[cube(launch)]
     pub fn modulate_grad(
         weight: &Tensor<f32>,
-        style: &Tensor<f32>,
+        styles: &Tensor<f32>,
         grad: &Tensor<f32>,
         d_weight: &mut Tensor<f32>,
         terms: &mut Tensor<f32>,
         per_output: u32,
         taps: u32,
+        first: u32,
         scale: f32,
         epsilon: f32,
         #[comptime] demodulate: bool,
@@ -112,7 +116,7 @@ mod kernels {
             let mut gu = 0.0f32;
             let mut j = t;
             while j < per_output {
-                let u = weight[(base + j) as usize] * style[(j / taps) as usize] * scale;
+                let u = weight[(base + j) as usize] * styles[(first + j / taps) as usize] * scale;
                 uu += u * u;
                 gu += grad[offset(base, j, taps, inputs, grad_last) as usize] * u;
                 j += units;
@@ -126,7 +130,7 @@ mod kernels {
         }
         let mut j = t;
         while j < per_output {
-            let s = style[(j / taps) as usize];
+            let s = styles[(first + j / taps) as usize];
             let w = weight[(base + j) as usize];
             let u = w * s * scale;
             let g = grad[offset(base, j, taps, inputs, grad_last) as usize];
@@ -177,49 +181,61 @@ mod kernels {
             grad[offset(base, j % per_output, taps, inputs, grad_last) as usize] * scale;
     }
 
-    /// `d_style[i] = Σ_{o, k} terms[o, i·taps + k]`, one cube per input channel `i`
-    /// (`CUBE_POS_X`), its units striding over the `(o, k)` pairs.
+    /// `d_styles[first + i] = Σ_{o, k} terms[o, i·taps + k]`, one cube per input channel `i <
+    /// inputs` (`CUBE_POS_X`), its units striding over the `(o, k)` pairs; the cubes after
+    /// those write the zeros of the other layers' styles, a value per unit.
+    #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn style_grad(
         terms: &Tensor<f32>,
-        d_style: &mut Tensor<f32>,
+        d_styles: &mut Tensor<f32>,
         outputs: u32,
         per_output: u32,
         taps: u32,
+        first: u32,
+        inputs: u32,
         #[comptime] units: u32,
     ) {
         let t = UNIT_POS;
-        let first = CUBE_POS_X * taps;
-        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
-        let mut sum = 0.0f32;
-        let mut n = t;
-        while n < outputs * taps {
-            sum += terms[((n / taps) * per_output + first + n % taps) as usize];
-            n += units;
-        }
-        partial[t as usize] = sum;
-        cube_sum(&mut partial, units);
-        if t == 0 {
-            d_style[CUBE_POS_X as usize] = partial[0];
+        let i = CUBE_POS_X;
+        if i < inputs {
+            let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+            let mut sum = 0.0f32;
+            let mut n = t;
+            while n < outputs * taps {
+                sum += terms[((n / taps) * per_output + i * taps + n % taps) as usize];
+                n += units;
+            }
+            partial[t as usize] = sum;
+            cube_sum(&mut partial, units);
+            if t == 0 {
+                d_styles[(first + i) as usize] = partial[0];
+            }
+        } else {
+            let z = (i - inputs) * units + t;
+            if (z as usize) < d_styles.len() - inputs as usize {
+                let mut at = z;
+                if z >= first {
+                    at = z + inputs;
+                }
+                d_styles[at as usize] = 0.0;
+            }
         }
     }
 }
 
-/// One cube per output channel ([`per_output_channel`]), on the weight and style made
+/// One cube per output channel ([`per_output_channel`]), on the weight and styles made
 /// row-major; the output channels-last.
 pub(super) fn modulate(
     weight: FloatTensor<CubeBackend>,
-    style: FloatTensor<CubeBackend>,
+    styles: FloatTensor<CubeBackend>,
+    first: usize,
     scale: f32,
     demodulate: bool,
 ) -> FloatTensor<CubeBackend> {
     let shape = dims(&weight);
-    assert_eq!(
-        style.shape().dims::<1>(),
-        [shape[1]],
-        "one style value per input"
-    );
-    let (weight, style) = (into_contiguous(weight), into_contiguous(style));
+    check_styles(&styles, first, shape[1]);
+    let (weight, styles) = (into_contiguous(weight), into_contiguous(styles));
     let out = empty_in_layout(&weight, shape, true);
     if let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) {
         kernels::modulate::launch(
@@ -227,10 +243,11 @@ pub(super) fn modulate(
             cubes,
             cube,
             weight.clone().into_tensor_arg(),
-            style.into_tensor_arg(),
+            styles.into_tensor_arg(),
             out.clone().into_tensor_arg(),
             per_output,
             taps,
+            u32_of(first),
             scale,
             DEMODULATION_EPSILON,
             demodulate,
@@ -240,31 +257,34 @@ pub(super) fn modulate(
     out
 }
 
-/// [`kernels::modulate_grad`] per output channel, then [`kernels::style_grad`]'s sums, on the
-/// weight and style made row-major and the gradient as it comes if channels-last.
+/// [`kernels::modulate_grad`] per output channel, then [`kernels::style_grad`]'s sums into
+/// the layer's range of the styles' gradient and zeros elsewhere, on the weight and styles
+/// made row-major and the gradient as it comes if channels-last.
 pub(super) fn modulate_grad(
     weight: FloatTensor<CubeBackend>,
-    style: FloatTensor<CubeBackend>,
+    styles: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
+    first: usize,
     scale: f32,
     demodulate: bool,
 ) -> (FloatTensor<CubeBackend>, FloatTensor<CubeBackend>) {
     let shape = dims(&weight);
     assert_eq!(dims(&grad), shape, "weight and gradient shapes");
-    let [weight, style] = [weight, style].map(into_contiguous);
+    let count = check_styles(&styles, first, shape[1]);
+    let [weight, styles] = [weight, styles].map(into_contiguous);
     let (grad, grad_last) = readable(grad);
     let d_weight = empty_in_layout(&weight, shape, false);
     let terms = empty_in_layout(&weight, shape, false);
-    let d_style = empty_device_contiguous_dtype(
+    let d_styles = empty_device_contiguous_dtype(
         weight.client.clone(),
         weight.device.clone(),
-        Shape::new([shape[1]]),
+        Shape::new([count]),
         DType::F32,
     );
     let Some((cubes, cube, per_output, taps)) = per_output_channel(shape) else {
         // A weight without values: no style value has any effect.
         let zeros =
-            CubeBackend::float_zeros(Shape::new([shape[1]]), &weight.device, DType::F32.into());
+            CubeBackend::float_zeros(Shape::new([count]), &weight.device, DType::F32.into());
         return (d_weight, zeros);
     };
     kernels::modulate_grad::launch(
@@ -272,30 +292,45 @@ pub(super) fn modulate_grad(
         cubes,
         cube,
         weight.clone().into_tensor_arg(),
-        style.into_tensor_arg(),
+        styles.into_tensor_arg(),
         grad.into_tensor_arg(),
         d_weight.clone().into_tensor_arg(),
         terms.clone().into_tensor_arg(),
         per_output,
         taps,
+        u32_of(first),
         scale,
         DEMODULATION_EPSILON,
         demodulate,
         grad_last,
         UNITS,
     );
+    let zero_cubes = (count - shape[1]).div_ceil(SUM_UNITS as usize);
     kernels::style_grad::launch(
         &weight.client,
-        one_cube_per_channel(shape[1], "input"),
+        one_cube_per_channel(shape[1] + zero_cubes, "input"),
         CubeDim::new_1d(SUM_UNITS),
         terms.into_tensor_arg(),
-        d_style.clone().into_tensor_arg(),
+        d_styles.clone().into_tensor_arg(),
         u32_of(shape[0]),
         per_output,
         taps,
+        u32_of(first),
+        u32_of(shape[1]),
         SUM_UNITS,
     );
-    (d_weight, d_style)
+    (d_weight, d_styles)
+}
+
+/// The number of `styles`, checked to hold `inputs` from `first` on.
+fn check_styles(styles: &FloatTensor<CubeBackend>, first: usize, inputs: usize) -> usize {
+    let [count] = styles.shape().dims();
+    assert!(
+        first + inputs <= count,
+        "styles {first}..{} of {count}",
+        first + inputs
+    );
+    count
 }
 
 /// One thread per value, the output channels-last.
