@@ -209,9 +209,10 @@ fn the_phase_trace_places_every_launch_in_its_phase() {
 /// activation's three gradients from one pass, 6 829 with the mapping's constant input
 /// normalised on the host (2026-11-30), 6 092 with the equalised convolutions' scale applied in
 /// their activations, Adam keeping a weight channels-last and a network's styles one linear
-/// layer (2026-11-30); the target is 3 000. The bound keeps what was won.
+/// layer, 5 775 with the discriminator step's images scored in one forward (2026-11-30); the
+/// target is 3 000. The bound keeps what was won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_6_500() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_6_000() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -243,7 +244,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_6_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (5_000..=6_500).contains(&per_step),
+        (5_000..=6_000).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }

@@ -204,6 +204,86 @@ fn the_discriminator_scores_shapes_learns_and_r1_matches_the_input_gradient() {
     assert!(high.into_scalar::<f32>() < low.into_scalar::<f32>());
 }
 
+fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().try_into_vec::<f32>().unwrap()
+}
+
+/// Scoring several parts in one pass gives each part's own scores (its minibatch standard
+/// deviation its own) and the same weight gradients; the step's loss, real, fake and R1's two
+/// perturbed batches in one forward, equals the loss and penalty computed a forward each.
+#[test]
+fn the_discriminator_scores_parts_in_one_pass_as_one_forward_each() {
+    use f3g_nets::discriminator::{R1, discriminator_step_loss};
+    let device = Device::flex().autodiff();
+    let config = DiscriminatorConfig {
+        channel_base: 128,
+        max_channels: 16,
+        ..DiscriminatorConfig::cpu(16)
+    };
+    let d = config.init(5, &device).unwrap();
+    let close = |a: &[f32], b: &[f32], what: &str| {
+        assert_eq!(a.len(), b.len(), "{what}");
+        for (x, y) in a.iter().zip(b) {
+            assert!(
+                (x - y).abs() <= 1e-4 * (1.0 + y.abs()),
+                "{what}: {x} vs {y}"
+            );
+        }
+    };
+    // A batch of one per part (a constant deviation map) and of four (groups of four).
+    for per_part in [1, 4] {
+        let parts: Vec<Tensor<4>> = (0..3)
+            .map(|k| (ramp([per_part, 3, 16, 16], &device) * (1.0 + k as f32) + 0.5).sin())
+            .collect();
+        let together = d
+            .forward_parts(Tensor::cat(parts.clone(), 0), parts.len())
+            .unwrap();
+        let apart: Vec<Tensor<2>> = parts
+            .iter()
+            .map(|p| d.forward(p.clone()).unwrap())
+            .collect();
+        let apart = Tensor::cat(apart, 0);
+        close(
+            &values(together.clone()),
+            &values(apart.clone()),
+            &format!("scores, {per_part} a part"),
+        );
+        let weight =
+            |g: &burn::tensor::Gradients| values(d.final_conv.conv.weight.val().grad(g).unwrap());
+        let (a, b) = (
+            weight(&(together * 1.5).sum().backward()),
+            weight(&(apart * 1.5).sum().backward()),
+        );
+        close(&a, &b, &format!("a weight's gradient, {per_part} a part"));
+    }
+    assert!(d.forward_parts(ramp([3, 3, 16, 16], &device), 2).is_err());
+    let real = (ramp([2, 3, 16, 16], &device) + 0.5).clamp(0.0, 1.0);
+    let fake = (ramp([2, 3, 16, 16], &device) * -1.0 + 0.5).clamp(0.0, 1.0);
+    let separate = discriminator_loss(
+        d.forward(real.clone()).unwrap(),
+        d.forward(fake.clone()).unwrap(),
+    );
+    let r1 = R1 {
+        gamma: 0.4,
+        epsilon: 1e-2,
+        seed: 9,
+    };
+    for (with_r1, expected) in [
+        (None, separate.clone()),
+        (
+            Some(r1),
+            separate + r1_penalty(&d, real.clone(), 0.4, 1, 1e-2, 9).unwrap(),
+        ),
+    ] {
+        let got = discriminator_step_loss(&d, real.clone(), fake.clone(), with_r1).unwrap();
+        close(
+            &values(got),
+            &values(expected),
+            &format!("step loss, R1 {with_r1:?}"),
+        );
+    }
+}
+
 #[test]
 fn checkpoints_round_trip_and_wrong_shapes_name_the_tensor() {
     let device = Device::flex();

@@ -25,7 +25,7 @@ use super::schedule::Stage;
 use crate::AvatarError;
 use crate::model::{AvatarNets, Constants, body_outputs, canonical};
 use f3g_nets::adam::{FusedAdam, ModuleAdam};
-use f3g_nets::discriminator::{discriminator_loss, r1_penalty};
+use f3g_nets::discriminator::{R1, discriminator_step_loss};
 use f3g_nets::{Discriminator, Lpips};
 
 /// Adam of the avatar's networks (Burn's defaults for the betas), one pass per parameter
@@ -227,12 +227,13 @@ impl Replica {
         };
         let mut total: Option<Tensor<1>> = None;
         for (fake, real) in pairs {
-            let mut loss = discriminator_loss(d.forward(real.clone())?, d.forward(fake)?);
-            if r1 {
-                let interval = config.losses.r1_interval;
-                let penalty = r1_penalty(d, real, config.losses.r1_gamma, 1, 1e-2, step ^ 0x51)?;
-                loss = loss + penalty * interval as f32;
-            }
+            // The lazy R1 penalty every `r1_interval` steps, weighted by the interval.
+            let r1 = r1.then_some(R1 {
+                gamma: config.losses.r1_gamma * config.losses.r1_interval as f32,
+                epsilon: 1e-2,
+                seed: step ^ 0x51,
+            });
+            let loss = discriminator_step_loss(d, real, fake, r1)?;
             let loss = if share == 1.0 { loss } else { loss * share };
             total = Some(match total {
                 Some(t) => t + loss,
