@@ -1,9 +1,9 @@
-//! The two layouts the crate's CubeCL kernels read and write (`fused`, `conv::bands`, `adam`): gapless
-//! `[B, C, H, W]` tensors stored row-major or channels-last, a permuted view of a row-major
-//! `[B, H, W, C]` — the layout Burn's implicit-GEMM convolutions compute in and hand back
-//! (their outputs and input gradients are such views). A kernel that reads channels-last as
-//! it is spares a copy of the activation to row-major, and one that writes it spares the next
-//! convolution the copy back.
+//! The two layouts the crate's CubeCL kernels read and write (`fused`, `conv::bands`, `adam`):
+//! gapless `[B, C, H, W]` tensors stored row-major or channels-last, a permuted view of a row-major
+//! `[B, H, W, C]` — the layout Burn's implicit-GEMM convolutions compute in and hand back (their
+//! outputs and input gradients are such views). A kernel that reads channels-last as it is spares a
+//! copy of the activation to row-major, and one that writes it spares the next convolution the copy
+//! back.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;

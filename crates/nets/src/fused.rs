@@ -26,8 +26,8 @@
 //! fusion, fixed").
 //!
 //! Layouts: `[B, C, H, W]` (row-major on the CPU; on a GPU row-major or channels-last, see
-//! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `C_in` values of a
-//! network's style vector.
+//! `cube`); `bias` `[C]`; a convolution weight `[C_out, C_in, kh, kw]`, its style `C_in` values
+//! of a network's style vector.
 
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 use burn::backend::fusion::custom::TensorSpec;
@@ -601,8 +601,6 @@ pub trait FusedBackend: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
-/// each op's output shape before running it).
 /// The activation's input and bias gradients as the separate ops give them
 /// ([`FusedBackend::bias_leaky_relu_grad`], then its [`FusedBackend::channel_sum`], divided by
 /// `input_scale` on the `[C]` sums): the CPU's backward, and a GPU's where its one-pass kernel
@@ -624,6 +622,8 @@ fn separate_bias_leaky_relu_grads<B: FusedBackend>(
     (dx, d_bias)
 }
 
+/// `[B, C, H, W]` with each side times `times` and divided by `by` (Burn's `fusion` records
+/// each op's output shape before running it).
 #[cfg(all(any(feature = "gpu", feature = "cuda"), feature = "fusion"))]
 fn scaled(x: &Shape, times: usize, by: usize) -> Shape {
     Shape::new([x[0], x[1], x[2] * times / by, x[3] * times / by])

@@ -14,9 +14,9 @@
 //! (paper values: base 16384, max 512, so cm 2 gives 512 up to 64², then 256, 128, 64, 32).
 //! The style is a constant `1/√d` vector through the learned mapping network, the same for every
 //! layer (n_latent collapses to one w); each modulated layer's affine map of w is a range of one
-//! linear layer's outputs (StyleGAN2's per-layer maps stacked); noise maps are fixed. The optional view branch (the
-//! colour networks) turns a map of `n · v` per side into features added to that side's decoder
-//! where its features reach `S/2` (AG adds them at 256² for S = 512).
+//! linear layer's outputs (StyleGAN2's per-layer maps stacked); noise maps are fixed. The optional
+//! view branch (the colour networks) turns a map of `n · v` per side into features added to that
+//! side's decoder where its features reach `S/2` (AG adds them at 256² for S = 512).
 
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};

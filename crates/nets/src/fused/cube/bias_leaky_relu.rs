@@ -43,9 +43,9 @@ pub(super) mod kernels {
         value
     }
 
-    /// `out = gain · (input_scale · x + bias[c])`, times `slope` where that is not positive; `c` is the
-    /// channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and `out`
-    /// share one gapless layout).
+    /// `out = gain · (input_scale · x + bias[c])`, times `slope` where that is not positive; `c` is
+    /// the channel of the value at buffer offset `i` (`(i / channel_stride) % channels`: `x` and
+    /// `out` share one gapless layout).
     #[cube(launch)]
     pub fn bias_leaky_relu(
         x: &Tensor<f32>,
@@ -141,15 +141,14 @@ pub(super) mod kernels {
         }
     }
 
-    /// [`bias_leaky_relu_grad`] on channels-last `[positions, channels]` values (`channels` a
-    /// power of two dividing `units`), times `input_scale` in `dx`, with each cube's sums for
-    /// the bias gradient and, if `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes
-    /// positions `k · block..(k + 1) · block`, unit `t` channel `t % channels` of every
-    /// `units / channels`-th of them; `bias_partials[k, c]` is the sum of the block's
-    /// pre-activation gradients `dx[·, c] / input_scale`, `noise_partials[k]` that of
-    /// `dx · noise[position % pixels]` (the noisy form's scale is 1). The units holding one channel are then summed
-    /// pairwise in shared memory. Every unit reaches every barrier; cubes past the blocks
-    /// write nothing.
+    /// [`bias_leaky_relu_grad`] on channels-last `[positions, channels]` values (`channels` a power
+    /// of two dividing `units`), times `input_scale` in `dx`, with each cube's sums for the bias
+    /// gradient and, if `noisy`, the noise strength's: cube `k` ([`cube_index`]) takes positions
+    /// `k·block..(k + 1)·block`, unit `t` channel `t % channels` of every `units / channels`-th of
+    /// them; `bias_partials[k, c]` is the sum of the block's pre-activation gradients `dx[·, c] /
+    /// input_scale`, `noise_partials[k]` that of `dx · noise[position % pixels]` (the noisy form's
+    /// scale is 1). The units holding one channel are then summed pairwise in shared memory. Every
+    /// unit reaches every barrier; cubes past the blocks write nothing.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn bias_leaky_relu_grads(
@@ -386,12 +385,12 @@ const MIN_BLOCK: usize = 64;
 /// H100/H200, as the banded weight gradient does.
 const TARGET_BLOCKS: usize = 1024;
 
-/// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's gradient and,
-/// given the `noise`, the strength's, from one pass over a channels-last `grad` and `output`
-/// ([`kernels::bias_leaky_relu_grads`]) and Burn's sums of each cube's partial sums: two
-/// launches (three with noise) where the separate ops took three to five. `None` where the
-/// pass does not apply (another layout, a channel count that is not a power of two up to
-/// 1 024, 2³² values or more): the caller runs the separate ops.
+/// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's
+/// gradient and, given the `noise`, the strength's, from one pass over a channels-last `grad` and
+/// `output` ([`kernels::bias_leaky_relu_grads`]) and Burn's sums of each cube's partial sums: two
+/// launches (three with noise) where the separate ops took three to five. `None` where the pass
+/// does not apply (another layout, a channel count that is not a power of two up to 1 024, 2³²
+/// values or more): the caller runs the separate ops.
 #[allow(clippy::type_complexity)]
 pub(super) fn gradients(
     output: &FloatTensor<CubeBackend>,
