@@ -2,7 +2,8 @@
 //! the input gradient one kernel each, the bias gradient Burn's reductions, the noise strength's
 //! a kernel of partial sums and Burn's reduction of them — or, for a channels-last gradient of
 //! a power-of-two channel count (the networks' own), the three gradients from one kernel that
-//! also sums each cube's share of the last two, and Burn's reductions of those shares.
+//! also sums each cube's share of the last two, and one reduction of those shares (Burn's for
+//! the bias alone, ours for the bias and the noise strength together).
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
@@ -13,6 +14,7 @@ use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
+use super::sum::{SUM_UNITS, one_cube_per_value};
 use super::{dims, one_thread_per_output, u32_of};
 use crate::cube_grid::{UNITS, cubes_in_rows, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, into_channels_last, readable};
@@ -217,6 +219,46 @@ pub(super) mod kernels {
         }
     }
 
+    /// The bias's and the noise strength's gradients from [`bias_leaky_relu_grads`]'s shares in
+    /// one launch: cube `k < channels` ([`cube_index`]) sums column `k` of `bias_partials`
+    /// (`[blocks, channels]`) into `d_bias[k]`, cube `channels` the `noise_partials` into
+    /// `d_strength[0]`, each its units striding over the blocks. Cubes past those add nothing
+    /// and write nothing.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn sum_shares(
+        bias_partials: &Tensor<f32>,
+        noise_partials: &Tensor<f32>,
+        d_bias: &mut Tensor<f32>,
+        d_strength: &mut Tensor<f32>,
+        blocks: u32,
+        channels: u32,
+        #[comptime] units: u32,
+    ) {
+        let k = cube_index();
+        let t = UNIT_POS;
+        let mut sum = 0.0f32;
+        let mut b = t;
+        while b < blocks {
+            if k < channels {
+                sum += bias_partials[(b * channels + k) as usize];
+            } else if k == channels {
+                sum += noise_partials[b as usize];
+            }
+            b += units;
+        }
+        let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
+        partial[t as usize] = sum;
+        cube_sum(&mut partial, units);
+        if t == 0 {
+            if k < channels {
+                d_bias[k as usize] = partial[0];
+            } else if k == channels {
+                d_strength[0] = partial[0];
+            }
+        }
+    }
+
     /// `dx` = [`activation_grad`], buffer offset by buffer offset (the three share one gapless
     /// layout).
     #[cube(launch)]
@@ -387,8 +429,9 @@ const TARGET_BLOCKS: usize = 1024;
 
 /// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's
 /// gradient and, given the `noise`, the strength's, from one pass over a channels-last `grad` and
-/// `output` ([`kernels::bias_leaky_relu_grads`]) and Burn's sums of each cube's partial sums: two
-/// launches (three with noise) where the separate ops took three to five. `None` where the pass
+/// `output` ([`kernels::bias_leaky_relu_grads`]) and the sums of each cube's partial sums
+/// (Burn's; with noise both in one launch, [`kernels::sum_shares`]): two launches where the
+/// separate ops took three to five. `None` where the pass
 /// does not apply (another layout, a channel count that is not a power of two up to 1 024, 2³²
 /// values or more): the caller runs the separate ops.
 #[allow(clippy::type_complexity)]
@@ -461,6 +504,26 @@ pub(super) fn gradients(
         noise.is_some(),
         u(units),
     );
+    if noise.is_some() && blocks > 1 {
+        // The bias's and the strength's sums over the cubes' shares in one launch.
+        let d_bias = empty_in_layout(grad, [1, 1, 1, channels], false);
+        let d_strength = empty_in_layout(grad, [1, 1, 1, 1], false);
+        let (cubes, cube) = one_cube_per_value(channels + 1);
+        kernels::sum_shares::launch(
+            &grad.client,
+            cubes,
+            cube,
+            bias_partials.into_tensor_arg(),
+            noise_partials.into_tensor_arg(),
+            d_bias.clone().into_tensor_arg(),
+            d_strength.clone().into_tensor_arg(),
+            u(blocks),
+            u(channels),
+            SUM_UNITS,
+        );
+        let vector = |t, n: usize| CubeBackend::float_reshape(t, Shape::new([n]));
+        return Some((dx, vector(d_bias, channels), Some(vector(d_strength, 1))));
+    }
     // Each sum over the cubes' partial sums is one launch, none for a single cube.
     let summed = |partials: FloatTensor<CubeBackend>, values: usize| {
         let rows = CubeBackend::float_reshape(partials, Shape::new([blocks, values]));
