@@ -33,9 +33,11 @@ mod cube;
 mod flex;
 
 /// Parameters whose updates share one kernel launch on `Cube` devices (at most: seven bindings
-/// each, within the device's limit). More would compile more kernel variants for little: the
-/// `paper` step's ≈ 1 200 updates take ≈ 80 launches at 16.
-pub const MAX_PER_LAUNCH: usize = 16;
+/// each, within the device's limit; on CUDA a device pointer each, 1.8 KB of the 4 KB of kernel
+/// parameters CUDA allows before 12.1 and the 32 KB since). The `paper` step's updates took 56
+/// launches at 16 and take 28 at 32, compiling as many variants (one per queue length left
+/// over); more would save a few launches for larger kernels.
+pub const MAX_PER_LAUNCH: usize = 32;
 
 /// The step's scalars, computed once on the host for every element.
 #[derive(Clone, Copy, Debug, PartialEq)]
