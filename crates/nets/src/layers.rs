@@ -15,9 +15,9 @@
 //! convolution instead of a transposed convolution and blur.
 
 use burn::module::{Module, Param};
-use burn::tensor::Tensor;
 use burn::tensor::activation::leaky_relu;
 use burn::tensor::ops::ConvOptions;
+use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::conv::conv2d;
 use crate::fused::{
@@ -355,12 +355,6 @@ impl ToRgb {
     }
 }
 
-/// `x / √(mean(x²) + 1e-8)` over the feature axis.
-pub fn pixel_norm(x: Tensor<2>) -> Tensor<2> {
-    let ms = x.clone().powf_scalar(2.0).mean_dim(1);
-    x / (ms + 1e-8).sqrt()
-}
-
 /// The mapping network: pixel norm then `n_mlp` equalised linear layers with fused leaky
 /// ReLU and learning-rate multiplier `lr_mul`.
 #[derive(Module, Debug)]
@@ -377,17 +371,19 @@ impl Mapping {
         }
     }
 
-    pub fn forward(&self, z: Tensor<2>) -> Tensor<2> {
-        self.layers
-            .iter()
-            .fold(pixel_norm(z), |x, layer| layer.forward(x))
+    /// `w` `[1, dim]` for the constant input `z = 1/√dim` (the StyleUNets' style). The pixel
+    /// norm of a constant, `z / √(mean(z²) + 10⁻⁸)`, is computed on the host in f32: on a GPU
+    /// the fill and the norm were seven launches per network and step.
+    pub fn constant_style(&self, dim: usize, device: &Device) -> Tensor<2> {
+        let z = 1.0 / (dim as f32).sqrt();
+        let normed = z / (z * z + 1e-8).sqrt();
+        let z = Tensor::<2>::from_data(TensorData::new(vec![normed; dim], [1, dim]), device);
+        self.layers.iter().fold(z, |x, layer| layer.forward(x))
     }
 }
 
 #[cfg(test)]
 mod tests {
-    use burn::tensor::Device;
-
     use super::*;
 
     fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {

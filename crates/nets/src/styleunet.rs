@@ -19,7 +19,7 @@
 //! side's decoder where its features reach `S/2` (AG adds them at 256² for S = 512).
 
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
@@ -381,28 +381,15 @@ impl DualStyleUNet {
         serde_json::from_str(&self.config_json).expect("written by init")
     }
 
-    /// The constant style through the mapping network and every layer's affine map: `[total]`
-    /// ([`StyleRanges`]). The mapping's input is the
-    /// constant `z = 1/√d` after the mapping's pixel norm (`z / √(mean(z²) + 10⁻⁸)`, as
-    /// [`crate::layers::pixel_norm`] computes it), made here instead of on the device: on a GPU
-    /// the fill and the norm were seven launches per network and step.
+    /// The constant style through the mapping network ([`Mapping::constant_style`]) and every
+    /// layer's affine map: `[total]` ([`StyleRanges`]).
     fn style_vector(&self, device: &Device) -> Tensor<1> {
-        let d = self.mapping_dim();
-        let z = 1.0 / (d as f32).sqrt();
-        let normed = z / (z * z + 1e-8).sqrt();
-        let z = Tensor::<2>::from_data(TensorData::new(vec![normed; d], [1, d]), device);
-        let w = self
-            .mapping
-            .layers
-            .iter()
-            .fold(z, |x, layer| layer.forward(x));
-        let styles = self.styles.forward(w);
+        let dim = self.styles.weight.dims()[1];
+        let styles = self
+            .styles
+            .forward(self.mapping.constant_style(dim, device));
         let total = styles.dims()[1];
         styles.reshape([total])
-    }
-
-    fn mapping_dim(&self) -> usize {
-        self.styles.weight.dims()[1]
     }
 
     /// Runs the network. `input`: `[B, in, S, S]`; `view`: `(front, back)` maps of `n · v`,

@@ -135,15 +135,20 @@ fn the_styleunet_learns_a_fixed_target_and_every_parameter_gets_a_gradient() {
     assert!(last < 0.85 * initial, "loss {initial} → {last}");
 }
 
-#[test]
-fn the_discriminator_scores_shapes_learns_and_r1_matches_the_input_gradient() {
-    let device = Device::flex().autodiff();
+/// A discriminator of 16² images and at most 16 channels.
+fn small_discriminator(seed: u64, device: &Device) -> f3g_nets::Discriminator {
     let config = DiscriminatorConfig {
         channel_base: 128,
         max_channels: 16,
         ..DiscriminatorConfig::cpu(16)
     };
-    let mut d = config.init(3, &device).unwrap();
+    config.init(seed, device).unwrap()
+}
+
+#[test]
+fn the_discriminator_scores_shapes_learns_and_r1_matches_the_input_gradient() {
+    let device = Device::flex().autodiff();
+    let mut d = small_discriminator(3, &device);
     assert_eq!(
         d.forward(ramp([2, 3, 16, 16], &device)).unwrap().dims(),
         [2, 1]
@@ -215,12 +220,7 @@ fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 fn the_discriminator_scores_parts_in_one_pass_as_one_forward_each() {
     use f3g_nets::discriminator::{R1, discriminator_step_loss};
     let device = Device::flex().autodiff();
-    let config = DiscriminatorConfig {
-        channel_base: 128,
-        max_channels: 16,
-        ..DiscriminatorConfig::cpu(16)
-    };
-    let d = config.init(5, &device).unwrap();
+    let d = small_discriminator(5, &device);
     let close = |a: &[f32], b: &[f32], what: &str| {
         assert_eq!(a.len(), b.len(), "{what}");
         for (x, y) in a.iter().zip(b) {

@@ -2,17 +2,17 @@
 //! positions (split-K), for the layers whose implicit GEMM has too few tiles to fill the device.
 //!
 //! The weight gradient is `G · X̂ᵀ`: `[C_out, K] × [K, N]` with `K = B·H_out·W_out` output
-//! positions and `N = C_in·kh·kw` (im2col columns). Burn's implicit GEMM tiles only the
-//! `C_out × N` output, so a 32-channel layer at 1024² is a handful of tiles, each walking a
-//! million positions alone: on an H200 such launches took 2–16 ms on 2–36 cubes and the weight
-//! gradients half the `paper` step's convolution time (BENCHMARKS "Where the device time goes").
-//! Here the positions are cut into bands of `band` consecutive positions (flattened over batch,
-//! rows, columns; a length that divides them where one is near, else the last band padded with
-//! zeros), [`kernels::band_columns`] writes the im2col of every band (`[bands, N, band]`),
-//! [`kernels::band_gradient`] the output gradient's (`[bands, C_out, band]`) — unless the
-//! gradient is channels-last and the bands divide it, when its rows are the bands as they are
-//! (a launch and a copy of the gradient fewer) — one batched matmul multiplies each band's
-//! pair (`[bands, C_out, N]`, `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
+//! positions and `N = C_in·kh·kw` (im2col columns). Burn's implicit GEMM tiles only the `C_out × N`
+//! output, so a 32-channel layer at 1024² is a handful of tiles, each walking a million positions
+//! alone: on an H200 such launches took 2–16 ms on 2–36 cubes and the weight gradients half the
+//! `paper` step's convolution time (BENCHMARKS "Where the device time goes"). Here the positions
+//! are cut into bands of `band` consecutive positions (flattened over batch, rows, columns; a
+//! length that divides them where one is near, else the last band padded with zeros),
+//! [`kernels::band_columns`] writes the im2col of every band (`[bands, N, band]`),
+//! [`kernels::band_gradient`] the output gradient's (`[bands, C_out, band]`) — unless the gradient
+//! is channels-last and the bands divide it, when its rows are the bands as they are (a launch and
+//! a copy of the gradient fewer) — one batched matmul multiplies each band's pair
+//! (`[bands, C_out, N]`, `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
 //! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
 //! several launches, summed).
 //!

@@ -429,11 +429,10 @@ const TARGET_BLOCKS: usize = 1024;
 
 /// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's
 /// gradient and, given the `noise`, the strength's, from one pass over a channels-last `grad` and
-/// `output` ([`kernels::bias_leaky_relu_grads`]) and the sums of each cube's partial sums
-/// (Burn's; with noise both in one launch, [`kernels::sum_shares`]): two launches where the
-/// separate ops took three to five. `None` where the pass
-/// does not apply (another layout, a channel count that is not a power of two up to 1 024, 2³²
-/// values or more): the caller runs the separate ops.
+/// `output` ([`kernels::bias_leaky_relu_grads`]) and the sums of each cube's partial sums (Burn's;
+/// with noise both in one launch, [`kernels::sum_shares`]): two launches where the separate ops
+/// took three to five. `None` where the pass does not apply (another layout, a channel count that
+/// is not a power of two up to 1 024, 2³² values or more): the caller runs the separate ops.
 #[allow(clippy::type_complexity)]
 pub(super) fn gradients(
     output: &FloatTensor<CubeBackend>,

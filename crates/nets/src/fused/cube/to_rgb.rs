@@ -1,9 +1,9 @@
 //! The tail of a Haar-domain ToRGB, `x + bias + haar(upsample2(inverse_haar(skip)))` (the first
-//! level's `x + bias` alone, `fused::add_channel_bias`), one thread per output value, and the skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`,
-//! one thread per value of the skip's gradient: each value gathers the few it depends on
-//! through the three maps (`position.rs`'s Haar and up-sampling arithmetic, which `haar.rs`'s
-//! and `upsample.rs`'s kernels use too), instead of three launches and two intermediate maps
-//! each way.
+//! level's `x + bias` alone, `fused::add_channel_bias`), one thread per output value, and the
+//! skip's adjoint `haar(upsample2_grad(inverse_haar(grad)))`, one thread per value of the skip's
+//! gradient: each value gathers the few it depends on through the three maps (`position.rs`'s Haar
+//! and up-sampling arithmetic, which `haar.rs`'s and `upsample.rs`'s kernels use too), instead of
+//! three launches and two intermediate maps each way.
 
 use burn::backend::TensorMetadata;
 use burn::backend::tensor::FloatTensor;
