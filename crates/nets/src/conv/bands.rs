@@ -90,7 +90,14 @@ mod kernels {
     /// column `t % kw`) of channel `ci` at output position `p = (first_band + band)·band_len + k`
     /// (flattened `(b, oh, ow)`), zero in the padding and past the last position. Row-major `x`:
     /// `columns[band, ci·kh·kw + t, k]`, `k` fastest; channels-last `x`: `columns[band, k, t·C_in
-    /// + ci]`, `ci` fastest — either way neighbouring threads read neighbouring values of `x`.
+    /// + ci]`, `ci` fastest — either way neighbouring threads read and write neighbouring values.
+    ///
+    /// One thread per position and channel, writing every tap: the position's image, row and
+    /// column are divided out once for `kh·kw` values. A thread per value divided its index
+    /// into band, position, channel and tap and the position into image, row and column for
+    /// each value, eight or nine integer divisions and remainders per value written, and was
+    /// bound by them (BENCHMARKS "The banded weight gradients' im2col": 0.5 TB/s on an H100,
+    /// whose memory takes 3.35).
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn band_columns(
@@ -117,40 +124,52 @@ mod kernels {
         #[comptime] channels_last: bool,
     ) {
         let g = ABSOLUTE_POS;
-        if g >= columns.len() {
+        let taps = kh * kw;
+        if g * taps as usize >= columns.len() {
             terminate!();
         }
         let g = g as u32;
-        let taps = kh * kw;
-        let n = c_in * taps;
-        let mut k = g % band_len;
-        let mut ci = ((g / band_len) % n) / taps;
-        let mut t = ((g / band_len) % n) % taps;
-        let band = g / (band_len * n);
+        // The thread's channel and its position within the launch's bands (`band·band_len + k`),
+        // and where its first tap's value goes; tap `t` lies `t · tap_stride` further.
+        let mut ci = (g / band_len) % c_in;
+        let mut slot = (g / (band_len * c_in)) * band_len + g % band_len;
+        let mut at = (g / band_len) * taps * band_len + g % band_len;
+        let mut tap_stride = band_len;
         if comptime![channels_last] {
             ci = g % c_in;
-            t = (g / c_in) % taps;
-            k = (g / n) % band_len;
+            slot = g / c_in;
+            at = slot * taps * c_in + ci;
+            tap_stride = c_in;
         }
-        let p = (first_band + band) * band_len + k;
-        let mut value = 0.0f32;
+        let p = first_band * band_len + slot;
         if p < positions {
             let plane = h_out * w_out;
             let b = p / plane;
             let oh = (p % plane) / w_out;
             let ow = p % w_out;
-            let ih = (oh * sh + (t / kw) * dh) as i32 - ph as i32;
-            let iw = (ow * sw + (t % kw) * dw) as i32 - pw as i32;
-            if ih >= 0 && iw >= 0 && ih < h as i32 && iw < w as i32 {
-                let (ih, iw) = (ih as u32, iw as u32);
-                let mut at = ((b * c_in + ci) * h + ih) * w + iw;
-                if comptime![channels_last] {
-                    at = ((b * h + ih) * w + iw) * c_in + ci;
+            let top = (oh * sh) as i32 - ph as i32;
+            let left = (ow * sw) as i32 - pw as i32;
+            for ky in 0..kh {
+                let ih = top + (ky * dh) as i32;
+                for kx in 0..kw {
+                    let iw = left + (kx * dw) as i32;
+                    let mut value = 0.0f32;
+                    if ih >= 0 && iw >= 0 && ih < h as i32 && iw < w as i32 {
+                        let (ih, iw) = (ih as u32, iw as u32);
+                        let mut from = ((b * c_in + ci) * h + ih) * w + iw;
+                        if comptime![channels_last] {
+                            from = ((b * h + ih) * w + iw) * c_in + ci;
+                        }
+                        value = x[from as usize];
+                    }
+                    columns[(at + (ky * kw + kx) * tap_stride) as usize] = value;
                 }
-                value = x[at as usize];
+            }
+        } else {
+            for t in 0..taps {
+                columns[(at + t * tap_stride) as usize] = 0.0f32;
             }
         }
-        columns[g as usize] = value;
     }
 
     /// The output gradient of channel `c` at position `(first_band + band)·band_len + k`, zero
@@ -257,7 +276,8 @@ pub fn weight_grad_in_bands(
             empty_device_contiguous_dtype(client.clone(), device.clone(), shape.into(), DType::F32)
         };
         let cols = empty(columns, x_last);
-        let (cubes, cube) = one_thread_per_value(count * columns * bands.band);
+        // A thread per position and input channel ([`kernels::band_columns`]).
+        let (cubes, cube) = one_thread_per_value(count * c_in * bands.band);
         kernels::band_columns::launch(
             &client,
             cubes,
