@@ -415,3 +415,51 @@ fn skinning_on_the_gpu_matches_the_cpu() {
         }
     }
 }
+
+/// The rotations' Hamilton product on GPU devices (`f3g_avatar::model::posing::quat_mul`: one
+/// kernel forward, one per factor backward, the latter with a factor conjugated) against Burn's
+/// tensor ops on the CPU: the product and both factors' gradients, over more rows than one cube
+/// holds.
+#[test]
+fn the_quaternion_product_on_the_gpu_matches_the_cpu() {
+    use burn::tensor::{Device, Tensor, TensorData};
+    use f3g_avatar::model::posing::{quat_mul, quat_mul_as_tensors};
+    let n = 1000;
+    let ramp = |phase: f32| -> Vec<f32> {
+        (0..4 * n)
+            .map(|i| (i as f32 * 0.37 + phase).sin())
+            .collect()
+    };
+    let values = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
+    let run = |device: Device, op: fn(Tensor<2>, Tensor<2>) -> Tensor<2>| {
+        let device = device.autodiff();
+        let tensor = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [n, 4]), &device);
+        let a = tensor(ramp(0.1)).require_grad();
+        let b = tensor(ramp(0.9)).require_grad();
+        let q = op(a.clone(), b.clone());
+        let grads = (q.clone() * tensor(ramp(2.3))).sum().backward();
+        [
+            values(q),
+            values(a.grad(&grads).unwrap()),
+            values(b.grad(&grads).unwrap()),
+        ]
+    };
+    let gpu = run(
+        Device::wgpu(burn::tensor::DeviceKind::DefaultDevice),
+        quat_mul,
+    );
+    let cpu = run(Device::flex(), quat_mul_as_tensors);
+    for ((g, c), what) in gpu
+        .iter()
+        .zip(&cpu)
+        .zip(["product", "a's gradient", "b's gradient"])
+    {
+        assert_eq!(g.len(), c.len(), "{what}");
+        let worst = g
+            .iter()
+            .zip(c)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-5, "{what} differs by {worst}");
+    }
+}

@@ -1,4 +1,5 @@
-//! Flex tensors as host slices and back, for the CPU implementations of the backend ops.
+//! Flex tensors as host slices and back, for the CPU implementations of the backend ops (this
+//! crate's and `f3g-avatar`'s).
 
 use std::borrow::Cow;
 
@@ -8,7 +9,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::tensor::TensorData;
 
 /// A tensor's values as f32, borrowed when already contiguous f32.
-pub(crate) fn host_f32(t: &FloatTensor<Flex>) -> Cow<'_, [f32]> {
+pub fn host_f32(t: &FloatTensor<Flex>) -> Cow<'_, [f32]> {
     match t.as_slice::<f32>() {
         Some(values) => Cow::Borrowed(values),
         None => Cow::Owned(
@@ -22,6 +23,6 @@ pub(crate) fn host_f32(t: &FloatTensor<Flex>) -> Cow<'_, [f32]> {
 }
 
 /// A Flex tensor of `shape` holding `values`.
-pub(crate) fn from_values(values: Vec<f32>, shape: Vec<usize>) -> FloatTensor<Flex> {
+pub fn from_values(values: Vec<f32>, shape: Vec<usize>) -> FloatTensor<Flex> {
     Flex::float_from_data(TensorData::new(values, shape), &Default::default())
 }

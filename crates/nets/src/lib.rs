@@ -14,9 +14,10 @@
 //!   blur, Haar) and modulated weights, each one pass (a loop on the CPU, a kernel on a GPU)
 //!   where it can run, else Burn's tensor ops ([`fused::portable`]).
 //! - [`resample`]: bilinear resizing to any size.
-//! - [`adam`]: Adam with each parameter's update as one pass (on a GPU, one kernel for up to 16
+//! - [`adam`]: Adam with each parameter's update as one pass (on a GPU, one kernel for up to 32
 //!   parameters).
 //! - [`checkpoint`]: saving and loading modules atomically, with shape checks.
+//! - [`host`]: CPU tensors as host slices and back, for the CPU implementations of backend ops.
 //!
 //! Conventions: tensors `[B, C, H, W]`, images in `[0, 1]`; weights are initialised on the host
 //! from a seed, so the same seed gives the same network on every backend.
@@ -31,7 +32,7 @@ mod cube_layout;
 pub mod discriminator;
 mod error;
 pub mod fused;
-mod host;
+pub mod host;
 pub mod init;
 pub mod layers;
 pub mod lpips;

@@ -13,6 +13,8 @@
 //! ([`Skinning::new`], [`Taps::apply`]): the tensor chain is about 600 operations on `[N, 1]`
 //! columns, each a serial pass and an allocation on `Flex`. On GPU devices the skinning
 //! is one kernel (`posing/cube.rs`), for the same reason: each of those operations is a launch.
+//! The rotations' Hamilton product, which has a gradient, is one backend op each way
+//! ([`quaternion`]).
 
 use std::sync::Arc;
 
@@ -25,6 +27,9 @@ use super::{host_data, host_values};
 
 #[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
+mod quaternion;
+
+pub use quaternion::{QuaternionBackend, quat_mul, quat_mul_as_tensors};
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
 /// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
@@ -474,23 +479,6 @@ fn shepperd(r: &[f32; 9]) -> [f32; 4] {
     }
     let norm = q.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-12);
     q.map(|v| v / norm)
-}
-
-/// Hamilton product `a ⊗ b` of `[N, 4]` quaternions (w, x, y, z).
-pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
-    let [w1, x1, y1, z1] = columns(&a);
-    let [w2, x2, y2, z2] = columns(&b);
-    let w = w1.clone() * w2.clone()
-        - x1.clone() * x2.clone()
-        - y1.clone() * y2.clone()
-        - z1.clone() * z2.clone();
-    let x = w1.clone() * x2.clone() + x1.clone() * w2.clone() + y1.clone() * z2.clone()
-        - z1.clone() * y2.clone();
-    let y = w1.clone() * y2.clone() - x1.clone() * z2.clone()
-        + y1.clone() * w2.clone()
-        + z1.clone() * x2.clone();
-    let z = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
-    Tensor::cat(vec![w, x, y, z], 1)
 }
 
 /// Linear blend skinning of Gaussians, the one training, inference and `f3g bench lbs` use:

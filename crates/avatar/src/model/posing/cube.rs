@@ -1,6 +1,7 @@
 //! [`Skinning`](super::Skinning) on `Cube` devices (wgpu, CUDA; under Burn's `fusion` a lazy
 //! operation of its stream): the blend, the polar iteration and Shepperd's quaternion of every
-//! point in one kernel, one thread per point.
+//! point in one kernel, one thread per point; and the rotations' Hamilton product
+//! ([`super::quaternion`]), one thread per row.
 //!
 //! Why: as tensor operations on `[N, 1]` columns ([`super::Skinning::from_tensors`]) the
 //! skinning of a `paper` step's body and face Gaussians launched about 1 300 kernels (the offline
@@ -143,6 +144,43 @@ mod kernels {
             quaternion[(4 * i + c) as usize] = q[c as usize] / norm;
         }
     }
+
+    /// Row `i` (`ABSOLUTE_POS`) of `A ⊗ B` for `[rows, 4]` rows (w, x, y, z), `A` being `a` or
+    /// its conjugate (`conjugate_a`), `B` likewise: `quaternion::hamilton`'s arithmetic.
+    #[cube(launch)]
+    pub fn quat_mul(
+        a: &Tensor<f32>,
+        b: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        rows: u32,
+        #[comptime] conjugate_a: bool,
+        #[comptime] conjugate_b: bool,
+    ) {
+        let i = ABSOLUTE_POS as u32;
+        if i >= rows {
+            terminate!();
+        }
+        let mut sa = 1.0f32;
+        if comptime![conjugate_a] {
+            sa = -1.0f32;
+        }
+        let mut sb = 1.0f32;
+        if comptime![conjugate_b] {
+            sb = -1.0f32;
+        }
+        let w1 = a[(4 * i) as usize];
+        let x1 = sa * a[(4 * i + 1) as usize];
+        let y1 = sa * a[(4 * i + 2) as usize];
+        let z1 = sa * a[(4 * i + 3) as usize];
+        let w2 = b[(4 * i) as usize];
+        let x2 = sb * b[(4 * i + 1) as usize];
+        let y2 = sb * b[(4 * i + 2) as usize];
+        let z2 = sb * b[(4 * i + 3) as usize];
+        out[(4 * i) as usize] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2;
+        out[(4 * i + 1) as usize] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2;
+        out[(4 * i + 2) as usize] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2;
+        out[(4 * i + 3) as usize] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
+    }
 }
 
 /// The skinning kernel as a backend op, so that `Dispatch` routes it to the `Cube` backend.
@@ -217,6 +255,39 @@ impl SkinningBackend for CubeBackend {
             );
         }
         (linear, translation, rotation, quaternion)
+    }
+}
+
+impl super::QuaternionBackend for CubeBackend {
+    fn quat_mul(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        conjugate_a: bool,
+        conjugate_b: bool,
+    ) -> FloatTensor<Self> {
+        let [rows, _] = a.shape().dims();
+        let [a, b] = [a, b].map(into_contiguous);
+        let out = empty_device_contiguous_dtype(
+            a.client.clone(),
+            a.device.clone(),
+            a.shape(),
+            DType::F32,
+        );
+        if rows > 0 {
+            let (cubes, cube) = one_thread_per_value(rows);
+            kernels::quat_mul::launch(
+                &a.client,
+                cubes,
+                cube,
+                a.clone().into_tensor_arg(),
+                b.into_tensor_arg(),
+                out.clone().into_tensor_arg(),
+                u32::try_from(rows).expect("checked by quaternion::has_op"),
+                conjugate_a,
+                conjugate_b,
+            );
+        }
+        out
     }
 }
 
