@@ -44,12 +44,14 @@ pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
 /// Whether `t`'s backend implements [`QuaternionBackend`]: the CPU, and `Cube` devices where
 /// the rows' values fit the kernel's 32-bit indices.
 fn has_op(t: &Tensor<2>) -> bool {
-    let device = t.device().without_autodiff();
-    if device == burn::tensor::Device::flex() {
+    if f3g_nets::fused::on_flex(t) {
         return true;
     }
     #[cfg(any(feature = "gpu", feature = "cuda"))]
-    if matches!(device.as_dispatch(), burn::backend::DispatchDevice::Cube(_)) {
+    if matches!(
+        t.device().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    ) {
         return u32::try_from(t.shape().num_elements()).is_ok();
     }
     false
