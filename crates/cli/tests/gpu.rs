@@ -1,7 +1,8 @@
 //! The `f3g` binary on a wgpu device (Mesa lavapipe in CI): `render-ply --device wgpu` gives
 //! the CPU's image, `bench splat --device wgpu` measures and writes its JSON, a run trained on
-//! the CPU evaluates, animates and exports on wgpu as on the CPU, and a missing adapter is an
-//! error that lists the ones there are. Run with `cargo test --release -p f3g-cli --features
+//! the CPU evaluates, animates and exports on wgpu as on the CPU, a missing adapter is an error
+//! that lists the ones there are, and the avatar crate's skinning and quaternion-product kernels
+//! give the CPU's values. Run with `cargo test --release -p f3g-cli --features
 //! gpu --test gpu`.
 #![cfg(feature = "gpu")]
 
@@ -9,8 +10,22 @@ mod common;
 
 use std::path::Path;
 
+use burn::tensor::Tensor;
 use common::{f3g_in, ok};
 use f3g_splat::{Camera, GaussianCloud, ply};
+
+/// The largest absolute difference between paired values.
+fn worst_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max)
+}
+
+/// A tensor's values on the host, as `f32`.
+fn values(t: Tensor<2>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap()
+}
 
 /// A ring of 300 overlapping Gaussians with SH degree 3.
 fn scene() -> GaussianCloud {
@@ -331,30 +346,16 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
     for frame in ["frame_00000.png", "frame_00003.png"] {
         let a = f3g_io::read_rgb(&d.join("anim-cpu/frames").join(frame)).unwrap();
         let b = f3g_io::read_rgb(&d.join("anim-wgpu/frames").join(frame)).unwrap();
-        let worst = a
-            .data
-            .iter()
-            .zip(&b.data)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0f32, f32::max);
+        let worst = worst_difference(&a.data, &b.data);
         assert!(worst <= 3.0 / 255.0, "{frame}: differs by {worst}");
     }
     // The exported Gaussians.
     let a = ply::read_ply(&d.join("cpu.ply")).unwrap();
     let b = ply::read_ply(&d.join("wgpu.ply")).unwrap();
     assert_eq!(a.len(), b.len());
-    let worst = a
-        .means
-        .iter()
-        .zip(&b.means)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0f32, f32::max);
+    let worst = worst_difference(&a.means, &b.means);
     assert!(worst < 1e-4, "means differ by {worst}");
-    let worst =
-        a.sh.iter()
-            .zip(&b.sh)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0f32, f32::max);
+    let worst = worst_difference(&a.sh, &b.sh);
     assert!(worst < 1e-3, "SH coefficients differ by {worst}");
 }
 
@@ -365,7 +366,7 @@ fn a_run_trains_evaluates_animates_and_exports_on_wgpu_as_on_the_cpu() {
 /// float rounding.
 #[test]
 fn skinning_on_the_gpu_matches_the_cpu() {
-    use burn::tensor::{Device, Tensor};
+    use burn::tensor::Device;
     use f3g_avatar::model::posing::{Skinning, Taps, affine_tensor};
     use glam::{Affine3A, Quat};
     let human = f3g_rig::builtin::load().unwrap();
@@ -375,7 +376,6 @@ fn skinning_on_the_gpu_matches_the_cpu() {
         *p = 0.4 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
     }
     let posed = rig.pose(&params).unwrap();
-    let values = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
     let gpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
     let half_turn = 170f32.to_radians();
     for turn in [
@@ -406,11 +406,7 @@ fn skinning_on_the_gpu_matches_the_cpu() {
         for (k, (g, e)) in got.iter().zip(&expected).enumerate() {
             let what = names.get(k).copied().unwrap_or("rotation column");
             assert_eq!(g.len(), e.len(), "{what}");
-            let worst = g
-                .iter()
-                .zip(e)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max);
+            let worst = worst_difference(g, e);
             assert!(worst < 2e-5, "{what} under {turn:?} differs by {worst}");
         }
     }
@@ -422,7 +418,7 @@ fn skinning_on_the_gpu_matches_the_cpu() {
 /// holds.
 #[test]
 fn the_quaternion_product_on_the_gpu_matches_the_cpu() {
-    use burn::tensor::{Device, Tensor, TensorData};
+    use burn::tensor::{Device, TensorData};
     use f3g_avatar::model::posing::{quat_mul, quat_mul_as_tensors};
     let n = 1000;
     let ramp = |phase: f32| -> Vec<f32> {
@@ -430,7 +426,6 @@ fn the_quaternion_product_on_the_gpu_matches_the_cpu() {
             .map(|i| (i as f32 * 0.37 + phase).sin())
             .collect()
     };
-    let values = |t: Tensor<2>| t.into_data().convert::<f32>().try_to_vec::<f32>().unwrap();
     let run = |device: Device, op: fn(Tensor<2>, Tensor<2>) -> Tensor<2>| {
         let device = device.autodiff();
         let tensor = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, [n, 4]), &device);
@@ -455,11 +450,7 @@ fn the_quaternion_product_on_the_gpu_matches_the_cpu() {
         .zip(["product", "a's gradient", "b's gradient"])
     {
         assert_eq!(g.len(), c.len(), "{what}");
-        let worst = g
-            .iter()
-            .zip(c)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
+        let worst = worst_difference(g, c);
         assert!(worst < 1e-5, "{what} differs by {worst}");
     }
 }
