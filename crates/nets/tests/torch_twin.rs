@@ -5,8 +5,9 @@
 //!
 //! Ignored by default: it needs Python with PyTorch and gsplat 1.5.3 (whose pure-PyTorch
 //! projection the twin's CPU stand-in renderer loads). CI installs both from PyPI into a
-//! virtual environment and runs `F3G_TORCH_PYTHON=VENV/bin/python cargo test --release -p
-//! f3g-nets --test torch_twin -- --ignored`.
+//! virtual environment and runs `F3G_TORCH_PYTHON=VENV/bin/python cargo test --release
+//! --workspace --test torch_twin -- --ignored` (`--workspace`, not `-p f3g-nets`: the features
+//! of the README's test build, whose test binary this is; `-p` alone compiles Burn again).
 
 use std::path::Path;
 use std::process::Command;
