@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{f3g_in as f3g, ok, tiny_capture};
+use common::{f3g_in as f3g, ok, tiny_capture, worst_difference};
 
 #[test]
 fn train_resume_evaluate_animate_and_export() {
@@ -285,12 +285,7 @@ fn train_resume_evaluate_animate_and_export() {
     let spz_bytes = std::fs::read(d.join("one.spz")).unwrap();
     let spz = f3g_splat::spz::decode(&spz_bytes).unwrap();
     assert_eq!(spz.len(), one.len());
-    let worst = one
-        .means
-        .iter()
-        .zip(&spz.means)
-        .map(|(a, b)| (a - b).abs())
-        .fold(0.0f32, f32::max);
+    let worst = worst_difference(&one.means, &spz.means);
     assert!(worst <= 1.3e-4, "{worst}");
     assert!(spz_bytes.len() * 5 < std::fs::metadata(d.join("one.ply")).unwrap().len() as usize);
     let out = f3g(

@@ -11,16 +11,8 @@ mod common;
 use std::path::Path;
 
 use burn::tensor::Tensor;
-use common::{f3g_in, ok};
+use common::{f3g_in, ok, worst_difference};
 use f3g_splat::{Camera, GaussianCloud, ply};
-
-/// The largest absolute difference between paired values.
-fn worst_difference(a: &[f32], b: &[f32]) -> f32 {
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs())
-        .fold(0.0f32, f32::max)
-}
 
 /// A tensor's values on the host, as `f32`.
 fn values(t: Tensor<2>) -> Vec<f32> {

@@ -1,5 +1,5 @@
-//! What the end-to-end tests share: running the binary, the success check and the tiny
-//! training configuration.
+//! What the end-to-end tests share: running the binary, the success check, the tiny
+//! training configuration and the largest difference between paired values.
 #![allow(dead_code)]
 
 use std::path::Path;
@@ -24,6 +24,14 @@ pub fn losses(run: &Path) -> Vec<(u64, f64)> {
             (v["step"].as_u64().unwrap(), v["total"].as_f64().unwrap())
         })
         .collect()
+}
+
+/// The largest absolute difference between paired values.
+pub fn worst_difference(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max)
 }
 
 /// Asserts that a command succeeded, showing its output when it did not.
