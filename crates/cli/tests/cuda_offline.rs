@@ -211,10 +211,11 @@ fn the_phase_trace_places_every_launch_in_its_phase() {
 /// their activations, Adam keeping a weight channels-last and a network's styles one linear
 /// layer, 5 775 with the discriminator step's images scored in one forward, 5 655 with the
 /// noisy activation's two sums in one launch, 5 627 with Adam's 32 parameters per launch, 5 453
-/// with the rotations' Hamilton product one op (2026-11-30); the target is 3 000. The bound keeps
-/// what was won.
+/// with the rotations' Hamilton product one op, 4 757 with a network's modulated weights and
+/// their gradients made together (2026-11-30); the target is 3 000. The bound keeps what was
+/// won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_5_600() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_900() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -246,7 +247,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_5_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (5_000..=5_600).contains(&per_step),
+        (4_400..=4_900).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }

@@ -250,12 +250,50 @@ pub fn cat_channels(first: Tensor<4>, second: Tensor<4>) -> Tensor<4> {
     }
 }
 
-/// StyleGAN2's modulated convolution weight: each input channel `i` of `weight`
-/// (`[C_out, C_in, kh, kw]`) scaled by `styles[first + i] · scale`, then, with `demodulate`, each
+/// One modulated convolution layer of a network, for [`modulate_all`]: its weight
+/// (`[C_out, C_in, kh, kw]`), where its styles begin in the network's style vector, its scale
+/// and whether it demodulates.
+#[derive(Clone, Debug)]
+pub struct Modulation {
+    pub weight: Tensor<4>,
+    pub first: usize,
+    pub scale: f32,
+    pub demodulate: bool,
+}
+
+/// StyleGAN2's modulated convolution weight of every layer in `layers`: each input channel `i`
+/// of a layer's `weight` scaled by `styles[first + i] · scale`, then, with `demodulate`, each
 /// output channel divided by its norm `√(Σ w² + 10⁻⁸)`. `styles` holds every modulated layer's
-/// style of a network, `first` is where this layer's begin: one linear layer makes them all
-/// ([`crate::DualStyleUNet`]), where a layer each was two launches per layer and step on a
-/// GPU. One op where it [`runs`] (`weight`'s device), [`portable::modulate`] elsewhere.
+/// style of a network: one linear layer makes them all ([`crate::DualStyleUNet`]), and on a GPU
+/// one launch modulates every layer's weight and, backward, two launches give every weight's
+/// and the styles' gradients (a node per layer and a gate node for the batch, `fused/autodiff`:
+/// three launches per layer and the ≈ 30 sums of its styles' gradients were 714 of a `paper`
+/// step's launches). One op per layer where it [`runs`] (`styles`' device),
+/// [`portable::modulate`] elsewhere.
+pub fn modulate_all(layers: Vec<Modulation>, styles: Tensor<1>) -> Vec<Tensor<4>> {
+    if !runs(&styles, 0) {
+        return layers
+            .into_iter()
+            .map(|l| portable::modulate(l.weight, styles.clone(), l.first, l.scale, l.demodulate))
+            .collect();
+    }
+    let weights = layers
+        .into_iter()
+        .map(|l| {
+            Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate_queue(
+                l.weight.into_dispatch(),
+                styles.clone().into_dispatch(),
+                l.first,
+                l.scale,
+                l.demodulate,
+            ))
+        })
+        .collect();
+    <Dispatch as FusedBackend>::modulate_launch_queued(styles.into_dispatch());
+    weights
+}
+
+/// [`modulate_all`] of one layer.
 pub fn modulate(
     weight: Tensor<4>,
     styles: Tensor<1>,
@@ -263,17 +301,15 @@ pub fn modulate(
     scale: f32,
     demodulate: bool,
 ) -> Tensor<4> {
-    if runs(&weight, 0) {
-        Tensor::from_dispatch(<Dispatch as FusedBackend>::modulate(
-            weight.into_dispatch(),
-            styles.into_dispatch(),
-            first,
-            scale,
-            demodulate,
-        ))
-    } else {
-        portable::modulate(weight, styles, first, scale, demodulate)
-    }
+    let layer = Modulation {
+        weight,
+        first,
+        scale,
+        demodulate,
+    };
+    modulate_all(vec![layer], styles)
+        .pop()
+        .expect("one layer in, one weight out")
 }
 
 /// `weight · scale` for a convolution weight `[C_out, C_in, kh, kw]` (an equalised
@@ -520,15 +556,22 @@ pub trait FusedBackend: Backend {
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
     /// The modulated weight ([`modulate`]): `u = weight · styles[first + i] · scale`, and with
-    /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel.
+    /// `demodulate` `u · d` where `d = (Σ_{i,taps} u² + 10⁻⁸)^(−½)` per output channel. Queued
+    /// on this thread where the backend launches kernels: the output is allocated now and
+    /// written by [`FusedBackend::modulate_launch_queued`], which the caller runs before
+    /// anything reads it, with the same `styles` ([`modulate_all`]).
     #[fusion(dtype = weight, shape = weight)]
-    fn modulate(
+    fn modulate_queue(
         weight: FloatTensor<Self>,
         styles: FloatTensor<Self>,
         first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self>;
+
+    /// Computes the modulations queued on this thread from `styles`, which it returns.
+    #[fusion(dtype = styles, shape = styles)]
+    fn modulate_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// The gradients of `weight` and `styles` given the output gradient `grad`. With
     /// demodulation, the gradient of `u` is `d · (g − u · d² · Σ g·u)` (sums per output channel);
@@ -545,6 +588,24 @@ pub trait FusedBackend: Backend {
         scale: f32,
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
+
+    /// [`FusedBackend::modulate_grad`]'s weight gradient, queued on this thread where the backend
+    /// launches kernels: allocated now, written by [`FusedBackend::modulate_grad_launch_queued`]
+    /// (with the same `styles`), which also sums the styles' gradient of every queued layer.
+    #[fusion(dtype = weight, shape = weight)]
+    fn modulate_grad_queue(
+        weight: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        first: usize,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self>;
+
+    /// Computes the gradients queued on this thread and returns the styles' gradient: each
+    /// queued layer's sums in its range, zero outside them.
+    #[fusion(dtype = styles, shape = styles)]
+    fn modulate_grad_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// [`scale_weight`]: `weight · scale`, in the layout the backend's convolutions read.
     #[fusion(dtype = weight, shape = weight)]

@@ -21,7 +21,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::conv::conv2d;
 use crate::fused::{
-    LinearScales, add_channel_bias, blur, modulate, noisy_bias_leaky_relu, scale_weight,
+    LinearScales, Modulation, add_channel_bias, blur, noisy_bias_leaky_relu, scale_weight,
     scaled_bias_leaky_relu, scaled_linear, to_rgb_output, upsample2,
 };
 use crate::init::Init;
@@ -244,20 +244,24 @@ impl ModulatedConv2d {
         }
     }
 
-    /// `x`: `[B, in, H, W]`, `styles`: the network's style vector.
-    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>) -> Tensor<4> {
-        let k = self.weight.dims()[2];
-        let w = modulate(
-            self.weight.val(),
-            styles,
-            self.first,
-            self.scale,
-            self.demodulate,
-        );
+    /// The layer's part of its network's [`crate::fused::modulate_all`].
+    pub fn modulation(&self) -> Modulation {
+        Modulation {
+            weight: self.weight.val(),
+            first: self.first,
+            scale: self.scale,
+            demodulate: self.demodulate,
+        }
+    }
+
+    /// `x`: `[B, in, H, W]`, `weight`: this layer's modulated weight (from
+    /// [`Self::modulation`]).
+    pub fn forward(&self, x: Tensor<4>, weight: Tensor<4>) -> Tensor<4> {
+        let k = weight.dims()[2];
         let x = if self.upsample { upsample2(x) } else { x };
         conv2d(
             x,
-            w,
+            weight,
             None,
             ConvOptions::new([1, 1], [k / 2, k / 2], [1, 1], 1),
         )
@@ -305,9 +309,10 @@ impl StyledConv {
         }
     }
 
-    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>) -> Tensor<4> {
+    /// `weight`: the modulated weight of [`Self::conv`].
+    pub fn forward(&self, x: Tensor<4>, weight: Tensor<4>) -> Tensor<4> {
         noisy_bias_leaky_relu(
-            self.conv.forward(x, styles),
+            self.conv.forward(x, weight),
             self.noise.noise.val(),
             self.noise.strength.val(),
             self.bias.val(),
@@ -346,8 +351,9 @@ impl ToRgb {
         }
     }
 
-    pub fn forward(&self, x: Tensor<4>, styles: Tensor<1>, skip: Option<Tensor<4>>) -> Tensor<4> {
-        let out = self.conv.forward(x, styles);
+    /// `weight`: the modulated weight of [`Self::conv`].
+    pub fn forward(&self, x: Tensor<4>, weight: Tensor<4>, skip: Option<Tensor<4>>) -> Tensor<4> {
+        let out = self.conv.forward(x, weight);
         match skip {
             Some(s) => to_rgb_output(out, self.bias.val(), s),
             None => add_channel_bias(out, self.bias.val()),
@@ -488,7 +494,8 @@ mod tests {
         for c in 0..4 {
             let mut x = vec![0.0f32; 4 * 9 * 9];
             x[c * 81 + 4 * 9 + 4] = 1.0;
-            let y = values(conv.forward(init.tensor(x, [1, 4, 9, 9]), style.clone()));
+            let weight = crate::fused::modulate_all(vec![conv.modulation()], style.clone());
+            let y = values(conv.forward(init.tensor(x, [1, 4, 9, 9]), weight[0].clone()));
             for (o, e) in energy.iter_mut().enumerate() {
                 *e += y[o * 81..(o + 1) * 81].iter().map(|v| v * v).sum::<f32>();
             }

@@ -23,7 +23,7 @@ use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
-use crate::fused::{cat_channels, downsample2, inverse_haar};
+use crate::fused::{Modulation, cat_channels, downsample2, inverse_haar, modulate_all};
 use crate::init::Init;
 use crate::layers::{
     ConvLayer, EqualConv2d, EqualLinear, LRELU_GAIN, LRELU_SLOPE, Mapping, StyleRanges, StyledConv,
@@ -313,13 +313,22 @@ impl Decoder {
         Self { blocks }
     }
 
+    /// Its modulated layers in the order [`Self::forward`] takes their weights.
+    fn modulations(&self) -> impl Iterator<Item = Modulation> + '_ {
+        self.blocks.iter().flat_map(|block| {
+            [&block.up.conv, &block.conv.conv, &block.to_rgb.conv].map(|conv| conv.modulation())
+        })
+    }
+
+    /// `weights`: the modulated weights of [`Self::modulations`], in order.
     fn forward(
         &self,
         skips: &[Tensor<4>],
-        styles: Tensor<1>,
+        weights: &mut impl Iterator<Item = Tensor<4>>,
         view: Option<Tensor<4>>,
         view_level: usize,
     ) -> Tensor<4> {
+        let mut weight = || weights.next().expect("a modulated weight per layer");
         // skips[k] is at resolution middle · 2^(levels − 1 − k)… stored from large to small.
         let mut x = skips.last().expect("at least one skip").clone();
         let mut rgb = None;
@@ -330,14 +339,14 @@ impl Decoder {
                 x = cat_channels(x, skip);
             }
             x = block.comb.forward(x);
-            x = block.up.forward(x, styles.clone());
-            x = block.conv.forward(x, styles.clone());
+            x = block.up.forward(x, weight());
+            x = block.conv.forward(x, weight());
             if level == view_level
                 && let Some(v) = view.take()
             {
                 x = x + v;
             }
-            rgb = Some(block.to_rgb.forward(x.clone(), styles.clone(), rgb));
+            rgb = Some(block.to_rgb.forward(x.clone(), weight(), rgb));
         }
         inverse_haar(rgb.expect("at least one decoder block"))
     }
@@ -415,7 +424,8 @@ impl DualStyleUNet {
             }));
         }
         let device = input.device();
-        let styles = self.style_vector(&device);
+        let layers = self.front.modulations().chain(self.back.modulations());
+        let mut weights = modulate_all(layers.collect(), self.style_vector(&device)).into_iter();
         let mut skips = Vec::new();
         let mut x = self.conv_in.forward(input.clone());
         // The input at each encoder level's size, each level the 2 × 2 mean of the one above.
@@ -454,8 +464,8 @@ impl DualStyleUNet {
             _ => (None, None),
         };
         Ok(DualOutput {
-            front: self.front.forward(&skips, styles.clone(), vf, view_level),
-            back: self.back.forward(&skips, styles, vb, view_level),
+            front: self.front.forward(&skips, &mut weights, vf, view_level),
+            back: self.back.forward(&skips, &mut weights, vb, view_level),
         })
     }
 }

@@ -298,6 +298,81 @@ fn modulation_matches_the_tensor_ops() {
     }
 }
 
+/// A network's layers modulated together ([`fused::modulate_all`]: one node per layer and a
+/// gate computing their gradients together) against each layer through the tensor ops: a leaf
+/// weight (a parameter, batched), a weight made by another op (its gradient computed by its
+/// own node, the styles' share through the gate), an untracked weight (the styles' gradient
+/// only), and the styles detached (each layer its own node).
+#[test]
+fn modulating_layers_together_matches_one_at_a_time() {
+    let device = Device::flex().autodiff();
+    let shapes = [[4, 3, 3, 3], [12, 8, 1, 1], [5, 2, 3, 3]];
+    for styles_tracked in [true, false] {
+        let run = |together: bool| {
+            let styles = bias(2 + 3 + 8 + 2 + 4, &device);
+            let styles = if styles_tracked {
+                styles.require_grad()
+            } else {
+                styles
+            };
+            let leaf = ramp(shapes[0], &device).require_grad();
+            let source = ramp(shapes[1], &device).require_grad();
+            let layers = [
+                (leaf.clone(), 2, true),
+                (source.clone() * 1.5 - 0.25, 5, false),
+                (ramp(shapes[2], &device), 13, true),
+            ];
+            let ys: Vec<Tensor<4>> = if together {
+                let modulations = layers
+                    .iter()
+                    .map(|(weight, first, demodulate)| fused::Modulation {
+                        weight: weight.clone(),
+                        first: *first,
+                        scale: 0.37,
+                        demodulate: *demodulate,
+                    })
+                    .collect();
+                fused::modulate_all(modulations, styles.clone())
+            } else {
+                layers
+                    .iter()
+                    .map(|(weight, first, demodulate)| {
+                        portable::modulate(
+                            weight.clone(),
+                            styles.clone(),
+                            *first,
+                            0.37,
+                            *demodulate,
+                        )
+                    })
+                    .collect()
+            };
+            let loss = ys
+                .iter()
+                .map(|y| (y.clone() * weights(y.dims(), &device)).sum())
+                .reduce(|a, b| a + b)
+                .unwrap();
+            let grads = loss.backward();
+            let mut all: Vec<Vec<f32>> = ys.into_iter().map(values).collect();
+            all.push(values(leaf.grad(&grads).unwrap()));
+            all.push(values(source.grad(&grads).unwrap()));
+            if styles_tracked {
+                all.push(values(styles.grad(&grads).unwrap()));
+            }
+            all
+        };
+        let (ours, theirs) = (run(true), run(false));
+        assert_eq!(ours.len(), theirs.len());
+        for (k, (got, expected)) in ours.iter().zip(&theirs).enumerate() {
+            assert_close(
+                got,
+                expected,
+                &format!("value set {k} (styles tracked: {styles_tracked})"),
+            );
+        }
+    }
+}
+
 #[test]
 fn the_modulations_backward_matches_central_differences() {
     let device = Device::flex().autodiff();

@@ -829,6 +829,51 @@ fn the_fused_ops_match_the_cpu() {
             );
         }
     }
+    // A network's layers modulated together (one launch, or a few where the adapter binds few
+    // tensors): shapes of 3 to 16 output channels side by side (cubes past a layer's channels
+    // write nothing), demodulated or not, each from its own range of one style vector.
+    {
+        let layers = [
+            ([16, 64, 3, 3], true),
+            ([12, 16, 1, 1], false),
+            ([3, 5, 3, 3], true),
+            ([7, 9, 3, 3], false),
+        ];
+        let run = |device: &Device| {
+            let count = layers.iter().map(|(shape, _)| shape[1]).sum::<usize>() + 5;
+            let style = style_vector(device, count).require_grad();
+            let mut first = 5;
+            let mut weights = Vec::new();
+            let mut modulations = Vec::new();
+            for (shape, demodulate) in layers {
+                let weight = ramp(shape, device).require_grad();
+                weights.push(weight.clone());
+                modulations.push(fused::Modulation {
+                    weight,
+                    first,
+                    scale: 0.05,
+                    demodulate,
+                });
+                first += shape[1];
+            }
+            let ys = fused::modulate_all(modulations, style.clone());
+            let loss = ys
+                .iter()
+                .map(|y| (y.clone() * (y.clone() * 37.0).sin()).sum())
+                .reduce(|a, b| a + b)
+                .unwrap();
+            let grads = loss.backward();
+            let mut all: Vec<Vec<f32>> = ys.into_iter().map(values).collect();
+            all.extend(weights.iter().map(|w| values(w.grad(&grads).unwrap())));
+            all.push(values(style.grad(&grads).unwrap()));
+            all
+        };
+        let (got, expected) = (run(&gpu), run(&cpu));
+        assert_eq!(got.len(), 2 * layers.len() + 1);
+        for (k, (g, e)) in got.iter().zip(&expected).enumerate() {
+            assert_close(g, e, 1e-5, &format!("modulate_all, value set {k}"));
+        }
+    }
     // The backward op itself with a channels-last gradient (Burn's weight-gradient GEMMs hand
     // theirs back so; the autodiff runs above may not reach that layout).
     {

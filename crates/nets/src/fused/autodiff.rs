@@ -1,8 +1,12 @@
 //! `impl FusedBackend for Autodiff<B>`: one graph node per fused op, whose backward calls the
 //! inner backend's gradient op; the backward ops themselves are not differentiated again.
 
+use std::any::Any;
+use std::cell::RefCell;
+use std::sync::{Arc, Mutex, PoisonError};
+
 use burn::backend::autodiff::{
-    Autodiff,
+    Autodiff, NodeId,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
     ops::{Backward, Ops, OpsKind},
@@ -270,6 +274,195 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateBackward {
         }
         if let Some(node) = style_node {
             grads.register::<B>(node.id, d_style);
+        }
+    }
+}
+
+/// The layers of one [`FusedBackend::modulate_launch_queued`] batch (a network's modulated
+/// convolutions, `fused::modulate_all`), whose gradients are computed together: each layer's
+/// node ([`ModulateLayerBackward`]) leaves its output's gradient here, and the batch's gate
+/// node ([`ModulationGateBackward`]), between the styles and every layer, computes them all in
+/// one queue and launch. The gate runs after every layer's node (Burn runs a graph's steps from
+/// the highest order down, and each layer's order is above the gate's) and before the styles'
+/// node, so the styles get one gradient where the autodiff summed one per layer (on a GPU a
+/// layer's three launches and a network's ≈ 30 sums became three launches per network;
+/// issue #47).
+struct ModulationBatch<B: Backend> {
+    styles: FloatTensor<B>,
+    layers: Vec<BatchedLayer<B>>,
+    /// Whether a layer computed its gradients at once and registered its styles' share on the
+    /// gate ([`ModulateLayerBackward`]).
+    gate_has_gradient: bool,
+}
+
+/// A layer of a [`ModulationBatch`]: its weight and place in the styles, and once its node's
+/// backward has run, its output's gradient and its weight's node.
+struct BatchedLayer<B: Backend> {
+    weight: FloatTensor<B>,
+    first: usize,
+    scale: f32,
+    demodulate: bool,
+    pending: Option<(FloatTensor<B>, Option<NodeId>)>,
+}
+
+type SharedBatch<B> = Arc<Mutex<ModulationBatch<B>>>;
+
+impl<B: Backend> std::fmt::Debug for ModulationBatch<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("ModulationBatch")
+            .field("layers", &self.layers.len())
+            .field("gate_has_gradient", &self.gate_has_gradient)
+            .finish()
+    }
+}
+
+/// The batch's lock: a panic that poisoned it left nothing half-written that matters here.
+fn lock<B: Backend>(batch: &SharedBatch<B>) -> std::sync::MutexGuard<'_, ModulationBatch<B>> {
+    batch.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// The batch being queued on this thread: the styles' node, the gate and the batch.
+struct OpenBatch<B: Backend, C: CheckpointStrategy> {
+    styles: NodeId,
+    gate: Gate<B, C>,
+    batch: SharedBatch<B>,
+}
+
+/// A batch's gate tensor (the styles, passed through its node).
+type Gate<B, C> = FloatTensor<Autodiff<B, C>>;
+
+thread_local! {
+    /// An `OpenBatch<B, C>` from the first `modulate_queue` of tracked styles until
+    /// `modulate_launch_queued`.
+    static OPEN_BATCH: RefCell<Option<Box<dyn Any>>> = const { RefCell::new(None) };
+}
+
+/// The gate and batch of `styles`' layers: the open batch if it belongs to `styles`, else a new
+/// one; `None` where `styles` needs no gradient (each layer then gets its own node).
+fn open_batch<B: FusedBackend, C: CheckpointStrategy>(
+    styles: &Gate<B, C>,
+) -> Option<(Gate<B, C>, SharedBatch<B>)> {
+    OPEN_BATCH.with(|open| {
+        let mut open = open.borrow_mut();
+        if let Some(current) = open
+            .as_ref()
+            .and_then(|b| b.downcast_ref::<OpenBatch<B, C>>())
+            .filter(|b| b.styles == styles.id())
+        {
+            return Some((current.gate.clone(), current.batch.clone()));
+        }
+        let batch = Arc::new(Mutex::new(ModulationBatch {
+            styles: styles.primitive().clone(),
+            layers: Vec::new(),
+            gate_has_gradient: false,
+        }));
+        let gate = match ModulationGateBackward
+            .prepare::<C>([styles.node()])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish(batch.clone(), styles.primitive().clone()),
+            OpsKind::UnTracked(_) => {
+                *open = None;
+                return None;
+            }
+        };
+        *open = Some(Box::new(OpenBatch::<B, C> {
+            styles: styles.id(),
+            gate: gate.clone(),
+            batch: batch.clone(),
+        }));
+        Some((gate, batch))
+    })
+}
+
+/// A batched layer's node: parents the weight and the batch's gate.
+#[derive(Debug)]
+struct ModulateLayerBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 2> for ModulateLayerBackward {
+    /// The batch and the layer's index in it.
+    type State = (SharedBatch<B>, usize);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 2>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (batch, index) = ops.state;
+        let mut batch = lock(&batch);
+        let [weight_node, gate_node] = ops.parents;
+        match weight_node {
+            // A weight made by other ops (order above 0) may have its own step run before the
+            // gate's: its gradient is computed and registered now, the styles' share on the gate.
+            Some(node) if node.order > 0 => {
+                let layer = &batch.layers[index];
+                let (d_weight, d_styles) = B::modulate_grad(
+                    layer.weight.clone(),
+                    batch.styles.clone(),
+                    grad,
+                    layer.first,
+                    layer.scale,
+                    layer.demodulate,
+                );
+                grads.register::<B>(node.id, d_weight);
+                if let Some(gate) = gate_node {
+                    grads.register::<B>(gate.id, d_styles);
+                    batch.gate_has_gradient = true;
+                }
+            }
+            weight_node => batch.layers[index].pending = Some((grad, weight_node.map(|n| n.id))),
+        }
+    }
+}
+
+/// A batch's gate: the styles passed through, its backward the batch's gradients.
+#[derive(Debug)]
+struct ModulationGateBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for ModulationGateBackward {
+    type State = SharedBatch<B>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let mut batch = lock(&ops.state);
+        let styles = batch.styles.clone();
+        let mut weight_grads = Vec::new();
+        let mut queued = false;
+        for layer in &mut batch.layers {
+            if let Some((grad, weight_node)) = layer.pending.take() {
+                let d_weight = B::modulate_grad_queue(
+                    layer.weight.clone(),
+                    styles.clone(),
+                    grad,
+                    layer.first,
+                    layer.scale,
+                    layer.demodulate,
+                );
+                weight_grads.extend(weight_node.map(|id| (id, d_weight)));
+                queued = true;
+            }
+        }
+        let mut d_styles = queued.then(|| B::modulate_grad_launch_queued(styles));
+        // Registered after the launch: a sum with an earlier gradient reads them.
+        for (id, d_weight) in weight_grads {
+            grads.register::<B>(id, d_weight);
+        }
+        if batch.gate_has_gradient {
+            let at_once = grads.consume::<B>(&ops.node);
+            d_styles = Some(match d_styles {
+                Some(d) => B::float_add(d, at_once),
+                None => at_once,
+            });
+        }
+        if let ([Some(node)], Some(d_styles)) = (ops.parents, d_styles) {
+            grads.register::<B>(node.id, d_styles);
         }
     }
 }
@@ -577,16 +770,46 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         )
     }
 
-    fn modulate(
+    fn modulate_queue(
         weight: FloatTensor<Self>,
         styles: FloatTensor<Self>,
         first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self> {
+        if let Some((gate, batch)) = open_batch::<B, C>(&styles) {
+            let nodes = [weight.node(), gate.node()];
+            let weight = weight.into_primitive();
+            let out = B::modulate_queue(
+                weight.clone(),
+                gate.into_primitive(),
+                first,
+                scale,
+                demodulate,
+            );
+            let index = {
+                let mut open = lock(&batch);
+                open.layers.push(BatchedLayer {
+                    weight,
+                    first,
+                    scale,
+                    demodulate,
+                    pending: None,
+                });
+                open.layers.len() - 1
+            };
+            return match ModulateLayerBackward
+                .prepare::<C>(nodes)
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => prep.finish((batch, index), out),
+                OpsKind::UnTracked(prep) => prep.finish(out),
+            };
+        }
         let nodes = [weight.node(), styles.node()];
         let (weight, styles) = (weight.into_primitive(), styles.into_primitive());
-        let out = B::modulate(weight.clone(), styles.clone(), first, scale, demodulate);
+        let out = B::modulate_queue(weight.clone(), styles.clone(), first, scale, demodulate);
         match ModulateBackward
             .prepare::<C>(nodes)
             .compute_bound()
@@ -595,6 +818,11 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             OpsKind::Tracked(prep) => prep.finish((weight, styles, first, scale, demodulate), out),
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
+    }
+
+    fn modulate_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        OPEN_BATCH.with(|open| open.borrow_mut().take());
+        Autodiff::<B, C>::from_inner(B::modulate_launch_queued(styles.into_primitive()))
     }
 
     fn modulate_grad(
@@ -617,6 +845,28 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             Autodiff::<B, C>::from_inner(d_weight),
             Autodiff::<B, C>::from_inner(d_style),
         )
+    }
+
+    fn modulate_grad_queue(
+        weight: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        first: usize,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::modulate_grad_queue(
+            weight.into_primitive(),
+            styles.into_primitive(),
+            grad.into_primitive(),
+            first,
+            scale,
+            demodulate,
+        ))
+    }
+
+    fn modulate_grad_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::modulate_grad_launch_queued(styles.into_primitive()))
     }
 
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {

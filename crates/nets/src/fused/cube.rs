@@ -190,14 +190,18 @@ impl FusedBackend for CubeBackend {
         cat::split_channels(grad, first)
     }
 
-    fn modulate(
+    fn modulate_queue(
         weight: FloatTensor<Self>,
         styles: FloatTensor<Self>,
         first: usize,
         scale: f32,
         demodulate: bool,
     ) -> FloatTensor<Self> {
-        modulate::modulate(weight, styles, first, scale, demodulate)
+        modulate::modulate_queue(weight, &styles, first, scale, demodulate)
+    }
+
+    fn modulate_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        modulate::modulate_launch_queued(styles)
     }
 
     fn modulate_grad(
@@ -209,6 +213,21 @@ impl FusedBackend for CubeBackend {
         demodulate: bool,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
         modulate::modulate_grad(weight, styles, grad, first, scale, demodulate)
+    }
+
+    fn modulate_grad_queue(
+        weight: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        first: usize,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        modulate::modulate_grad_queue(weight, &styles, grad, first, scale, demodulate)
+    }
+
+    fn modulate_grad_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        modulate::modulate_grad_launch_queued(styles)
     }
 
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {

@@ -4,6 +4,7 @@
 //! resampling ops.
 
 use std::borrow::Cow;
+use std::cell::RefCell;
 use std::ops::Range;
 
 use burn::backend::Flex;
@@ -20,6 +21,12 @@ use crate::host::{from_values, host_f32};
 
 /// The blur's taps.
 const TAPS: [f32; 4] = [1.0 / 8.0, 3.0 / 8.0, 3.0 / 8.0, 1.0 / 8.0];
+
+thread_local! {
+    /// The styles' gradient of the layers `modulate_grad_queue` saw on this thread since the
+    /// last `modulate_grad_launch_queued`.
+    static STYLE_GRADIENT: RefCell<Option<FloatTensor<Flex>>> = const { RefCell::new(None) };
+}
 
 impl FusedBackend for Flex {
     fn bias_leaky_relu(
@@ -396,7 +403,8 @@ impl FusedBackend for Flex {
         )
     }
 
-    fn modulate(
+    /// Computed now: the CPU has no launches to save.
+    fn modulate_queue(
         weight: FloatTensor<Self>,
         styles: FloatTensor<Self>,
         first: usize,
@@ -419,6 +427,10 @@ impl FusedBackend for Flex {
             }
         });
         from_values(out, shape.to_vec())
+    }
+
+    fn modulate_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        styles
     }
 
     fn modulate_grad(
@@ -475,6 +487,35 @@ impl FusedBackend for Flex {
             from_values(d_weight, shape.to_vec()),
             from_values(d_styles, vec![styles.len()]),
         )
+    }
+
+    /// Computed now; the styles' gradient is summed on this thread until the launch.
+    fn modulate_grad_queue(
+        weight: FloatTensor<Self>,
+        styles: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        first: usize,
+        scale: f32,
+        demodulate: bool,
+    ) -> FloatTensor<Self> {
+        let (d_weight, d_styles) =
+            Self::modulate_grad(weight, styles, grad, first, scale, demodulate);
+        STYLE_GRADIENT.with(|sum| {
+            let mut sum = sum.borrow_mut();
+            *sum = Some(match sum.take() {
+                Some(s) => Self::float_add(s, d_styles),
+                None => d_styles,
+            });
+        });
+        d_weight
+    }
+
+    fn modulate_grad_launch_queued(styles: FloatTensor<Self>) -> FloatTensor<Self> {
+        let shape = styles.shape();
+        STYLE_GRADIENT
+            .with(|sum| sum.borrow_mut().take())
+            .filter(|sum| sum.shape() == shape)
+            .unwrap_or_else(|| Self::float_zeros(shape, &styles.device(), styles.dtype().into()))
     }
 
     fn scale_weight(weight: FloatTensor<Self>, scale: f32) -> FloatTensor<Self> {
