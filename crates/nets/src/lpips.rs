@@ -264,10 +264,16 @@ impl Lpips {
 
     /// The ReLU features at the five taps (normalised by [`lpips_distance`]).
     fn features(&self, x: Tensor<4>) -> Vec<Tensor<4>> {
+        // The scaling layer of `[0, 1]` images, `(2x − 1 − shift) / scale`, as one multiply and
+        // one add per channel: on a GPU two launches forward and one backward, where it was
+        // four and two (issue #47).
         let device = x.device();
-        let shift = Tensor::<1>::from_data(TensorData::new(SHIFT.to_vec(), [3]), &device);
-        let scale = Tensor::<1>::from_data(TensorData::new(SCALE.to_vec(), [3]), &device);
-        let mut x = ((x * 2.0 - 1.0) - shift.reshape([1, 3, 1, 1])) / scale.reshape([1, 3, 1, 1]);
+        let per_channel = |v: [f32; 3]| {
+            Tensor::<4>::from_data(TensorData::new(v.to_vec(), [1, 3, 1, 1]), &device)
+        };
+        let factor = per_channel(SCALE.map(|s| 2.0 / s));
+        let offset = per_channel([0, 1, 2].map(|c| (-1.0 - SHIFT[c]) / SCALE[c]));
+        let mut x = x * factor + offset;
         let mut taps = Vec::new();
         for (s, (w, b)) in Self::specs(self.net).iter().zip(&self.convs) {
             if let Some((k, st)) = s.pool_before {
