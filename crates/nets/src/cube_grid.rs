@@ -4,6 +4,7 @@
 //! kernels that treat several tensors, one per layer).
 //! The last row runs past the work: every kernel ignores the units past its tensor's length.
 
+use burn_cubecl::cubecl::client::Client;
 use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
 /// Threads per cube.
@@ -35,4 +36,12 @@ pub(crate) fn one_thread_per_value_in_layers(values: usize, layers: usize) -> (C
         unreachable!("one_thread_per_value counts statically")
     };
     (CubeCount::Static(x, y, layers as u32), cube)
+}
+
+/// How many items of a batch one launch binds (`crate::adam`'s shared updates, `fused`'s
+/// modulated layers): `each` tensors per item beside `shared` ones, within the tensors the
+/// device binds per kernel; at least one, at most `most`.
+pub(crate) fn items_per_launch(client: &Client, each: usize, shared: usize, most: usize) -> usize {
+    ((client.properties().hardware.max_bindings as usize).saturating_sub(shared) / each)
+        .clamp(1, most)
 }

@@ -24,7 +24,7 @@ use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_cubecl::tensor::CubeTensor;
 
 use super::{AdamBackend, AdamCoefficients, MAX_PER_LAUNCH};
-use crate::cube_grid::one_thread_per_value_in_layers;
+use crate::cube_grid::{items_per_launch, one_thread_per_value_in_layers};
 use crate::cube_layout::{empty_in_layout, into_channels_last, pixel_stride};
 
 mod kernels {
@@ -243,8 +243,7 @@ impl AdamManyBackend for CubeBackend {
     fn adam_launch_queued(route: FloatTensor<Self>) -> FloatTensor<Self> {
         let mut queue = QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
         let client = route.client.clone();
-        let per_launch =
-            (client.properties().hardware.max_bindings as usize / 7).clamp(1, MAX_PER_LAUNCH);
+        let per_launch = items_per_launch(&client, 7, 0, MAX_PER_LAUNCH);
         // Neighbours in size share a grid with little to spare; a launch shares one step's
         // coefficients (every parameter's moments are as old, except after a stage adds a
         // network).

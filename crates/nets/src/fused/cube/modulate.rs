@@ -33,7 +33,7 @@ use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
 use super::sum::SUM_UNITS;
 use super::{dims, u32_of};
-use crate::cube_grid::{UNITS, one_thread_per_value};
+use crate::cube_grid::{UNITS, items_per_launch, one_thread_per_value};
 use crate::cube_layout::{empty_in_layout, readable};
 use crate::fused::DEMODULATION_EPSILON;
 
@@ -293,14 +293,73 @@ mod kernels {
 /// where the device binds fewer tensors per kernel.
 const MAX_PER_LAUNCH: usize = 48;
 
-/// A queued modulation: the weight made row-major, its output (allocated channels-last, written
-/// by the launch) and the layer's place in the styles.
-struct Queued {
+/// A modulated layer as the kernels read it: its weight made row-major and its place in the
+/// network's styles.
+struct Layer {
     weight: FloatTensor<CubeBackend>,
-    out: FloatTensor<CubeBackend>,
     first: usize,
     scale: f32,
     demodulate: bool,
+}
+
+impl Layer {
+    /// `styles` checked to hold the layer's range.
+    fn new(
+        weight: FloatTensor<CubeBackend>,
+        styles: &FloatTensor<CubeBackend>,
+        first: usize,
+        scale: f32,
+        demodulate: bool,
+    ) -> Self {
+        check_styles(styles, first, dims(&weight)[1]);
+        Self {
+            weight: into_contiguous(weight),
+            first,
+            scale,
+            demodulate,
+        }
+    }
+
+    fn shape(&self) -> [usize; 4] {
+        dims(&self.weight)
+    }
+
+    /// Whether `count` styles hold the layer's range: a queued layer they do not (left by a
+    /// caller that panicked before its launch; nothing reads its outputs) is dropped.
+    fn fits(&self, count: usize) -> bool {
+        self.first + self.shape()[1] <= count
+    }
+}
+
+/// The per-layer scalars of one launch: where each layer's styles begin, its scale and whether
+/// it demodulates.
+struct Scalars {
+    firsts: SequenceArg<u32>,
+    scales: SequenceArg<f32>,
+    demodulates: SequenceArg<u32>,
+}
+
+impl Scalars {
+    fn of<'a>(layers: impl Iterator<Item = &'a Layer>) -> Self {
+        let mut scalars = Self {
+            firsts: SequenceArg::new(),
+            scales: SequenceArg::new(),
+            demodulates: SequenceArg::new(),
+        };
+        for layer in layers {
+            scalars.firsts.push(u32_of(layer.first));
+            scalars.scales.push(layer.scale);
+            scalars.demodulates.push(u32::from(layer.demodulate));
+        }
+        scalars
+    }
+}
+
+/// A queued modulation: the layer and its output (allocated channels-last, written by the
+/// launch).
+struct Queued {
+    layer: Layer,
+    out: FloatTensor<CubeBackend>,
 }
 
 thread_local! {
@@ -318,63 +377,48 @@ pub(super) fn modulate_queue(
     scale: f32,
     demodulate: bool,
 ) -> FloatTensor<CubeBackend> {
-    let shape = dims(&weight);
-    check_styles(styles, first, shape[1]);
-    let weight = into_contiguous(weight);
-    let out = empty_in_layout(&weight, shape, true);
-    if per_output_channel(shape).is_some() {
-        QUEUE.with(|q| {
-            q.borrow_mut().push(Queued {
-                weight,
-                out: out.clone(),
-                first,
-                scale,
-                demodulate,
-            })
-        });
+    let layer = Layer::new(weight, styles, first, scale, demodulate);
+    let out = empty_in_layout(&layer.weight, layer.shape(), true);
+    if per_output_channel(layer.shape()).is_some() {
+        let queued = Queued {
+            layer,
+            out: out.clone(),
+        };
+        QUEUE.with(|q| q.borrow_mut().push(queued));
     }
     out
 }
 
 /// Launches the modulations queued on this thread with `styles`, [`MAX_PER_LAUNCH`] layers at
-/// most per kernel, one grid layer each. A queued layer whose range `styles` does not hold (left
-/// by a caller that panicked before its launch; nothing reads its output) is dropped.
+/// most per kernel, one grid layer each (queued layers `styles` does not hold are dropped,
+/// [`Layer::fits`]).
 pub(super) fn modulate_launch_queued(styles: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
     let [count] = styles.shape().dims();
     let queue: Vec<Queued> = QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
-    let queue: Vec<Queued> = queue
-        .into_iter()
-        .filter(|q| q.first + dims(&q.weight)[1] <= count)
-        .collect();
+    let queue: Vec<Queued> = queue.into_iter().filter(|q| q.layer.fits(count)).collect();
     if queue.is_empty() {
         return styles;
     }
     let contiguous = into_contiguous(styles.clone());
     let client = contiguous.client.clone();
-    let per_launch = ((client.properties().hardware.max_bindings as usize).saturating_sub(1) / 2)
-        .clamp(1, MAX_PER_LAUNCH);
-    for chunk in queue.chunks(per_launch) {
+    for chunk in queue.chunks(items_per_launch(&client, 2, 1, MAX_PER_LAUNCH)) {
         let (mut weights, mut outs) = (SequenceArg::new(), SequenceArg::new());
-        let (mut firsts, mut scales, mut demodulates) =
-            (SequenceArg::new(), SequenceArg::new(), SequenceArg::new());
         for q in chunk {
-            weights.push(q.weight.clone().into_tensor_arg());
+            weights.push(q.layer.weight.clone().into_tensor_arg());
             outs.push(q.out.clone().into_tensor_arg());
-            firsts.push(u32_of(q.first));
-            scales.push(q.scale);
-            demodulates.push(u32::from(q.demodulate));
         }
-        let most_outputs = chunk.iter().map(|q| dims(&q.weight)[0]).max().unwrap_or(0);
+        let scalars = Scalars::of(chunk.iter().map(|q| &q.layer));
+        let most_outputs = chunk.iter().map(|q| q.layer.shape()[0]).max().unwrap_or(0);
         kernels::modulate_many::launch(
             &client,
-            in_layers(one_cube_per_channel(most_outputs, "output"), chunk.len()),
+            one_cube_per_channel_in_layers(most_outputs, "output", chunk.len()),
             CubeDim::new_1d(UNITS),
             weights,
             contiguous.clone().into_tensor_arg(),
             outs,
-            firsts,
-            scales,
-            demodulates,
+            scalars.firsts,
+            scalars.scales,
+            scalars.demodulates,
             DEMODULATION_EPSILON,
             chunk.len(),
             UNITS,
@@ -383,18 +427,15 @@ pub(super) fn modulate_launch_queued(styles: FloatTensor<CubeBackend>) -> FloatT
     styles
 }
 
-/// A queued gradient of a modulated weight: the weight made row-major, the output gradient as
-/// [`readable`] gives it (and whether that is channels-last), the weight's gradient and the
-/// style terms (allocated row-major, written by the launch) and the layer's place in the styles.
+/// A queued gradient of a modulated weight: the layer, the output gradient as [`readable`] gives
+/// it (and whether that is channels-last), the weight's gradient and the style terms (allocated
+/// row-major, written by the launch).
 struct QueuedGrad {
-    weight: FloatTensor<CubeBackend>,
+    layer: Layer,
     grad: FloatTensor<CubeBackend>,
     grad_last: bool,
     d_weight: FloatTensor<CubeBackend>,
     terms: FloatTensor<CubeBackend>,
-    first: usize,
-    scale: f32,
-    demodulate: bool,
 }
 
 impl QueuedGrad {
@@ -406,20 +447,16 @@ impl QueuedGrad {
         scale: f32,
         demodulate: bool,
     ) -> Self {
-        let shape = dims(&weight);
+        let layer = Layer::new(weight, styles, first, scale, demodulate);
+        let shape = layer.shape();
         assert_eq!(dims(&grad), shape, "weight and gradient shapes");
-        check_styles(styles, first, shape[1]);
-        let weight = into_contiguous(weight);
         let (grad, grad_last) = readable(grad);
         Self {
-            d_weight: empty_in_layout(&weight, shape, false),
-            terms: empty_in_layout(&weight, shape, false),
-            weight,
+            d_weight: empty_in_layout(&layer.weight, shape, false),
+            terms: empty_in_layout(&layer.weight, shape, false),
+            layer,
             grad,
             grad_last,
-            first,
-            scale,
-            demodulate,
         }
     }
 }
@@ -461,17 +498,13 @@ pub(super) fn modulate_grad_queue(
 }
 
 /// Launches the gradients queued on this thread with `styles` and returns the styles' gradient
-/// (queued layers whose range `styles` does not hold are dropped, as in
-/// [`modulate_launch_queued`]).
+/// (queued layers `styles` does not hold are dropped, [`Layer::fits`]).
 pub(super) fn modulate_grad_launch_queued(
     styles: FloatTensor<CubeBackend>,
 ) -> FloatTensor<CubeBackend> {
     let [count] = styles.shape().dims();
     let queue: Vec<QueuedGrad> = GRAD_QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
-    let queue = queue
-        .into_iter()
-        .filter(|q| q.first + dims(&q.weight)[1] <= count)
-        .collect();
+    let queue = queue.into_iter().filter(|q| q.layer.fits(count)).collect();
     launch_grads(queue, styles)
 }
 
@@ -486,11 +519,11 @@ fn launch_grads(
     let styles = into_contiguous(styles);
     let layers: Vec<QueuedGrad> = layers
         .into_iter()
-        .filter(|q| per_output_channel(dims(&q.weight)).is_some())
+        .filter(|q| per_output_channel(q.layer.shape()).is_some())
         .collect();
     let mut ranges: Vec<[usize; 2]> = layers
         .iter()
-        .map(|q| [q.first, q.first + dims(&q.weight)[1]])
+        .map(|q| [q.layer.first, q.layer.first + q.layer.shape()[1]])
         .collect();
     ranges.sort_unstable();
     let covered = ranges
@@ -511,51 +544,47 @@ fn launch_grads(
         return d_styles;
     }
     let client = styles.client.clone();
-    let bindings = client.properties().hardware.max_bindings as usize;
-    for chunk in layers.chunks((bindings.saturating_sub(1) / 4).clamp(1, MAX_PER_LAUNCH)) {
+    for chunk in layers.chunks(items_per_launch(&client, 4, 1, MAX_PER_LAUNCH)) {
         let [mut weights, mut grads, mut d_weights, mut terms] =
             [(); 4].map(|_| SequenceArg::new());
-        let (mut firsts, mut scales) = (SequenceArg::new(), SequenceArg::new());
-        let (mut demodulates, mut grads_last) = (SequenceArg::new(), SequenceArg::new());
+        let mut grads_last = SequenceArg::new();
         for q in chunk {
-            weights.push(q.weight.clone().into_tensor_arg());
+            weights.push(q.layer.weight.clone().into_tensor_arg());
             grads.push(q.grad.clone().into_tensor_arg());
             d_weights.push(q.d_weight.clone().into_tensor_arg());
             terms.push(q.terms.clone().into_tensor_arg());
-            firsts.push(u32_of(q.first));
-            scales.push(q.scale);
-            demodulates.push(u32::from(q.demodulate));
             grads_last.push(u32::from(q.grad_last));
         }
-        let most_outputs = chunk.iter().map(|q| dims(&q.weight)[0]).max().unwrap_or(0);
+        let scalars = Scalars::of(chunk.iter().map(|q| &q.layer));
+        let most_outputs = chunk.iter().map(|q| q.layer.shape()[0]).max().unwrap_or(0);
         kernels::modulate_grad_many::launch(
             &client,
-            in_layers(one_cube_per_channel(most_outputs, "output"), chunk.len()),
+            one_cube_per_channel_in_layers(most_outputs, "output", chunk.len()),
             CubeDim::new_1d(UNITS),
             weights,
             grads,
             styles.clone().into_tensor_arg(),
             d_weights,
             terms,
-            firsts,
-            scales,
-            demodulates,
+            scalars.firsts,
+            scalars.scales,
+            scalars.demodulates,
             grads_last,
             DEMODULATION_EPSILON,
             chunk.len(),
             UNITS,
         );
     }
-    for chunk in layers.chunks(bindings.saturating_sub(1).clamp(1, MAX_PER_LAUNCH)) {
+    for chunk in layers.chunks(items_per_launch(&client, 1, 1, MAX_PER_LAUNCH)) {
         let (mut terms, mut firsts) = (SequenceArg::new(), SequenceArg::new());
         for q in chunk {
             terms.push(q.terms.clone().into_tensor_arg());
-            firsts.push(u32_of(q.first));
+            firsts.push(u32_of(q.layer.first));
         }
-        let most_inputs = chunk.iter().map(|q| dims(&q.weight)[1]).max().unwrap_or(0);
+        let most_inputs = chunk.iter().map(|q| q.layer.shape()[1]).max().unwrap_or(0);
         kernels::style_grad_many::launch(
             &client,
-            in_layers(one_cube_per_channel(most_inputs, "input"), chunk.len()),
+            one_cube_per_channel_in_layers(most_inputs, "input", chunk.len()),
             CubeDim::new_1d(SUM_UNITS),
             terms,
             d_styles.clone().into_tensor_arg(),
@@ -565,14 +594,6 @@ fn launch_grads(
         );
     }
     d_styles
-}
-
-/// `cubes` repeated in `layers` grid layers (`CUBE_POS_Z`), one per queued layer.
-fn in_layers(cubes: CubeCount, layers: usize) -> CubeCount {
-    let CubeCount::Static(x, y, _) = cubes else {
-        unreachable!("one_cube_per_channel counts statically")
-    };
-    CubeCount::Static(x, y, u32_of(layers))
 }
 
 /// The number of `styles`, checked to hold `inputs` from `first` on.
@@ -649,11 +670,12 @@ fn per_output_channel(shape: [usize; 4]) -> Option<(u32, u32)> {
     Some((u32_of(per_output), u32_of(kh * kw)))
 }
 
-/// A row of one cube per channel (`CUBE_POS_X`): at most 65 535 (wgpu's limit per dimension).
-fn one_cube_per_channel(channels: usize, which: &str) -> CubeCount {
+/// One cube per channel (`CUBE_POS_X`: at most 65 535, wgpu's limit per dimension) in each of
+/// `layers` grid layers (`CUBE_POS_Z`), one per queued layer.
+fn one_cube_per_channel_in_layers(channels: usize, which: &str, layers: usize) -> CubeCount {
     let cubes = u32::try_from(channels)
         .ok()
         .filter(|&c| c <= 65_535)
         .unwrap_or_else(|| panic!("at most 65 535 {which} channels"));
-    CubeCount::Static(cubes, 1, 1)
+    CubeCount::Static(cubes, 1, u32_of(layers))
 }
