@@ -460,13 +460,15 @@ pub trait FusedBackend: Backend {
     /// The backward of [`FusedBackend::bias_leaky_relu`] for a learned bias: the input's
     /// gradient (`input_scale ·` the pre-activation's, [`FusedBackend::bias_leaky_relu_grad`]
     /// with the gain times `input_scale`) and the bias's (the pre-activation's,
-    /// [`FusedBackend::channel_sum`]). Why one op: on a GPU one kernel writes the first and each
-    /// cube's share of the second, where the two ops read the gradient twice in two or three
-    /// launches.
+    /// [`FusedBackend::channel_sum`]). The bias's gradient may be queued: allocated now and
+    /// written by [`FusedBackend::bias_grads_launch_queued`], which the caller runs before
+    /// anything reads it. Why: on a GPU one kernel writes the input's gradient and each cube's
+    /// share of the bias's, where the two ops read the gradient twice in two or three launches,
+    /// and the shares of every activation of a backward pass are summed in one launch.
     #[fusion(meta = |output, _grad, _input_scale, _slope, _gain| {
         (output.clone(), TensorSpec::new(Shape::new([output.shape[1]]), output.dtype))
     })]
-    fn bias_leaky_relu_backward(
+    fn bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         input_scale: f32,
@@ -474,19 +476,25 @@ pub trait FusedBackend: Backend {
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>);
 
-    /// [`FusedBackend::bias_leaky_relu_backward`] for [`noisy_bias_leaky_relu`], with the noise
-    /// strength's gradient ([`FusedBackend::noise_strength_grad`]) from the same pass.
+    /// [`FusedBackend::bias_leaky_relu_backward_queue`] for [`noisy_bias_leaky_relu`], with the
+    /// noise strength's gradient ([`FusedBackend::noise_strength_grad`]) from the same pass,
+    /// queued like the bias's.
     #[fusion(meta = |output, _grad, _noise, _slope, _gain| {
         let vector = |n: usize| TensorSpec::new(Shape::new([n]), output.dtype);
         (output.clone(), vector(output.shape[1]), vector(1))
     })]
-    fn noisy_bias_leaky_relu_backward(
+    fn noisy_bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         noise: FloatTensor<Self>,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>);
+
+    /// Writes the bias and noise strength gradients queued on this thread by the two ops above;
+    /// returns `anchor` (a tensor for the op to take, as a lazy operation of Burn's fusion).
+    #[fusion(dtype = anchor, shape = anchor)]
+    fn bias_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// `[B, C, H, W] → [B, C, 2H, 2W]`, bilinear.
     #[fusion(dtype = x, shape = scaled(x, 2, 1))]

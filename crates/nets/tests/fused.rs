@@ -630,3 +630,64 @@ fn the_noisy_activation_matches_the_tensor_ops_and_central_differences() {
         "dstrength of the noisy activation",
     );
 }
+
+/// The activations' parameters get their gradients from gate nodes that run after every
+/// activation of the pass (`fused/autodiff.rs`): a chain of four activations against Burn's
+/// ops, with a bias shared by two of them, a bias and a strength made by other ops (whose own
+/// steps take the gate's gradient on), a strength left untracked, and an untracked bias.
+#[test]
+fn the_activations_gates_give_every_parameter_its_gradient() {
+    let device = Device::flex().autodiff();
+    let shape = [2, 3, 4, 5];
+    type Noisy = fn(Tensor<4>, Tensor<4>, Tensor<1>, Tensor<1>, f64, f32) -> Tensor<4>;
+    type Plain = fn(Tensor<4>, Tensor<1>, f64, f32) -> Tensor<4>;
+    let portable_noisy: Noisy = |x, noise, strength, bias, slope, gain| {
+        portable::bias_leaky_relu(
+            x + noise * strength.reshape([1, 1, 1, 1]),
+            bias,
+            slope,
+            gain,
+        )
+    };
+    let run = |noisy: Noisy, plain: Plain| {
+        let x = ramp(shape, &device).require_grad();
+        let noise = ramp([1, 1, 4, 5], &device).flip([3]) * 2.0;
+        let shared = bias(3, &device).require_grad();
+        let root = bias(3, &device).flip([0]).require_grad();
+        let strength =
+            Tensor::<1>::from_data(TensorData::new(vec![0.37f32], [1]), &device).require_grad();
+        let y = noisy(
+            x.clone(),
+            noise.clone(),
+            strength.clone(),
+            shared.clone(),
+            LRELU_SLOPE,
+            LRELU_GAIN,
+        );
+        let y = plain(y, root.clone() * 1.5 - 0.1, LRELU_SLOPE, LRELU_GAIN);
+        let y = noisy(
+            y,
+            noise.clone(),
+            strength.clone() * 2.0,
+            shared.clone(),
+            0.0,
+            1.0,
+        );
+        let y = noisy(y, noise, strength.clone().detach(), root.clone(), 0.2, 1.0);
+        let y = plain(y, bias(3, &device) * 0.5, LRELU_SLOPE, LRELU_GAIN);
+        let grads = (y.clone() * weights(shape, &device)).sum().backward();
+        [
+            values(y),
+            values(x.grad(&grads).unwrap()),
+            values(shared.grad(&grads).unwrap()),
+            values(root.grad(&grads).unwrap()),
+            values(strength.grad(&grads).unwrap()),
+        ]
+    };
+    let ours = run(fused::noisy_bias_leaky_relu, fused::bias_leaky_relu);
+    let theirs = run(portable_noisy, portable::bias_leaky_relu);
+    let names = ["y", "dx", "dshared", "droot", "dstrength"];
+    for ((got, expected), what) in ours.iter().zip(&theirs).zip(names) {
+        assert_close(got, expected, &format!("{what} through the gates"));
+    }
+}

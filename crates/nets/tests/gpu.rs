@@ -939,49 +939,64 @@ fn the_fused_ops_match_the_cpu() {
     }
     // The activations' backward ops themselves with a channels-last output and gradient (the
     // autodiff runs above may hand the gradient in another layout): the one-pass kernel with
-    // the input scaled, and for the noisy form over many cubes the one launch that sums the
-    // bias's and the strength's shares; a single cube (the 30 positions) sums nothing.
+    // the input scaled, and for the noisy form the strength's gradient too, the bias's and the
+    // strength's sums over many cubes queued for all three shapes (six tables of 1 to 512
+    // columns and 1 to 1 024 rows) and written by one `bias_grads_launch_queued` (chunked where
+    // the adapter binds few tensors); a single cube (the 30 positions) queues nothing.
     {
         use burn::backend::Dispatch;
         use f3g_nets::fused::FusedBackend;
-        for shape in [[2, 8, 40, 30], [1, 4, 256, 256], [1, 512, 6, 5]] {
-            let [_, _, h, w] = shape;
-            let run = |device: &Device| {
-                let output = (laid_out(shape, device, true) * 3.0).sin();
-                let grad = (laid_out(shape, device, true) * 37.0).sin();
-                let noise = ramp([1, 1, h, w], device).flip([3]) * 2.0;
-                let (dx, d_bias, d_strength) =
-                    <Dispatch as FusedBackend>::noisy_bias_leaky_relu_backward(
+        let shapes = [[2, 8, 40, 30], [1, 4, 256, 256], [1, 512, 6, 5]];
+        let run = |device: &Device| {
+            let queued: Vec<_> = shapes
+                .iter()
+                .map(|&shape| {
+                    let [_, _, h, w] = shape;
+                    let output = (laid_out(shape, device, true) * 3.0).sin();
+                    let grad = (laid_out(shape, device, true) * 37.0).sin();
+                    let noise = ramp([1, 1, h, w], device).flip([3]) * 2.0;
+                    let noisy = <Dispatch as FusedBackend>::noisy_bias_leaky_relu_backward_queue(
                         output.clone().into_dispatch(),
                         grad.clone().into_dispatch(),
                         noise.into_dispatch(),
                         0.2,
                         1.5,
                     );
-                let (scaled_dx, scaled_bias) = <Dispatch as FusedBackend>::bias_leaky_relu_backward(
-                    output.into_dispatch(),
-                    grad.into_dispatch(),
-                    0.37,
-                    0.2,
-                    1.5,
-                );
-                [
-                    values(Tensor::<4>::from_dispatch(dx)),
-                    values(Tensor::<1>::from_dispatch(d_bias)),
-                    values(Tensor::<1>::from_dispatch(d_strength)),
-                    values(Tensor::<4>::from_dispatch(scaled_dx)),
-                    values(Tensor::<1>::from_dispatch(scaled_bias)),
-                ]
-            };
-            let (got, expected) = (run(&test_device()), run(&Device::flex()));
-            let parts = [
-                "noisy: dx",
-                "noisy: bias gradient",
-                "noisy: strength gradient",
-                "scaled: dx",
-                "scaled: bias gradient",
-            ];
-            for (what, (g, e)) in parts.iter().zip(got.iter().zip(&expected)) {
+                    let scaled = <Dispatch as FusedBackend>::bias_leaky_relu_backward_queue(
+                        output.into_dispatch(),
+                        grad.into_dispatch(),
+                        0.37,
+                        0.2,
+                        1.5,
+                    );
+                    (noisy, scaled)
+                })
+                .collect();
+            let ((_, first, _), _) = &queued[0];
+            <Dispatch as FusedBackend>::bias_grads_launch_queued(first.clone());
+            queued
+                .into_iter()
+                .map(|((dx, d_bias, d_strength), (scaled_dx, scaled_bias))| {
+                    [
+                        values(Tensor::<4>::from_dispatch(dx)),
+                        values(Tensor::<1>::from_dispatch(d_bias)),
+                        values(Tensor::<1>::from_dispatch(d_strength)),
+                        values(Tensor::<4>::from_dispatch(scaled_dx)),
+                        values(Tensor::<1>::from_dispatch(scaled_bias)),
+                    ]
+                })
+                .collect::<Vec<_>>()
+        };
+        let (got, expected) = (run(&test_device()), run(&Device::flex()));
+        let parts = [
+            "noisy: dx",
+            "noisy: bias gradient",
+            "noisy: strength gradient",
+            "scaled: dx",
+            "scaled: bias gradient",
+        ];
+        for (shape, (got, expected)) in shapes.iter().zip(got.iter().zip(&expected)) {
+            for (what, (g, e)) in parts.iter().zip(got.iter().zip(expected)) {
                 // The strength's gradient is ≈ 1 from 262 144 products of sines that cancel:
                 // f32 shares against the CPU's f64 sum differ by ≈ 2·10⁻⁵ of it.
                 let tolerance = if what.contains("strength") {

@@ -16,12 +16,71 @@ use burn::backend::{AutodiffBackend, Backend, TensorMetadata};
 
 use super::{FusedBackend, LinearScales};
 
+/// The gradients of an activation's learned parameters (its bias, and a noisy activation's
+/// noise strength), left by the activation's node for its [`GateBackward`] to register.
+type Stash<B, const N: usize> = Arc<Mutex<Option<[FloatTensor<B>; N]>>>;
+
+/// An activation's gate: its bias (and noise strength) passed through, between them and the
+/// activation's node. The activation's node computes its input's gradient and leaves the
+/// parameters' in the stash, queued (`FusedBackend::bias_leaky_relu_backward_queue`: on a GPU
+/// the sums of its cubes' shares, not yet launched); the gate launches what the pass has queued
+/// and registers them. A gate runs after its activation's node (the node's parent) and before
+/// its parameters' steps; the gates of leaf parameters run after every activation's node (their
+/// order is 1, and Burn runs a graph's steps from the highest order down), so the first of them
+/// launches the sums of every activation of the pass and the others find the queue empty: on a
+/// GPU a launch per activation became one or a few per pass (issue #47).
+#[derive(Debug)]
+struct GateBackward<const N: usize>;
+
+impl<B: Backend + FusedBackend, const N: usize> Backward<B, N> for GateBackward<N> {
+    type State = Stash<B, N>;
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, N>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let Some(gradients) = lock(&ops.state).take() else {
+            return;
+        };
+        if let Some(first) = gradients.first() {
+            B::bias_grads_launch_queued(first.clone());
+        }
+        // Registered after the launch: a sum with an earlier gradient reads them.
+        for (parent, gradient) in ops.parents.into_iter().zip(gradients) {
+            if let Some(node) = parent {
+                grads.register::<B>(node.id, gradient);
+            }
+        }
+    }
+}
+
+/// The gate of `parameters` ([`GateBackward`]) and its stash: the first parameter passed
+/// through, untracked (and the stash never filled) where none needs a gradient.
+fn gate<B: Backend + FusedBackend, C: CheckpointStrategy, const N: usize>(
+    parameters: [&FloatTensor<Autodiff<B, C>>; N],
+) -> (FloatTensor<Autodiff<B, C>>, Stash<B, N>) {
+    let stash = Arc::new(Mutex::new(None));
+    let passed = parameters[0].primitive().clone();
+    let gate = match GateBackward::<N>
+        .prepare::<C>(parameters.map(|p| p.node()))
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => prep.finish(stash.clone(), passed),
+        OpsKind::UnTracked(prep) => prep.finish(passed),
+    };
+    (gate, stash)
+}
+
 #[derive(Debug)]
 struct BiasLeakyReluBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
-    /// The op's output (its sign gives the slope), the input scale, the slope and the gain.
-    type State = (FloatTensor<B>, f32, f32, f32);
+    /// The op's output (its sign gives the slope), the input scale, the slope, the gain and
+    /// the bias gate's stash.
+    type State = (FloatTensor<B>, f32, f32, f32, Stash<B, 1>);
 
     fn backward(
         self,
@@ -30,16 +89,15 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (output, input_scale, slope, gain) = ops.state;
-        let [x_node, bias_node] = ops.parents;
-        let dx = match bias_node {
-            Some(node) => {
-                let (dx, d_bias) =
-                    B::bias_leaky_relu_backward(output, grad, input_scale, slope, gain);
-                grads.register::<B>(node.id, d_bias);
-                dx
-            }
-            None => B::bias_leaky_relu_grad(output, grad, slope, gain * input_scale),
+        let (output, input_scale, slope, gain, stash) = ops.state;
+        let [x_node, gate_node] = ops.parents;
+        let dx = if gate_node.is_some() {
+            let (dx, d_bias) =
+                B::bias_leaky_relu_backward_queue(output, grad, input_scale, slope, gain);
+            *lock(&stash) = Some([d_bias]);
+            dx
+        } else {
+            B::bias_leaky_relu_grad(output, grad, slope, gain * input_scale)
         };
         if let Some(node) = x_node {
             grads.register::<B>(node.id, dx);
@@ -50,29 +108,36 @@ impl<B: Backend + FusedBackend> Backward<B, 2> for BiasLeakyReluBackward {
 #[derive(Debug)]
 struct NoisyBiasLeakyReluBackward;
 
-impl<B: Backend + FusedBackend> Backward<B, 4> for NoisyBiasLeakyReluBackward {
-    /// The op's output (its sign gives the slope), the noise, the strength, the slope and the
-    /// gain.
-    type State = (FloatTensor<B>, FloatTensor<B>, FloatTensor<B>, f32, f32);
+impl<B: Backend + FusedBackend> Backward<B, 3> for NoisyBiasLeakyReluBackward {
+    /// The op's output (its sign gives the slope), the noise, the strength, the slope, the gain
+    /// and the gate's stash (bias, strength).
+    type State = (
+        FloatTensor<B>,
+        FloatTensor<B>,
+        FloatTensor<B>,
+        f32,
+        f32,
+        Stash<B, 2>,
+    );
 
     fn backward(
         self,
-        ops: Ops<Self::State, 4>,
+        ops: Ops<Self::State, 3>,
         grads: &mut Gradients,
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (output, noise, strength, slope, gain) = ops.state;
-        let [x_node, noise_node, strength_node, bias_node] = ops.parents;
-        // The networks learn both: one pass for the three gradients.
-        let (pre_activation, d_bias, d_strength) =
-            B::noisy_bias_leaky_relu_backward(output, grad, noise, slope, gain);
-        if let Some(node) = bias_node {
-            grads.register::<B>(node.id, d_bias);
-        }
-        if let Some(node) = strength_node {
-            grads.register::<B>(node.id, d_strength);
-        }
+        let (output, noise, strength, slope, gain, stash) = ops.state;
+        let [x_node, noise_node, gate_node] = ops.parents;
+        let pre_activation = if gate_node.is_some() {
+            // The networks learn both: one pass for the three gradients.
+            let (pre_activation, d_bias, d_strength) =
+                B::noisy_bias_leaky_relu_backward_queue(output, grad, noise.clone(), slope, gain);
+            *lock(&stash) = Some([d_bias, d_strength]);
+            pre_activation
+        } else {
+            B::bias_leaky_relu_grad(output, grad, slope, gain)
+        };
         if let Some(node) = noise_node {
             // The fixed noise maps never ask for it; any other caller gets it exactly.
             let per_pixel = B::float_sum_dim(B::float_sum_dim(pre_activation.clone(), 0), 1);
@@ -316,9 +381,10 @@ impl<B: Backend> std::fmt::Debug for ModulationBatch<B> {
     }
 }
 
-/// The batch's lock: a panic that poisoned it left nothing half-written that matters here.
-fn lock<B: Backend>(batch: &SharedBatch<B>) -> std::sync::MutexGuard<'_, ModulationBatch<B>> {
-    batch.lock().unwrap_or_else(PoisonError::into_inner)
+/// A batch's or stash's lock: a panic that poisoned it left nothing half-written that matters
+/// here.
+fn lock<T>(shared: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    shared.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 /// The batch being queued on this thread: the styles' node, the gate and the batch.
@@ -547,7 +613,8 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
-        let nodes = [x.node(), bias.node()];
+        let (gate, stash) = gate::<B, C, 1>([&bias]);
+        let nodes = [x.node(), gate.node()];
         let out = B::bias_leaky_relu(
             x.into_primitive(),
             input_scale,
@@ -560,7 +627,9 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish((out.clone(), input_scale, slope, gain), out),
+            OpsKind::Tracked(prep) => {
+                prep.finish((out.clone(), input_scale, slope, gain, stash), out)
+            }
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
@@ -573,7 +642,8 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
-        let nodes = [x.node(), noise.node(), strength.node(), bias.node()];
+        let (gate, stash) = gate::<B, C, 2>([&bias, &strength]);
+        let nodes = [x.node(), noise.node(), gate.node()];
         let (noise, strength) = (noise.into_primitive(), strength.into_primitive());
         let out = B::noisy_bias_leaky_relu(
             x.into_primitive(),
@@ -588,7 +658,9 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             .compute_bound()
             .stateful()
         {
-            OpsKind::Tracked(prep) => prep.finish((out.clone(), noise, strength, slope, gain), out),
+            OpsKind::Tracked(prep) => {
+                prep.finish((out.clone(), noise, strength, slope, gain, stash), out)
+            }
             OpsKind::UnTracked(prep) => prep.finish(out),
         }
     }
@@ -618,14 +690,14 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         Autodiff::<B, C>::from_inner(B::channel_sum(x.into_primitive()))
     }
 
-    fn bias_leaky_relu_backward(
+    fn bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         input_scale: f32,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-        let (dx, d_bias) = B::bias_leaky_relu_backward(
+        let (dx, d_bias) = B::bias_leaky_relu_backward_queue(
             output.into_primitive(),
             grad.into_primitive(),
             input_scale,
@@ -638,14 +710,14 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         )
     }
 
-    fn noisy_bias_leaky_relu_backward(
+    fn noisy_bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         noise: FloatTensor<Self>,
         slope: f32,
         gain: f32,
     ) -> (FloatTensor<Self>, FloatTensor<Self>, FloatTensor<Self>) {
-        let (dx, d_bias, d_strength) = B::noisy_bias_leaky_relu_backward(
+        let (dx, d_bias, d_strength) = B::noisy_bias_leaky_relu_backward_queue(
             output.into_primitive(),
             grad.into_primitive(),
             noise.into_primitive(),
@@ -657,6 +729,10 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             Autodiff::<B, C>::from_inner(d_bias),
             Autodiff::<B, C>::from_inner(d_strength),
         )
+    }
+
+    fn bias_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::bias_grads_launch_queued(anchor.into_primitive()))
     }
 
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {

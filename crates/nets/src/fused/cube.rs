@@ -104,7 +104,7 @@ impl FusedBackend for CubeBackend {
         bias_leaky_relu::channel_sum(x)
     }
 
-    fn bias_leaky_relu_backward(
+    fn bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         input_scale: f32,
@@ -117,7 +117,7 @@ impl FusedBackend for CubeBackend {
         }
     }
 
-    fn noisy_bias_leaky_relu_backward(
+    fn noisy_bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         noise: FloatTensor<Self>,
@@ -133,6 +133,11 @@ impl FusedBackend for CubeBackend {
                 (dx, d_bias, d_strength)
             }
         }
+    }
+
+    fn bias_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
+        bias_leaky_relu::launch_queued_sums();
+        anchor
     }
 
     fn upsample2(x: FloatTensor<Self>) -> FloatTensor<Self> {

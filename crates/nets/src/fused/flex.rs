@@ -121,7 +121,7 @@ impl FusedBackend for Flex {
         from_values(vec![sum as f32], vec![1])
     }
 
-    fn bias_leaky_relu_backward(
+    fn bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         input_scale: f32,
@@ -131,7 +131,7 @@ impl FusedBackend for Flex {
         separate_bias_leaky_relu_grads::<Self>(output, grad, input_scale, slope, gain)
     }
 
-    fn noisy_bias_leaky_relu_backward(
+    fn noisy_bias_leaky_relu_backward_queue(
         output: FloatTensor<Self>,
         grad: FloatTensor<Self>,
         noise: FloatTensor<Self>,
@@ -141,6 +141,11 @@ impl FusedBackend for Flex {
         let (dx, d_bias) = separate_bias_leaky_relu_grads::<Self>(output, grad, 1.0, slope, gain);
         let d_strength = Self::noise_strength_grad(dx.clone(), noise);
         (dx, d_bias, d_strength)
+    }
+
+    /// Nothing is queued on the CPU: the gradients are computed at once.
+    fn bias_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
+        anchor
     }
 
     fn channel_sum(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -2,21 +2,25 @@
 //! the input gradient one kernel each, the bias gradient Burn's reductions, the noise strength's
 //! a kernel of partial sums and Burn's reduction of them — or, for a channels-last gradient of
 //! a power-of-two channel count (the networks' own), the three gradients from one kernel that
-//! also sums each cube's share of the last two, and one reduction of those shares (Burn's for
-//! the bias alone, ours for the bias and the noise strength together).
+//! also sums each cube's share of the last two; the sums of those shares are queued on the
+//! thread and made for every activation of a backward pass together (`launch_queued_sums`,
+//! called by the autodiff's gate nodes, `fused/autodiff.rs`).
+
+use std::cell::RefCell;
 
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
-use burn_cubecl::cubecl::CubeDim;
+use burn_cubecl::cubecl::prelude::SequenceArg;
+use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
-use super::sum::{SUM_UNITS, one_cube_per_value};
+use super::sum::SUM_UNITS;
 use super::{dims, one_thread_per_output, u32_of};
-use crate::cube_grid::{UNITS, cubes_in_rows, one_thread_per_value};
+use crate::cube_grid::{UNITS, cubes_in_rows, items_per_launch, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, into_channels_last, readable};
 
 /// The kernels; `activation_grad` is shared with the linear layer's (`linear.rs`).
@@ -219,42 +223,43 @@ pub(super) mod kernels {
         }
     }
 
-    /// The bias's and the noise strength's gradients from [`bias_leaky_relu_grads`]'s shares in
-    /// one launch: cube `k < channels` ([`cube_index`]) sums column `k` of `bias_partials`
-    /// (`[blocks, channels]`) into `d_bias[k]`, cube `channels` the `noise_partials` into
-    /// `d_strength[0]`, each its units striding over the blocks. Cubes past those add nothing
-    /// and write nothing.
-    #[allow(clippy::too_many_arguments)]
+    /// The column sums of several `[rows, values]` tables of cubes' shares
+    /// (of [`bias_leaky_relu_grads`]), grid layer `CUBE_POS_Z` for table `n` (`shares[n]` into
+    /// `sums[n]`, both gapless), one cube per column (`CUBE_POS_X`; cubes past the table's
+    /// columns add nothing and write nothing), its units striding over the rows. The barriers
+    /// sit in control flow uniform over the cube (the grid layer picks the branch).
     #[cube(launch)]
-    pub fn sum_shares(
-        bias_partials: &Tensor<f32>,
-        noise_partials: &Tensor<f32>,
-        d_bias: &mut Tensor<f32>,
-        d_strength: &mut Tensor<f32>,
-        blocks: u32,
-        channels: u32,
+    pub fn sum_columns_many(
+        shares: &Sequence<OwnedTensor<f32>>,
+        sums: &mut Sequence<OwnedTensor<f32>>,
+        #[comptime] count: usize,
         #[comptime] units: u32,
     ) {
-        let k = cube_index();
+        let table = CUBE_POS_Z as usize;
+        let k = CUBE_POS_X;
         let t = UNIT_POS;
-        let mut sum = 0.0f32;
-        let mut b = t;
-        while b < blocks {
-            if k < channels {
-                sum += bias_partials[(b * channels + k) as usize];
-            } else if k == channels {
-                sum += noise_partials[b as usize];
-            }
-            b += units;
-        }
         let mut partial = Shared::<[f32]>::new_slice(comptime![units as usize]);
-        partial[t as usize] = sum;
-        cube_sum(&mut partial, units);
-        if t == 0 {
-            if k < channels {
-                d_bias[k as usize] = partial[0];
-            } else if k == channels {
-                d_strength[0] = partial[0];
+        #[unroll]
+        for n in 0..count {
+            if table == n {
+                let share = shares.index(n);
+                let values = share.shape(1) as u32;
+                let mut rows = 0u32;
+                if k < values {
+                    rows = share.shape(0) as u32;
+                }
+                let mut sum = 0.0f32;
+                let mut r = t;
+                while r < rows {
+                    sum += share[(r * values + k) as usize];
+                    r += units;
+                }
+                partial[t as usize] = sum;
+                cube_sum(&mut partial, units);
+                if t == 0 && k < values {
+                    let out = sums.index_mut(n);
+                    out[k as usize] = partial[0];
+                }
             }
         }
     }
@@ -421,7 +426,7 @@ pub(super) fn bias_leaky_relu_grad(
 /// (a power of two) is one channel per unit or fewer.
 const MAX_GRAD_UNITS: usize = 1024;
 /// Positions per cube of [`kernels::bias_leaky_relu_grads`], at fewest: a cube's sums end in
-/// a few values, summed again by Burn's reduction.
+/// a few values, summed again ([`launch_queued_sums`]).
 const MIN_BLOCK: usize = 64;
 /// Cubes [`kernels::bias_leaky_relu_grads`] aims for, about eight per multiprocessor of an
 /// H100/H200, as the banded weight gradient does.
@@ -429,9 +434,10 @@ const TARGET_BLOCKS: usize = 1024;
 
 /// The input gradient of [`bias_leaky_relu`] (or its noisy form, `input_scale` 1) with the bias's
 /// gradient and, given the `noise`, the strength's, from one pass over a channels-last `grad` and
-/// `output` ([`kernels::bias_leaky_relu_grads`]) and the sums of each cube's partial sums (Burn's;
-/// with noise both in one launch, [`kernels::sum_shares`]): two launches where the separate ops
-/// took three to five. `None` where the pass does not apply (another layout, a channel count that
+/// `output` ([`kernels::bias_leaky_relu_grads`]); the sums of the cubes' shares, which are the
+/// bias's and the strength's gradients, are queued ([`launch_queued_sums`] writes them), so
+/// that the backward pass sums every activation's shares in a launch or two where each took
+/// one (issue #47). `None` where the pass does not apply (another layout, a channel count that
 /// is not a power of two up to 1 024, 2³² values or more): the caller runs the separate ops.
 #[allow(clippy::type_complexity)]
 pub(super) fn gradients(
@@ -503,39 +509,84 @@ pub(super) fn gradients(
         noise.is_some(),
         u(units),
     );
-    if noise.is_some() && blocks > 1 {
-        // The bias's and the strength's sums over the cubes' shares in one launch.
-        let d_bias = empty_in_layout(grad, [1, 1, 1, channels], false);
-        let d_strength = empty_in_layout(grad, [1, 1, 1, 1], false);
-        let (cubes, cube) = one_cube_per_value(channels + 1);
-        kernels::sum_shares::launch(
-            &grad.client,
-            cubes,
-            cube,
-            bias_partials.into_tensor_arg(),
-            noise_partials.into_tensor_arg(),
-            d_bias.clone().into_tensor_arg(),
-            d_strength.clone().into_tensor_arg(),
-            u(blocks),
-            u(channels),
-            SUM_UNITS,
-        );
-        let vector = |t, n: usize| CubeBackend::float_reshape(t, Shape::new([n]));
-        return Some((dx, vector(d_bias, channels), Some(vector(d_strength, 1))));
-    }
-    // Each sum over the cubes' partial sums is one launch, none for a single cube.
-    let summed = |partials: FloatTensor<CubeBackend>, values: usize| {
-        let rows = CubeBackend::float_reshape(partials, Shape::new([blocks, values]));
-        let sums = if blocks > 1 {
-            CubeBackend::float_sum_dim(rows, 0)
+    // The sums over the cubes' shares: the shares themselves for a single cube, else queued
+    // for `launch_queued_sums`.
+    let summed = |shares: FloatTensor<CubeBackend>, values: usize| {
+        let table = CubeBackend::float_reshape(shares, Shape::new([blocks, values]));
+        if blocks == 1 {
+            CubeBackend::float_reshape(table, Shape::new([values]))
         } else {
-            rows
-        };
-        CubeBackend::float_reshape(sums, Shape::new([values]))
+            queue_sum(table)
+        }
     };
     let d_bias = summed(bias_partials, channels);
     let d_strength = noise.is_some().then(|| summed(noise_partials, 1));
     Some((dx, d_bias, d_strength))
+}
+
+/// A column sum queued by [`gradients`]: a gapless `[rows, values]` table of cubes' shares
+/// and its `[values]` sums, allocated and not yet written.
+struct QueuedSum {
+    shares: FloatTensor<CubeBackend>,
+    sums: FloatTensor<CubeBackend>,
+}
+
+thread_local! {
+    /// Sums queued by [`gradients`], launched by [`launch_queued_sums`].
+    static SUM_QUEUE: RefCell<Vec<QueuedSum>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Queues the column sums of `shares` on this thread and returns them, allocated now and
+/// written by [`launch_queued_sums`] (one stream per device: before any later kernel reads
+/// them).
+fn queue_sum(shares: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [_, values] = shares.shape().dims();
+    let sums = CubeBackend::float_reshape(
+        empty_in_layout(&shares, [1, 1, 1, values], false),
+        Shape::new([values]),
+    );
+    let queued = QueuedSum {
+        shares,
+        sums: sums.clone(),
+    };
+    SUM_QUEUE.with(|q| q.borrow_mut().push(queued));
+    sums
+}
+
+/// The most tables one launch of [`kernels::sum_columns_many`] sums (a `paper` step's backward
+/// passes queue about 390, nine launches); fewer where the device binds fewer tensors per
+/// kernel.
+const MAX_SUMS_PER_LAUNCH: usize = 48;
+
+/// Launches the sums queued on this thread ([`kernels::sum_columns_many`], up to
+/// [`MAX_SUMS_PER_LAUNCH`] tables a launch, a grid layer each).
+pub(super) fn launch_queued_sums() {
+    let queue: Vec<QueuedSum> = SUM_QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
+    let Some(first) = queue.first() else {
+        return;
+    };
+    let client = first.shares.client.clone();
+    for chunk in queue.chunks(items_per_launch(&client, 2, 0, MAX_SUMS_PER_LAUNCH)) {
+        let (mut shares, mut sums) = (SequenceArg::new(), SequenceArg::new());
+        for q in chunk {
+            shares.push(q.shares.clone().into_tensor_arg());
+            sums.push(q.sums.clone().into_tensor_arg());
+        }
+        let most_values = chunk
+            .iter()
+            .map(|q| q.sums.shape().num_elements())
+            .max()
+            .unwrap_or(0);
+        kernels::sum_columns_many::launch(
+            &client,
+            CubeCount::Static(u32_of(most_values), 1, u32_of(chunk.len())),
+            CubeDim::new_1d(SUM_UNITS),
+            shares,
+            sums,
+            chunk.len(),
+            SUM_UNITS,
+        );
+    }
 }
 
 /// Burn's reductions (the patched `burn-cubecl` picks a plane per channel for the long
