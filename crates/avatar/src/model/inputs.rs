@@ -53,8 +53,8 @@ fn points_tensor(points: &[Vec3], device: &Device) -> Tensor<2> {
 struct Part {
     /// `[N, 3]` canonical template positions.
     positions: Tensor<2>,
-    /// Canonical normals as three `[N, 1]` columns.
-    normals: [Tensor<2>; 3],
+    /// `[N, 3]` canonical normals.
+    normals: Tensor<2>,
     /// One row per Gaussian, one tap per influencing joint.
     skin: Taps,
     /// The masked box filter of the map to the network's input: one row per input pixel
@@ -75,15 +75,9 @@ impl Part {
         device: &Device,
     ) -> Self {
         let reduce_rows = reduction(pixels, map, size);
-        let n = normals.len();
         Self {
             positions: points_tensor(positions, device),
-            normals: std::array::from_fn(|k| {
-                Tensor::from_data(
-                    TensorData::new(normals.iter().map(|v| v[k]).collect(), [n, 1]),
-                    device,
-                )
-            }),
+            normals: points_tensor(normals, device),
             skin: Taps::skin(skin, device),
             reduce: Taps::new(reduce_rows.iter().map(Vec::as_slice), device),
             size,
@@ -109,7 +103,7 @@ impl Part {
 
     /// Posed unit normals `[N, 3]`: the canonical normals turned by the skinning rotation.
     fn posed_normals(&self, skinning: &Skinning) -> Tensor<2> {
-        normalize(Tensor::cat(skinning.rotate(&self.normals).to_vec(), 1))
+        normalize(skinning.rotate(self.normals.clone()))
     }
 
     /// `n · v` maps `[1, 1, S, S]` (front, back) of the posed unit normals `normals`, `v` the

@@ -319,7 +319,7 @@ pub fn normalize(v: Tensor<2>) -> Tensor<2> {
 }
 
 /// The posing transforms of a set of Gaussians on the device: the blended affine transform and
-/// its nearest rotation, as columns (for normals) and as a quaternion (for the Gaussians'
+/// its nearest rotation, as a matrix (for normals) and as a quaternion (for the Gaussians'
 /// orientations).
 #[derive(Clone, Debug)]
 pub struct Skinning {
@@ -327,8 +327,9 @@ pub struct Skinning {
     pub linear: Tensor<3>,
     /// `[N, 3]`.
     pub translation: Tensor<2>,
-    /// Nine `[N, 1]` columns, row-major (see [`nearest_rotation`]).
-    pub rotation: [Tensor<2>; 9],
+    /// `[N, 3, 3]`, [`nearest_rotation`]'s (one tensor, so that turning normals is two
+    /// launches on a GPU: as nine columns it was 24, the columns' copies among them).
+    pub rotation: Tensor<3>,
     /// `[N, 4]` (w, x, y, z).
     pub quaternion: Tensor<2>,
 }
@@ -351,12 +352,13 @@ impl Skinning {
     /// [`Skinning::new`] as tensor operations, for every device.
     pub fn from_tensors(joints: &Tensor<3>, skin: &Taps) -> Self {
         let (linear, translation) = split_affine(blend(joints, skin));
-        let rotation = nearest_rotation(linear.clone());
+        let columns = nearest_rotation(linear.clone());
+        let n = translation.dims()[0];
         Self {
-            quaternion: quaternions(&rotation),
+            quaternion: quaternions(&columns),
             linear,
             translation,
-            rotation,
+            rotation: Tensor::cat(columns.to_vec(), 1).reshape([n, 3, 3]),
         }
     }
 
@@ -383,45 +385,40 @@ impl Skinning {
         let upload = |values: Vec<f32>, width: usize| {
             Tensor::<2>::from_data(TensorData::new(values, [rows, width]), &device)
         };
-        let (mut linear, mut translation, mut quaternion) = (
+        let (mut linear, mut translation, mut rotation, mut quaternion) = (
             Vec::with_capacity(9 * rows),
             Vec::with_capacity(3 * rows),
+            Vec::with_capacity(9 * rows),
             Vec::with_capacity(4 * rows),
         );
-        let mut rotation: [Vec<f32>; 9] = std::array::from_fn(|_| Vec::with_capacity(rows));
         for p in &per_point {
             linear.extend_from_slice(&p.linear);
             translation.extend_from_slice(&p.translation);
+            rotation.extend_from_slice(&p.rotation);
             quaternion.extend_from_slice(&p.quaternion);
-            for (column, &r) in rotation.iter_mut().zip(&p.rotation) {
-                column.push(r);
-            }
         }
         Self {
             linear: upload(linear, 9).reshape([rows, 3, 3]),
             translation: upload(translation, 3),
-            rotation: rotation.map(|column| upload(column, 1)),
+            rotation: upload(rotation, 9).reshape([rows, 3, 3]),
             quaternion: upload(quaternion, 4),
         }
     }
 
-    /// `R v` for vectors given as three `[N, 1]` columns.
-    pub fn rotate(&self, v: &[Tensor<2>; 3]) -> [Tensor<2>; 3] {
-        let r = |i: usize, j: usize| self.rotation[3 * i + j].clone();
-        std::array::from_fn(|i| {
-            r(i, 0) * v[0].clone() + r(i, 1) * v[1].clone() + r(i, 2) * v[2].clone()
-        })
+    /// `R v` for vectors `[N, 3]`.
+    pub fn rotate(&self, v: Tensor<2>) -> Tensor<2> {
+        let n = v.dims()[0];
+        (self.rotation.clone() * v.reshape([n, 1, 3]))
+            .sum_dim(2)
+            .reshape([n, 3])
     }
 
     /// Two sets of Gaussians' transforms, one after the other.
     pub fn cat(self, other: Self) -> Self {
-        let mut rest = other.rotation.into_iter();
         Self {
             linear: Tensor::cat(vec![self.linear, other.linear], 0),
             translation: Tensor::cat(vec![self.translation, other.translation], 0),
-            rotation: self
-                .rotation
-                .map(|a| Tensor::cat(vec![a, rest.next().expect("nine columns")], 0)),
+            rotation: Tensor::cat(vec![self.rotation, other.rotation], 0),
             quaternion: Tensor::cat(vec![self.quaternion, other.quaternion], 0),
         }
     }
@@ -568,7 +565,7 @@ mod tests {
                 let points = Tensor::<2>::from_data(TensorData::new(p.to_array().repeat(n), [n, 3]), &device);
                 let got = host_values(transform_points(&skinning.linear, &skinning.translation, points));
                 let q = host_values(skinning.quaternion.clone());
-                let r: Vec<Vec<f32>> = skinning.rotation.iter().map(|c| host_values(c.clone())).collect();
+                let r = host_values(skinning.rotation.clone().reshape([n, 9]));
                 for (i, e) in expected.iter().enumerate() {
                     let want = e.affine.transform_point3(p);
                     prop_assert!((Vec3::from_slice(&got[3 * i..3 * i + 3]) - want).length() < 1e-5);
@@ -577,7 +574,7 @@ mod tests {
                     let m = Mat3::from_quat(e.rotation);
                     for a in 0..3 {
                         for b in 0..3 {
-                            prop_assert!((r[3 * a + b][i] - m.col(b)[a]).abs() < 1e-4);
+                            prop_assert!((r[9 * i + 3 * a + b] - m.col(b)[a]).abs() < 1e-4);
                         }
                     }
                 }

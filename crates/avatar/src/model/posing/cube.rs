@@ -27,8 +27,8 @@ mod kernels {
 
     /// Point `i` (`ABSOLUTE_POS`): the blend `m = Σ_k weight[k, i] · joints[index[k, i]]`
     /// (`[3, 4]` row-major), its linear part and translation, the nearest rotation of the linear
-    /// part after `iterations` Newton steps `X ← ½(γX + X⁻ᵀ/γ)`, `γ = |det X|^(-1/3)` (stored as
-    /// nine columns, `rotation[k, i]`), and that rotation's unit quaternion (w, x, y, z).
+    /// part after `iterations` Newton steps `X ← ½(γX + X⁻ᵀ/γ)`, `γ = |det X|^(-1/3)` (`[3, 3]`
+    /// row-major, `rotation[i, k]`), and that rotation's unit quaternion (w, x, y, z).
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn skinning(
@@ -97,7 +97,7 @@ mod kernels {
             x[8] = x[8] * g + c8 * h;
         }
         for k in 0..9u32 {
-            rotation[(k * rows + i) as usize] = x[k as usize];
+            rotation[(i * 9 + k) as usize] = x[k as usize];
         }
         // Shepperd's pivots and candidates, the first largest pivot's candidate kept.
         let s01 = x[1] + x[3];
@@ -234,7 +234,7 @@ impl SkinningBackend for CubeBackend {
             )
         };
         let (linear, translation) = (empty([rows, 9]), empty([rows, 3]));
-        let (rotation, quaternion) = (empty([9, rows]), empty([rows, 4]));
+        let (rotation, quaternion) = (empty([rows, 9]), empty([rows, 4]));
         if rows > 0 {
             let (cubes, cube) = one_thread_per_value(rows);
             let rows = u32::try_from(rows).expect("fewer than 2^32 skinned points");
@@ -323,12 +323,7 @@ pub(super) fn skinning(
     Some(super::Skinning {
         linear: linear.reshape([rows, 3, 3]),
         translation: on_device(Tensor::from_dispatch(translation)),
-        rotation: std::array::from_fn(|k| {
-            rotation
-                .clone()
-                .slice([k..k + 1, 0..rows])
-                .reshape([rows, 1])
-        }),
+        rotation: rotation.reshape([rows, 3, 3]),
         quaternion: on_device(Tensor::from_dispatch(quaternion)),
     })
 }
