@@ -101,7 +101,7 @@ pub fn scaled_bias_leaky_relu(
 
 /// `gain · leaky_relu(x + noise · strength + bias, slope)`: StyleGAN2's noise injection (a
 /// fixed `noise` map `[1, 1, H, W]` times a learned `strength` `[1]`) and its fused activation
-/// in one op where it [`runs`], Burn's ops and [`portable::bias_leaky_relu`] elsewhere. Why:
+/// in one op where it [`runs`], [`portable::noisy_bias_leaky_relu`] elsewhere. Why:
 /// as a multiply and a broadcast add, with their backward's broadcast sums, the injection cost
 /// a styled convolution six launches more on a GPU.
 pub fn noisy_bias_leaky_relu(
@@ -122,8 +122,7 @@ pub fn noisy_bias_leaky_relu(
             gain,
         ))
     } else {
-        let injected = x + noise * strength.reshape([1, 1, 1, 1]);
-        portable::bias_leaky_relu(injected, bias, slope, gain)
+        portable::noisy_bias_leaky_relu(x, noise, strength, bias, slope, gain)
     }
 }
 

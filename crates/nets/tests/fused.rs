@@ -559,6 +559,9 @@ fn scale_weight_matches_the_tensor_ops_and_central_differences() {
     );
 }
 
+/// `fused::noisy_bias_leaky_relu`'s signature: input, noise, strength, bias, slope, gain.
+type NoisyOp = fn(Tensor<4>, Tensor<4>, Tensor<1>, Tensor<1>, f64, f32) -> Tensor<4>;
+
 /// The noise injection and activation of a styled convolution as one op: output and the
 /// gradients of input, noise, strength and bias against Burn's ops, and central differences.
 #[test]
@@ -567,17 +570,8 @@ fn the_noisy_activation_matches_the_tensor_ops_and_central_differences() {
     let shape = [2, 3, 4, 5];
     let noise = || ramp([1, 1, 4, 5], &device).flip([3]) * 2.0;
     let strength = || Tensor::<1>::from_data(TensorData::new(vec![0.37f32], [1]), &device);
-    type Op = fn(Tensor<4>, Tensor<4>, Tensor<1>, Tensor<1>, f64, f32) -> Tensor<4>;
-    let portable_op: Op = |x, noise, strength, bias, slope, gain| {
-        portable::bias_leaky_relu(
-            x + noise * strength.reshape([1, 1, 1, 1]),
-            bias,
-            slope,
-            gain,
-        )
-    };
     for (slope, gain) in [(LRELU_SLOPE, LRELU_GAIN), (0.0, 1.0)] {
-        let run = |op: Op| {
+        let run = |op: NoisyOp| {
             let x = ramp(shape, &device).require_grad();
             let (n, s) = (noise().require_grad(), strength().require_grad());
             let b = bias(3, &device).require_grad();
@@ -592,7 +586,7 @@ fn the_noisy_activation_matches_the_tensor_ops_and_central_differences() {
             ]
         };
         let ours = run(fused::noisy_bias_leaky_relu);
-        let theirs = run(portable_op);
+        let theirs = run(portable::noisy_bias_leaky_relu);
         let names = ["y", "dx", "dnoise", "dstrength", "dbias"];
         for ((got, expected), what) in ours.iter().zip(&theirs).zip(names) {
             assert_close(
@@ -639,17 +633,8 @@ fn the_noisy_activation_matches_the_tensor_ops_and_central_differences() {
 fn the_activations_gates_give_every_parameter_its_gradient() {
     let device = Device::flex().autodiff();
     let shape = [2, 3, 4, 5];
-    type Noisy = fn(Tensor<4>, Tensor<4>, Tensor<1>, Tensor<1>, f64, f32) -> Tensor<4>;
     type Plain = fn(Tensor<4>, Tensor<1>, f64, f32) -> Tensor<4>;
-    let portable_noisy: Noisy = |x, noise, strength, bias, slope, gain| {
-        portable::bias_leaky_relu(
-            x + noise * strength.reshape([1, 1, 1, 1]),
-            bias,
-            slope,
-            gain,
-        )
-    };
-    let run = |noisy: Noisy, plain: Plain| {
+    let run = |noisy: NoisyOp, plain: Plain| {
         let x = ramp(shape, &device).require_grad();
         let noise = ramp([1, 1, 4, 5], &device).flip([3]) * 2.0;
         let shared = bias(3, &device).require_grad();
@@ -685,7 +670,7 @@ fn the_activations_gates_give_every_parameter_its_gradient() {
         ]
     };
     let ours = run(fused::noisy_bias_leaky_relu, fused::bias_leaky_relu);
-    let theirs = run(portable_noisy, portable::bias_leaky_relu);
+    let theirs = run(portable::noisy_bias_leaky_relu, portable::bias_leaky_relu);
     let names = ["y", "dx", "dshared", "droot", "dstrength"];
     for ((got, expected), what) in ours.iter().zip(&theirs).zip(names) {
         assert_close(got, expected, &format!("{what} through the gates"));

@@ -22,6 +22,24 @@ pub fn bias_leaky_relu(x: Tensor<4>, bias: Tensor<1>, slope: f64, gain: f32) -> 
     }
 }
 
+/// [`bias_leaky_relu`] after StyleGAN2's noise injection: `x + noise · strength` (`noise`
+/// `[1, 1, H, W]`, `strength` `[1]`).
+pub fn noisy_bias_leaky_relu(
+    x: Tensor<4>,
+    noise: Tensor<4>,
+    strength: Tensor<1>,
+    bias: Tensor<1>,
+    slope: f64,
+    gain: f32,
+) -> Tensor<4> {
+    bias_leaky_relu(
+        x + noise * strength.reshape([1, 1, 1, 1]),
+        bias,
+        slope,
+        gain,
+    )
+}
+
 /// A linear layer with scaled weight and bias and an optional leaky ReLU (slope 0: Burn's
 /// `relu`, as [`bias_leaky_relu`]).
 pub fn scaled_linear(
