@@ -132,7 +132,7 @@ impl<B: Backend + FusedBackend> Backward<B, 3> for NoisyBiasLeakyReluBackward {
         let pre_activation = if gate_node.is_some() {
             // The networks learn both: one pass for the three gradients.
             let (pre_activation, d_bias, d_strength) =
-                B::noisy_bias_leaky_relu_backward_queue(output, grad, noise.clone(), slope, gain);
+                B::noisy_bias_leaky_relu_backward_queue(output, grad, noise, slope, gain);
             *lock(&stash) = Some([d_bias, d_strength]);
             pre_activation
         } else {

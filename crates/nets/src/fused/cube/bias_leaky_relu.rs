@@ -13,12 +13,12 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::Shape;
 use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::cubecl::prelude::SequenceArg;
-use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
-use super::sum::SUM_UNITS;
+use super::sum::{SUM_UNITS, one_cube_per_channel_in_layers};
 use super::{dims, one_thread_per_output, u32_of};
 use crate::cube_grid::{UNITS, cubes_in_rows, items_per_launch, one_thread_per_value};
 use crate::cube_layout::{channels_last, empty_in_layout, into_channels_last, readable};
@@ -579,7 +579,7 @@ pub(super) fn launch_queued_sums() {
             .unwrap_or(0);
         kernels::sum_columns_many::launch(
             &client,
-            CubeCount::Static(u32_of(most_values), 1, u32_of(chunk.len())),
+            one_cube_per_channel_in_layers(most_values, "bias", chunk.len()),
             CubeDim::new_1d(SUM_UNITS),
             shares,
             sums,

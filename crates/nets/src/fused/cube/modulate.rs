@@ -26,12 +26,12 @@ use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
+use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::cubecl::prelude::SequenceArg;
-use burn_cubecl::cubecl::{CubeCount, CubeDim};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 
-use super::sum::SUM_UNITS;
+use super::sum::{SUM_UNITS, one_cube_per_channel_in_layers};
 use super::{dims, u32_of};
 use crate::cube_grid::{UNITS, items_per_launch, one_thread_per_value};
 use crate::cube_layout::{empty_in_layout, readable};
@@ -668,14 +668,4 @@ fn per_output_channel(shape: [usize; 4]) -> Option<(u32, u32)> {
     }
     u32_of(c_out * per_output);
     Some((u32_of(per_output), u32_of(kh * kw)))
-}
-
-/// One cube per channel (`CUBE_POS_X`: at most 65 535, wgpu's limit per dimension) in each of
-/// `layers` grid layers (`CUBE_POS_Z`), one per queued layer.
-fn one_cube_per_channel_in_layers(channels: usize, which: &str, layers: usize) -> CubeCount {
-    let cubes = u32::try_from(channels)
-        .ok()
-        .filter(|&c| c <= 65_535)
-        .unwrap_or_else(|| panic!("at most 65 535 {which} channels"));
-    CubeCount::Static(cubes, 1, u32_of(layers))
 }

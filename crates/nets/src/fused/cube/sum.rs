@@ -24,6 +24,25 @@ pub(super) fn one_cube_per_value(values: usize) -> (CubeCount, CubeDim) {
     (cubes_in_rows(values), CubeDim::new_1d(SUM_UNITS))
 }
 
+/// One cube per channel (`CUBE_POS_X`: at most 65 535, wgpu's limit per dimension) in each of
+/// `layers` grid layers (`CUBE_POS_Z`), one per queued layer or table (the batched kernels of
+/// `modulate.rs` and `bias_leaky_relu.rs`).
+pub(super) fn one_cube_per_channel_in_layers(
+    channels: usize,
+    which: &str,
+    layers: usize,
+) -> CubeCount {
+    let cubes = u32::try_from(channels)
+        .ok()
+        .filter(|&c| c <= 65_535)
+        .unwrap_or_else(|| panic!("at most 65 535 {which} channels"));
+    CubeCount::Static(
+        cubes,
+        1,
+        u32::try_from(layers).expect("a few layers per launch"),
+    )
+}
+
 /// The cube's position on [`one_cube_per_value`]'s grid.
 #[cube]
 pub(super) fn cube_index() -> u32 {
