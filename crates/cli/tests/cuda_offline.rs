@@ -214,9 +214,10 @@ fn the_phase_trace_places_every_launch_in_its_phase() {
 /// with the rotations' Hamilton product one op, 4 757 with a network's modulated weights and
 /// their gradients made together, 4 745 with LPIPS's scaling one multiply-add (2026-11-30), 4 487
 /// with every activation's bias and noise-strength sums made together, 4 423 with a skinning's
-/// rotation one tensor (2026-12-01); the target is 3 000. The bound keeps what was won.
+/// rotation one tensor, 4 245 with every convolution's weight-gradient sum over its bands made
+/// together (2026-12-01); the target is 3 000. The bound keeps what was won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_600() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_400() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -248,7 +249,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (4_200..=4_600).contains(&per_step),
+        (4_100..=4_400).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }

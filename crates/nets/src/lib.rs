@@ -32,6 +32,7 @@ mod cube_layout;
 pub mod discriminator;
 mod error;
 pub mod fused;
+mod gate;
 pub mod host;
 pub mod init;
 pub mod layers;

@@ -180,3 +180,37 @@ fn a_frozen_weight_gets_no_weight_gradient_and_the_profile_sees_each_phase() {
     assert_eq!(phases(false), [Forward, InputGrad]);
     assert_eq!(phases(true), [Forward, WeightGrad, InputGrad]);
 }
+
+/// The weights reach the convolution's node through a gate that registers their gradients
+/// after the pass's queued sums are written (`conv/autodiff.rs`): a chain of four convolutions
+/// against Burn's, with a weight shared by two of them, one made by other ops (whose own step
+/// takes the gate's gradient on) and a frozen one.
+#[test]
+fn the_weight_gates_give_every_weight_its_gradient() {
+    let _turn = CPU.lock().unwrap_or_else(|e| e.into_inner());
+    type Conv = fn(Tensor<4>, Tensor<4>, Option<Tensor<1>>, ConvOptions<2>) -> Tensor<4>;
+    let run = |conv: Conv| {
+        let device = Device::flex().autodiff();
+        let options = ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+        let x = ramp([2, 3, 9, 8], &device).require_grad();
+        let shared = weight([3, 3, 3, 3], &device).require_grad();
+        let root = weight([3, 3, 3, 3], &device).flip([0]).require_grad();
+        let frozen = weight([3, 3, 3, 3], &device).flip([1]);
+        let y = conv(x.clone(), shared.clone(), None, options.clone());
+        let y = conv(y, root.clone() * 1.5 - 0.1, None, options.clone());
+        let y = conv(y, shared.clone(), None, options.clone());
+        let y = conv(y, frozen, None, options);
+        let r = ramp(y.dims(), &device) + 0.25;
+        let grads = (y.clone() * r).sum().backward();
+        [
+            values(y),
+            values(x.grad(&grads).unwrap()),
+            values(shared.grad(&grads).unwrap()),
+            values(root.grad(&grads).unwrap()),
+        ]
+    };
+    let (ours, burns) = (run(conv2d), run(burn_conv2d));
+    for ((got, expected), what) in ours.iter().zip(&burns).zip(["y", "dx", "dshared", "droot"]) {
+        assert_close(got, expected, &format!("{what} through the gates"));
+    }
+}

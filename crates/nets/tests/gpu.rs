@@ -365,9 +365,11 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
     use burn::tensor::TensorData;
     use burn::tensor::ops::ConvOptions;
     use burn_cubecl::CubeBackend;
-    use f3g_nets::conv::bands::{Bands, weight_grad_in_bands};
+    use f3g_nets::conv::bands::{BandSum, Bands, launch_queued_band_sums, weight_grad_in_bands};
     type Flex = burn::backend::Flex;
     let device = cube_device();
+    let read = |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
+    let mut queued = Vec::new();
     let ramp_values = |n: usize, phase: f32| -> Vec<f32> {
         (0..n).map(|i| (i as f32 * 0.37 + phase).sin()).collect()
     };
@@ -398,29 +400,70 @@ fn the_weight_gradient_in_bands_matches_the_cpu() {
             Flex::float_from_data(TensorData::new(g.clone(), g_shape), &flex),
             options.clone(),
         );
-        let read =
-            |data: burn::tensor::TensorData| data.convert::<f32>().try_to_vec::<f32>().unwrap();
         let cpu = read(burn::tensor::read_sync(Flex::float_into_data(cpu)).unwrap());
         let upload = |values: &[f32], shape, last| upload(values, shape, last, &device);
         for (x_last, g_last) in [(false, false), (true, true), (true, false), (false, true)] {
-            let cube = weight_grad_in_bands(
-                upload(&x, x_shape, x_last),
-                upload(&g, g_shape, g_last),
-                w_shape.into(),
-                &options,
-                Bands {
+            let split = |bands_per_launch, sum| {
+                let bands = Bands {
                     band,
-                    bands_per_launch: per_launch,
-                },
-            )
-            .expect("small tensors are split");
+                    bands_per_launch,
+                };
+                let (x, g) = (upload(&x, x_shape, x_last), upload(&g, g_shape, g_last));
+                weight_grad_in_bands(x, g, w_shape.into(), &options, bands, sum)
+                    .expect("small tensors are split")
+            };
+            let cube = split(per_launch, BandSum::Now);
             let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
             // The bands' GEMM runs on TF32 tensor cores on CUDA: 3.7e-3 of the scale on an H100
             // for the second case (sums of ~160 products with cancellation); a wrong index would
             // be off by the scale itself.
-            let layouts = format!("channels-last input {x_last}, gradient {g_last}");
-            assert_close(&cube, &cpu, 3e-4, &format!("{case:?}, {layouts}"));
+            let label = format!("{case:?}, channels-last input {x_last}, gradient {g_last}");
+            assert_close(&cube, &cpu, 3e-4, &label);
+            // All bands in one GEMM, their sum queued: written by the one launch below.
+            queued.push((split(usize::MAX, BandSum::Queued), cpu.clone(), label));
         }
+    }
+    // 24 sums of 15 to 350 values over 2 to 22 bands, of row-major and channels-last
+    // products, in one launch (chunked where the device binds fewer tensors).
+    launch_queued_band_sums();
+    for (cube, cpu, label) in queued {
+        let cube = read(burn::tensor::read_sync(CubeBackend::float_into_data(cube)).unwrap());
+        assert_close(&cube, &cpu, 3e-4, &format!("queued: {label}"));
+    }
+}
+
+/// A chain of convolutions large enough for their weight gradients to run in bands (a 64² map
+/// of 4 channels: four bands of 1 024 positions), so that each weight's sum over its bands is
+/// queued and written by its gate's launch (`conv/autodiff.rs`): a weight shared by two
+/// convolutions, one made by other ops and a frozen one, on the device under test against the
+/// CPU.
+#[test]
+fn the_queued_weight_gradients_match_the_cpu() {
+    use burn::tensor::ops::ConvOptions;
+    use f3g_nets::conv::conv2d;
+    let run = |device: &Device| {
+        let device = device.clone().autodiff();
+        let options = || ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+        let x = ramp([1, 4, 64, 64], &device).require_grad();
+        let shared = ramp([4, 4, 3, 3], &device).require_grad();
+        let root = ramp([4, 4, 3, 3], &device).flip([0]).require_grad();
+        let frozen = ramp([4, 4, 3, 3], &device).flip([1]);
+        let y = conv2d(x.clone(), shared.clone(), None, options());
+        let y = conv2d(y, root.clone() * 1.5 - 0.1, None, options());
+        let y = conv2d(y, shared.clone(), None, options());
+        let y = conv2d(y, frozen, None, options());
+        let grads = (y.clone() * (ramp(y.dims(), &device) + 0.25))
+            .sum()
+            .backward();
+        [
+            values(x.grad(&grads).unwrap()),
+            values(shared.grad(&grads).unwrap()),
+            values(root.grad(&grads).unwrap()),
+        ]
+    };
+    let (gpu, cpu) = (run(&test_device()), run(&Device::flex()));
+    for ((got, expected), what) in gpu.iter().zip(&cpu).zip(["dx", "dshared", "droot"]) {
+        assert_close(got, expected, 1e-4, what);
     }
 }
 

@@ -1,5 +1,8 @@
 //! `impl ConvBackend for Autodiff<B>`: one graph node per convolution, whose backward computes
-//! only the gradients its parents need (LPIPS's frozen weights get none).
+//! only the gradients its parents need (LPIPS's frozen weights get none). The weight reaches
+//! the node through a gate ([`crate::gate`]): the node queues the weight's gradient
+//! ([`ConvBackend::conv2d_weight_grad_queue`]) and the gate launches the pass's queue and
+//! registers it.
 
 use burn::backend::autodiff::{
     Autodiff,
@@ -12,9 +15,16 @@ use burn::backend::{AutodiffBackend, Backend};
 use burn::tensor::ops::ConvOptions;
 
 use super::ConvBackend;
+use crate::gate::{Stash, gate, lock};
 
-/// Saved for the backward: the inner-backend input and weight, and the options.
-type Saved<B> = (FloatTensor<B>, FloatTensor<B>, ConvOptions<2>);
+/// Saved for the backward: the inner-backend input and weight, the options and the weight
+/// gate's stash.
+type Saved<B> = (FloatTensor<B>, FloatTensor<B>, ConvOptions<2>, Stash<B, 1>);
+
+/// A convolution's gate launch ([`crate::gate`]): the weight gradients' sums the pass queued.
+fn launch_weight_grads<B: ConvBackend>(anchor: FloatTensor<B>) {
+    B::conv2d_weight_grads_launch_queued(anchor);
+}
 
 #[derive(Debug)]
 struct Conv2dBackward;
@@ -29,12 +39,16 @@ impl<B: Backend + ConvBackend> Backward<B, 2> for Conv2dBackward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (x, weight, options) = ops.state;
-        let [x_node, weight_node] = ops.parents;
-        if let Some(node) = weight_node {
-            let weight_grad =
-                B::conv2d_weight_grad(x.clone(), weight.clone(), grad.clone(), options.clone());
-            grads.register::<B>(node.id, weight_grad);
+        let (x, weight, options, stash) = ops.state;
+        let [x_node, gate_node] = ops.parents;
+        if gate_node.is_some() {
+            let weight_grad = B::conv2d_weight_grad_queue(
+                x.clone(),
+                weight.clone(),
+                grad.clone(),
+                options.clone(),
+            );
+            *lock(&stash) = Some([weight_grad]);
         }
         if let Some(node) = x_node {
             grads.register::<B>(node.id, B::conv2d_input_grad(x, weight, grad, options));
@@ -48,7 +62,8 @@ impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B
         weight: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        let nodes = [x.node(), weight.node()];
+        let (gate, stash) = gate::<B, C, 1>([&weight], launch_weight_grads::<B>);
+        let nodes = [x.node(), gate.node()];
         let (x, weight) = (x.into_primitive(), weight.into_primitive());
         match Conv2dBackward
             .prepare::<C>(nodes)
@@ -57,7 +72,7 @@ impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B
         {
             OpsKind::Tracked(prep) => {
                 let out = B::conv2d_forward(x.clone(), weight.clone(), options.clone());
-                prep.finish((x, weight, options), out)
+                prep.finish((x, weight, options, stash), out)
             }
             OpsKind::UnTracked(prep) => prep.finish(B::conv2d_forward(x, weight, options)),
         }
@@ -88,6 +103,26 @@ impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B
             weight.into_primitive(),
             grad.into_primitive(),
             options,
+        ))
+    }
+
+    fn conv2d_weight_grad_queue(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::conv2d_weight_grad_queue(
+            x.into_primitive(),
+            weight.into_primitive(),
+            grad.into_primitive(),
+            options,
+        ))
+    }
+
+    fn conv2d_weight_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::conv2d_weight_grads_launch_queued(
+            anchor.into_primitive(),
         ))
     }
 }

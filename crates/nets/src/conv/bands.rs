@@ -12,7 +12,9 @@
 //! [`kernels::band_gradient`] the output gradient's (`[bands, C_out, band]`) — unless the gradient
 //! is channels-last and the bands divide it, when its rows are the bands as they are (a launch and
 //! a copy of the gradient fewer) — one batched matmul multiplies each band's pair
-//! (`[bands, C_out, N]`, `bands` times the tiles) and a sum over the bands ends it. The columns cost `4·N·K` bytes
+//! (`[bands, C_out, N]`, `bands` times the tiles) and a sum over the bands ends it — in the
+//! backward pass queued ([`BandSum::Queued`]), so that one launch of
+//! [`kernels::sum_bands_many`] sums those of many convolutions. The columns cost `4·N·K` bytes
 //! written and read once; at most [`MAX_COLUMN_VALUES`] are held at a time (more bands run as
 //! several launches, summed).
 //!
@@ -24,6 +26,8 @@
 //! write is allocated contiguous (CUDA pitches Burn's ordinary allocations: `f3g_splat::cube`'s
 //! module doc).
 
+use std::cell::RefCell;
+
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
@@ -33,7 +37,9 @@ use burn_cubecl::CubeBackend;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
-use crate::cube_grid::one_thread_per_value;
+use burn_cubecl::cubecl::prelude::SequenceArg;
+
+use crate::cube_grid::{items_per_launch, one_thread_per_value};
 use crate::cube_layout::readable;
 
 /// The cubes a weight gradient should occupy: about eight per multiprocessor of an H100/H200
@@ -44,6 +50,24 @@ const TARGET_CUBES: usize = 1024;
 const MIN_BAND: usize = 1024;
 /// Most im2col values held at once (1 GiB of f32): more bands run as several batched GEMMs.
 pub const MAX_COLUMN_VALUES: usize = 1 << 28;
+
+/// Most products of the bands' GEMMs held by queued sums (256 MiB of f32): past it the queue
+/// is launched at once, so that queueing a backward pass's sums adds at most this much to its
+/// memory.
+const MAX_QUEUED_VALUES: usize = 1 << 26;
+/// Most sums one launch of [`kernels::sum_bands_many`] runs (a `paper` step's backward passes
+/// queue 183); fewer where the device binds fewer tensors per kernel.
+const MAX_SUMS_PER_LAUNCH: usize = 48;
+
+/// When a weight gradient's sum over its bands runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BandSum {
+    /// At once, Burn's sum over the bands' axis.
+    Now,
+    /// Queued on this thread and written by [`launch_queued_band_sums`] (where the bands' GEMM
+    /// is a single launch; a split into several is summed at once).
+    Queued,
+}
 
 /// How a weight gradient is split: `band` positions per band, at most `bands_per_launch`
 /// bands' columns at a time.
@@ -172,6 +196,39 @@ mod kernels {
         }
     }
 
+    /// Several weight gradients' sums over their bands: table `n`'s `products[n]`
+    /// (`[bands, C_out, N]`, any strides) summed over the bands into `sums[n]` (`C_out·N`
+    /// values, gapless). One thread per value of all the tables laid end to end, so that no
+    /// cube idles on a table shorter than the longest; each runs its sum down the bands, and
+    /// neighbouring threads read neighbouring values.
+    #[cube(launch)]
+    pub fn sum_bands_many(
+        products: &Sequence<OwnedTensor<f32>>,
+        sums: &mut Sequence<OwnedTensor<f32>>,
+        #[comptime] count: usize,
+    ) {
+        let g = (CUBE_POS_Y * CUBE_COUNT_X + CUBE_POS_X) * CUBE_DIM_X + UNIT_POS_X;
+        let mut start = 0u32;
+        #[unroll]
+        for n in 0..count {
+            let table = products.index(n);
+            let columns = table.shape(2) as u32;
+            let values = table.shape(1) as u32 * columns;
+            if g >= start && g < start + values {
+                let j = g - start;
+                let at =
+                    (j / columns) * table.stride(1) as u32 + (j % columns) * table.stride(2) as u32;
+                let step = table.stride(0) as u32;
+                let mut sum = 0.0f32;
+                for band in 0..table.shape(0) as u32 {
+                    sum += table[(band * step + at) as usize];
+                }
+                sums.index_mut(n)[j as usize] = sum;
+            }
+            start += values;
+        }
+    }
+
     /// The output gradient of channel `c` at position `(first_band + band)·band_len + k`, zero
     /// past the last: `bands[band, c, k]` (`k` fastest) from a row-major `grad`,
     /// `bands[band, k, c]` (`c` fastest) from a channels-last one.
@@ -213,31 +270,33 @@ mod kernels {
 }
 
 /// The weight gradient of a convolution of `x` (groups 1, symmetric padding) given its output
-/// gradient `grad`, in bands where [`Bands::plan`] splits it; `None` where it does not (the
-/// caller runs the implicit GEMM).
+/// gradient `grad`, in bands where [`Bands::plan`] splits it, their sum run as `sum` says;
+/// `None` where it does not split (the caller runs the implicit GEMM).
 pub fn weight_grad_split(
     x: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
     weight_shape: Shape,
     options: &ConvOptions<2>,
+    sum: BandSum,
 ) -> Option<FloatTensor<CubeBackend>> {
     let [batch, c_in, _, _] = x.shape().dims();
     let [c_out, _, kh, kw] = weight_shape.dims();
     let [_, _, h_out, w_out] = grad.shape().dims();
     let bands = Bands::plan(batch * h_out * w_out, c_out, c_in * kh * kw)?;
-    weight_grad_in_bands(x, grad, weight_shape, options, bands)
+    weight_grad_in_bands(x, grad, weight_shape, options, bands, sum)
 }
 
 /// The weight gradient `[C_out, C_in, kh, kw]` of a convolution of `x` (groups 1, symmetric
-/// padding) given its output gradient `grad`, split as `bands` says (a permuted view of a
-/// `[C_out, kh, kw, C_in]` tensor where `x` is channels-last). Values are indexed with 32 bits:
-/// `None` where a tensor is too large for that.
+/// padding) given its output gradient `grad`, split as `bands` says, summed over the bands as
+/// `sum` says (a permuted view of a `[C_out, kh, kw, C_in]` tensor where `x` is
+/// channels-last). Values are indexed with 32 bits: `None` where a tensor is too large for that.
 pub fn weight_grad_in_bands(
     x: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
     weight_shape: Shape,
     options: &ConvOptions<2>,
     bands: Bands,
+    sum: BandSum,
 ) -> Option<FloatTensor<CubeBackend>> {
     let [batch, c_in, h, w] = x.shape().dims();
     let [_, c_out, h_out, w_out] = grad.shape().dims();
@@ -263,8 +322,8 @@ pub fn weight_grad_in_bands(
         let rows = permute_nchw_to_nhwc(grad.clone());
         CubeBackend::float_reshape(rows, Shape::new([band_count, bands.band, c_out]))
     });
-    // Bands `first..first + count`: `[C_out, N]`, their share of the sum.
-    let partial = |first: usize| {
+    // Bands `first..first + count`: `[count, C_out, N]`, their products.
+    let products = |first: usize| {
         let count = per_launch.min(band_count - first);
         // `[count, rows, band]`, or `[count, band, rows]` where the source is channels-last.
         let empty = |rows: usize, transposed: bool| {
@@ -326,9 +385,8 @@ pub fn weight_grad_in_bands(
                 gradient
             }
         };
-        // [count, C_out, band] × [count, band, N] → [count, C_out, N], summed over the bands;
-        // the operands stored the other way round are transposed views the matmul reads as
-        // they are.
+        // [count, C_out, band] × [count, band, N] → [count, C_out, N]; the operands stored the
+        // other way round are transposed views the matmul reads as they are.
         let lhs = if grad_last {
             CubeBackend::float_swap_dims(gradient, 1, 2)
         } else {
@@ -339,12 +397,19 @@ pub fn weight_grad_in_bands(
         } else {
             CubeBackend::float_swap_dims(cols, 1, 2)
         };
-        CubeBackend::float_sum_dim(CubeBackend::float_matmul(lhs, rhs), 0)
+        CubeBackend::float_matmul(lhs, rhs)
     };
-    let mut sum = partial(0);
-    for first in (per_launch..band_count).step_by(per_launch) {
-        sum = CubeBackend::float_add(sum, partial(first));
-    }
+    let queued = sum == BandSum::Queued && per_launch >= band_count;
+    let sum = if queued && fits(band_count * c_out * columns) {
+        queue_band_sum(products(0))
+    } else {
+        let summed = |first| CubeBackend::float_sum_dim(products(first), 0);
+        let mut sum = summed(0);
+        for first in (per_launch..band_count).step_by(per_launch) {
+            sum = CubeBackend::float_add(sum, summed(first));
+        }
+        sum
+    };
     if x_last {
         // Columns ordered (tap, channel): `[C_out, kh, kw, C_in]`, seen as the weight's layout.
         let sum = CubeBackend::float_reshape(sum, Shape::new([c_out, kh, kw, c_in]));
@@ -354,4 +419,81 @@ pub fn weight_grad_in_bands(
         sum,
         Shape::new([c_out, c_in, kh, kw]),
     ))
+}
+
+/// A sum over the bands queued by [`queue_band_sum`]: the bands' products `[bands, C_out, N]`
+/// and their `[C_out, N]` sum, allocated and not yet written.
+struct QueuedBandSum {
+    products: FloatTensor<CubeBackend>,
+    sum: FloatTensor<CubeBackend>,
+}
+
+thread_local! {
+    /// Sums queued by [`queue_band_sum`], launched by [`launch_queued_band_sums`].
+    static BAND_SUMS: RefCell<Vec<QueuedBandSum>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Queues the sum of `products` (`[bands, C_out, N]`) over its bands on this thread and
+/// returns it (`[C_out, N]`), allocated now and written by [`launch_queued_band_sums`] (one
+/// stream per device: before any later kernel reads it). Past [`MAX_QUEUED_VALUES`] held the
+/// queue is launched at once.
+fn queue_band_sum(products: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
+    let [_, c_out, columns] = products.shape().dims();
+    let sum = empty_device_contiguous_dtype(
+        products.client.clone(),
+        products.device.clone(),
+        Shape::new([c_out, columns]),
+        DType::F32,
+    );
+    let held = BAND_SUMS.with(|queue| {
+        let mut queue = queue.borrow_mut();
+        queue.push(QueuedBandSum {
+            products,
+            sum: sum.clone(),
+        });
+        queue
+            .iter()
+            .map(|q| q.products.shape().num_elements())
+            .sum::<usize>()
+    });
+    if held > MAX_QUEUED_VALUES {
+        launch_queued_band_sums();
+    }
+    sum
+}
+
+/// Launches the sums over the bands queued on this thread ([`kernels::sum_bands_many`], up to
+/// [`MAX_SUMS_PER_LAUNCH`] a launch). Every launch binds as many sums as the first, the last
+/// made up with a one-value sum of an unwritten value: the count is a compile-time constant of
+/// the kernel, and the queue's length varies with where the memory bound launched it, so
+/// each length would be another kernel to compile (six in a `paper` step, where one will do).
+pub fn launch_queued_band_sums() {
+    let queue: Vec<QueuedBandSum> = BAND_SUMS.with(|q| std::mem::take(&mut *q.borrow_mut()));
+    let Some(first) = queue.first() else {
+        return;
+    };
+    let (client, device) = (first.products.client.clone(), first.products.device.clone());
+    let empty = |shape: Shape| {
+        empty_device_contiguous_dtype(client.clone(), device.clone(), shape, DType::F32)
+    };
+    let filler = QueuedBandSum {
+        products: empty(Shape::new([1, 1, 1])),
+        sum: empty(Shape::new([1])),
+    };
+    let count = items_per_launch(&client, 2, 0, MAX_SUMS_PER_LAUNCH);
+    for chunk in queue.chunks(count) {
+        let (mut products, mut sums) = (SequenceArg::new(), SequenceArg::new());
+        let fillers = std::iter::repeat_n(&filler, count - chunk.len());
+        for q in chunk.iter().chain(fillers) {
+            products.push(q.products.clone().into_tensor_arg());
+            sums.push(q.sum.clone().into_tensor_arg());
+        }
+        let values = chunk
+            .iter()
+            .map(|q| q.sum.shape().num_elements())
+            .sum::<usize>()
+            + count;
+        let (cubes, cube) = one_thread_per_value(values);
+        kernels::sum_bands_many::launch(&client, cubes, cube, products, sums, count);
+    }
 }

@@ -29,7 +29,7 @@ use burn_cubecl::kernel::conv::{
 use std::sync::{Mutex, OnceLock};
 
 use super::ConvBackend;
-use super::bands::weight_grad_split;
+use super::bands::{BandSum, launch_queued_band_sums, weight_grad_split};
 use super::strided::strided_input_grad;
 
 /// Whether to pick the algorithm here: Burn's default is `Direct` unless its `autotune` is on.
@@ -197,26 +197,52 @@ impl ConvBackend for CubeBackend {
         grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        if choose_here(&options) {
-            if let Some(weight_grad) =
-                weight_grad_split(x.clone(), grad.clone(), weight.shape(), &options)
-            {
-                return weight_grad;
-            }
-            if has_matrix_units(&x)
-                && let Ok(weight_grad) = with_gemm(Pass::WeightGrad, |strategy| {
-                    conv_weight_backward::<2>(
-                        x.clone(),
-                        grad.clone(),
-                        weight.shape(),
-                        options.clone(),
-                        strategy,
-                    )
-                })
-            {
-                return weight_grad;
-            }
-        }
-        <Self as ModuleOps<Self>>::conv2d_weight_backward(x, weight, grad, options)
+        weight_grad(x, weight, grad, options, BandSum::Now)
     }
+
+    fn conv2d_weight_grad_queue(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        options: ConvOptions<2>,
+    ) -> FloatTensor<Self> {
+        weight_grad(x, weight, grad, options, BandSum::Queued)
+    }
+
+    fn conv2d_weight_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
+        launch_queued_band_sums();
+        anchor
+    }
+}
+
+/// The weight gradient: in bands where [`weight_grad_split`] splits it (their sum run as
+/// `sum` says), else as an implicit GEMM on matrix units, else Burn's direct kernel.
+fn weight_grad(
+    x: FloatTensor<CubeBackend>,
+    weight: FloatTensor<CubeBackend>,
+    grad: FloatTensor<CubeBackend>,
+    options: ConvOptions<2>,
+    sum: BandSum,
+) -> FloatTensor<CubeBackend> {
+    if choose_here(&options) {
+        if let Some(weight_grad) =
+            weight_grad_split(x.clone(), grad.clone(), weight.shape(), &options, sum)
+        {
+            return weight_grad;
+        }
+        if has_matrix_units(&x)
+            && let Ok(weight_grad) = with_gemm(Pass::WeightGrad, |strategy| {
+                conv_weight_backward::<2>(
+                    x.clone(),
+                    grad.clone(),
+                    weight.shape(),
+                    options.clone(),
+                    strategy,
+                )
+            })
+        {
+            return weight_grad;
+        }
+    }
+    <CubeBackend as ModuleOps<CubeBackend>>::conv2d_weight_backward(x, weight, grad, options)
 }

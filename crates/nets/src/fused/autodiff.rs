@@ -3,7 +3,7 @@
 
 use std::any::Any;
 use std::cell::RefCell;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex};
 
 use burn::backend::autodiff::{
     Autodiff, NodeId,
@@ -15,63 +15,12 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{AutodiffBackend, Backend, TensorMetadata};
 
 use super::{FusedBackend, LinearScales};
+use crate::gate::{Stash, gate, lock};
 
-/// The gradients of an activation's learned parameters (its bias, and a noisy activation's
-/// noise strength), left by the activation's node for its [`GateBackward`] to register.
-type Stash<B, const N: usize> = Arc<Mutex<Option<[FloatTensor<B>; N]>>>;
-
-/// An activation's gate: its bias (and noise strength) passed through, between them and the
-/// activation's node. The activation's node computes its input's gradient and leaves the
-/// parameters' in the stash, queued (`FusedBackend::bias_leaky_relu_backward_queue`: on a GPU
-/// the sums of its cubes' shares, not yet launched); the gate launches what the pass has queued
-/// and registers them. A gate runs after its activation's node (the node's parent) and before
-/// its parameters' steps; the gates of leaf parameters run after every activation's node (their
-/// order is 1, and Burn runs a graph's steps from the highest order down), so the first of them
-/// launches the sums of every activation of the pass and the others find the queue empty: on a
-/// GPU a launch per activation became one or a few per pass (issue #47).
-#[derive(Debug)]
-struct GateBackward<const N: usize>;
-
-impl<B: Backend + FusedBackend, const N: usize> Backward<B, N> for GateBackward<N> {
-    type State = Stash<B, N>;
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, N>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let Some(gradients) = lock(&ops.state).take() else {
-            return;
-        };
-        if let Some(first) = gradients.first() {
-            B::bias_grads_launch_queued(first.clone());
-        }
-        // Registered after the launch: a sum with an earlier gradient reads them.
-        for (parent, gradient) in ops.parents.into_iter().zip(gradients) {
-            if let Some(node) = parent {
-                grads.register::<B>(node.id, gradient);
-            }
-        }
-    }
-}
-
-/// The gate of `parameters` ([`GateBackward`]) and its stash: the first parameter passed
-/// through, untracked (and the stash never filled) where none needs a gradient.
-fn gate<B: Backend + FusedBackend, C: CheckpointStrategy, const N: usize>(
-    parameters: [&FloatTensor<Autodiff<B, C>>; N],
-) -> (FloatTensor<Autodiff<B, C>>, Stash<B, N>) {
-    let stash = Arc::new(Mutex::new(None));
-    let passed = parameters[0].primitive().clone();
-    let gate = match GateBackward::<N>
-        .prepare::<C>(parameters.map(|p| p.node()))
-        .compute_bound()
-        .stateful()
-    {
-        OpsKind::Tracked(prep) => prep.finish(stash.clone(), passed),
-        OpsKind::UnTracked(prep) => prep.finish(passed),
-    };
-    (gate, stash)
+/// An activation's gate launch ([`crate::gate`]): the bias and noise-strength sums the pass
+/// queued (`FusedBackend::bias_leaky_relu_backward_queue`).
+fn launch_bias_sums<B: FusedBackend>(anchor: FloatTensor<B>) {
+    B::bias_grads_launch_queued(anchor);
 }
 
 #[derive(Debug)]
@@ -381,12 +330,6 @@ impl<B: Backend> std::fmt::Debug for ModulationBatch<B> {
     }
 }
 
-/// A batch's or stash's lock: a panic that poisoned it left nothing half-written that matters
-/// here.
-fn lock<T>(shared: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    shared.lock().unwrap_or_else(PoisonError::into_inner)
-}
-
 /// The batch being queued on this thread: the styles' node, the gate and the batch.
 struct OpenBatch<B: Backend, C: CheckpointStrategy> {
     styles: NodeId,
@@ -613,7 +556,7 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
-        let (gate, stash) = gate::<B, C, 1>([&bias]);
+        let (gate, stash) = gate::<B, C, 1>([&bias], launch_bias_sums::<B>);
         let nodes = [x.node(), gate.node()];
         let out = B::bias_leaky_relu(
             x.into_primitive(),
@@ -642,7 +585,7 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         slope: f32,
         gain: f32,
     ) -> FloatTensor<Self> {
-        let (gate, stash) = gate::<B, C, 2>([&bias, &strength]);
+        let (gate, stash) = gate::<B, C, 2>([&bias, &strength], launch_bias_sums::<B>);
         let nodes = [x.node(), noise.node(), gate.node()];
         let (noise, strength) = (noise.into_primitive(), strength.into_primitive());
         let out = B::noisy_bias_leaky_relu(
