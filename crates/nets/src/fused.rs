@@ -175,6 +175,21 @@ pub fn haar(x: Tensor<4>) -> Tensor<4> {
     }
 }
 
+/// `x` stored as a GPU's convolutions read it, channels-last (a copy unless it is so already);
+/// elsewhere as it is. The values, and the gradient, are unchanged. Why: a network's input
+/// arrives row-major, and its encoder convolves it and its 2 × 2 means (which keep its layout)
+/// at every level: Burn's implicit GEMM copied each of them to channels-last, a launch per
+/// level and network (36 a `paper` step), where this is one per network.
+pub fn channels_last(x: Tensor<4>) -> Tensor<4> {
+    if runs(&x, 0) {
+        Tensor::from_dispatch(<Dispatch as FusedBackend>::to_channels_last(
+            x.into_dispatch(),
+        ))
+    } else {
+        x
+    }
+}
+
 /// The inverse of [`haar`], `[B, 4C, H, W] → [B, C, 2H, 2W]`: one op where it [`runs`],
 /// [`portable::inverse_haar`] elsewhere.
 pub fn inverse_haar(x: Tensor<4>) -> Tensor<4> {
@@ -522,6 +537,10 @@ pub trait FusedBackend: Backend {
     /// transform is orthonormal, so its adjoint is [`FusedBackend::inverse_haar`].
     #[fusion(dtype = x, shape = Shape::new([x[0], 4 * x[1], x[2] / 2, x[3] / 2]))]
     fn haar(x: FloatTensor<Self>) -> FloatTensor<Self>;
+
+    /// [`channels_last`]: the same values, on `Cube` devices stored channels-last.
+    #[fusion(dtype = x, shape = x)]
+    fn to_channels_last(x: FloatTensor<Self>) -> FloatTensor<Self>;
 
     /// Haar synthesis, the inverse (and adjoint) of [`FusedBackend::haar`].
     #[fusion(dtype = x, shape = Shape::new([x[0], x[1] / 4, 2 * x[2], 2 * x[3]]))]

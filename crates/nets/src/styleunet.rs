@@ -23,7 +23,9 @@ use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 
 use crate::NetsError;
-use crate::fused::{Modulation, cat_channels, downsample2, inverse_haar, modulate_all};
+use crate::fused::{
+    Modulation, cat_channels, channels_last, downsample2, inverse_haar, modulate_all,
+};
 use crate::init::Init;
 use crate::layers::{
     ConvLayer, EqualConv2d, EqualLinear, LRELU_GAIN, LRELU_SLOPE, Mapping, StyleRanges, StyledConv,
@@ -426,6 +428,7 @@ impl DualStyleUNet {
         let device = input.device();
         let layers = self.front.modulations().chain(self.back.modulations());
         let mut weights = modulate_all(layers.collect(), self.style_vector(&device)).into_iter();
+        let input = channels_last(input);
         let mut skips = Vec::new();
         let mut x = self.conv_in.forward(input.clone());
         // The input at each encoder level's size, each level the 2 × 2 mean of the one above.

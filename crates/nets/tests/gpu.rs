@@ -298,6 +298,31 @@ fn upload(
     CubeBackend::float_permute(CubeBackend::float_from_data(data, device), &[0, 3, 1, 2])
 }
 
+/// `fused::channels_last` stores a row-major tensor channels-last (the strides of a permuted
+/// `[B, H, W, C]`) with the same values, and leaves a channels-last one as it is.
+#[test]
+fn channels_last_stores_the_same_values_channels_last() {
+    use burn::backend::ops::FloatTensorOps;
+    use burn_cubecl::CubeBackend;
+    use f3g_nets::fused::FusedBackend;
+    let device = cube_device();
+    let shape = [2, 3, 5, 4];
+    let values: Vec<f32> = (0..120).map(|i| (i as f32 * 0.37).sin()).collect();
+    let read = |t| {
+        let data = burn::tensor::read_sync(CubeBackend::float_into_data(t)).unwrap();
+        data.convert::<f32>().try_to_vec::<f32>().unwrap()
+    };
+    for stored_last in [false, true] {
+        let out = CubeBackend::to_channels_last(upload(&values, shape, stored_last, &device));
+        assert_eq!(
+            out.meta.strides()[..],
+            [60, 1, 12, 3],
+            "stored last: {stored_last}"
+        );
+        assert_eq!(read(out), values, "stored last: {stored_last}");
+    }
+}
+
 /// The input gradient of strided convolutions as a GEMM and a col2im (`conv::strided`): strides
 /// 2 and 3, padding, dilation, a 4×4 kernel, the blurred `2n + 1` sides the down-sampling layers
 /// see, a batch of two — from output gradients and weights in either layout (channels-last, as

@@ -102,6 +102,26 @@ impl<B: Backend + FusedBackend> Backward<B, 3> for NoisyBiasLeakyReluBackward {
     }
 }
 
+/// An op that changes only how values are stored: the gradient passes through.
+#[derive(Debug)]
+struct PassThroughBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for PassThroughBackward {
+    type State = ();
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, grad);
+        }
+    }
+}
+
 #[derive(Debug)]
 struct Upsample2Backward;
 
@@ -723,6 +743,14 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
             .prepare::<C>(nodes)
             .compute_bound()
             .stateless(B::haar(x.into_primitive()))
+    }
+
+    fn to_channels_last(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        PassThroughBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateless(B::to_channels_last(x.into_primitive()))
     }
 
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self> {

@@ -26,6 +26,7 @@ use burn_cubecl::cubecl::{CubeCount, CubeDim};
 
 use super::{FusedBackend, LinearScales, separate_bias_leaky_relu_grads};
 use crate::cube_grid::one_thread_per_value;
+use crate::cube_layout::into_channels_last;
 
 mod bias_leaky_relu;
 mod blur;
@@ -166,6 +167,10 @@ impl FusedBackend for CubeBackend {
 
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
         haar::inverse_haar(x)
+    }
+
+    fn to_channels_last(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        into_channels_last(x)
     }
 
     fn to_rgb_output(

@@ -299,6 +299,11 @@ impl FusedBackend for Flex {
         from_values(out, vec![batch, 4 * channels, h, w])
     }
 
+    /// The CPU's kernels read row-major tensors: nothing to change.
+    fn to_channels_last(x: FloatTensor<Self>) -> FloatTensor<Self> {
+        x
+    }
+
     fn inverse_haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
         let [batch, channels4, h, w] = dims(&x);
         assert!(
