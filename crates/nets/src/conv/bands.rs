@@ -463,10 +463,11 @@ fn queue_band_sum(products: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend
 }
 
 /// Launches the sums over the bands queued on this thread ([`kernels::sum_bands_many`], up to
-/// [`MAX_SUMS_PER_LAUNCH`] a launch). Every launch binds as many sums as the first, the last
-/// made up with a one-value sum of an unwritten value: the count is a compile-time constant of
-/// the kernel, and the queue's length varies with where the memory bound launched it, so
-/// each length would be another kernel to compile (six in a `paper` step, where one will do).
+/// [`MAX_SUMS_PER_LAUNCH`] a launch). Every launch binds the same number of sums, a short last
+/// one made up with fillers (one-value sums of an unwritten value): the number is a
+/// compile-time constant of the kernel, and the queue's length varies with where the memory
+/// bound launched it, so each length would be another kernel to compile (six in a `paper`
+/// step, where one will do).
 pub fn launch_queued_band_sums() {
     let queue: Vec<QueuedBandSum> = BAND_SUMS.with(|q| std::mem::take(&mut *q.borrow_mut()));
     let Some(first) = queue.first() else {
