@@ -82,7 +82,11 @@ pub trait ConvBackend: Backend {
         options: ConvOptions<2>,
     ) -> FloatTensor<Self>;
 
-    /// The gradient of the weight given the output gradient `grad`.
+    /// The gradient of the weight given the output gradient `grad`, possibly queued: allocated
+    /// now but written only by [`ConvBackend::conv2d_weight_grads_launch_queued`], which the
+    /// caller runs before anything reads it. Why: on a GPU a weight gradient split into bands
+    /// ends in a sum over the bands, and the sums of every convolution of a backward pass run in
+    /// one or a few launches ([`bands`]); the CPU computes it at once.
     #[fusion(dtype = weight, shape = weight)]
     fn conv2d_weight_grad(
         x: FloatTensor<Self>,
@@ -91,21 +95,8 @@ pub trait ConvBackend: Backend {
         options: ConvOptions<2>,
     ) -> FloatTensor<Self>;
 
-    /// [`ConvBackend::conv2d_weight_grad`], possibly queued: allocated now and written by
-    /// [`ConvBackend::conv2d_weight_grads_launch_queued`], which the caller runs before anything
-    /// reads it. Why: on a GPU a weight gradient split into bands ends in a sum over the bands,
-    /// and the sums of every convolution of a backward pass run in one or a few launches
-    /// ([`bands`]).
-    #[fusion(dtype = weight, shape = weight)]
-    fn conv2d_weight_grad_queue(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self>;
-
     /// Writes the weight gradients queued on this thread by
-    /// [`ConvBackend::conv2d_weight_grad_queue`]; returns `anchor` (a tensor for the op to take,
+    /// [`ConvBackend::conv2d_weight_grad`]; returns `anchor` (a tensor for the op to take,
     /// as a lazy operation of Burn's fusion).
     #[fusion(dtype = anchor, shape = anchor)]
     fn conv2d_weight_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self>;

@@ -1,7 +1,7 @@
 //! `impl ConvBackend for Autodiff<B>`: one graph node per convolution, whose backward computes
 //! only the gradients its parents need (LPIPS's frozen weights get none). The weight reaches
 //! the node through a gate ([`crate::gate`]): the node queues the weight's gradient
-//! ([`ConvBackend::conv2d_weight_grad_queue`]) and the gate launches the pass's queue and
+//! ([`ConvBackend::conv2d_weight_grad`]) and the gate launches the pass's queue and
 //! registers it.
 
 use burn::backend::autodiff::{
@@ -42,12 +42,8 @@ impl<B: Backend + ConvBackend> Backward<B, 2> for Conv2dBackward {
         let (x, weight, options, stash) = ops.state;
         let [x_node, gate_node] = ops.parents;
         if gate_node.is_some() {
-            let weight_grad = B::conv2d_weight_grad_queue(
-                x.clone(),
-                weight.clone(),
-                grad.clone(),
-                options.clone(),
-            );
+            let weight_grad =
+                B::conv2d_weight_grad(x.clone(), weight.clone(), grad.clone(), options.clone());
             *lock(&stash) = Some([weight_grad]);
         }
         if let Some(node) = x_node {
@@ -99,20 +95,6 @@ impl<B: Backend + ConvBackend, C: CheckpointStrategy> ConvBackend for Autodiff<B
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::conv2d_weight_grad(
-            x.into_primitive(),
-            weight.into_primitive(),
-            grad.into_primitive(),
-            options,
-        ))
-    }
-
-    fn conv2d_weight_grad_queue(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        Autodiff::<B, C>::from_inner(B::conv2d_weight_grad_queue(
             x.into_primitive(),
             weight.into_primitive(),
             grad.into_primitive(),

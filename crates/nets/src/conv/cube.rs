@@ -197,16 +197,7 @@ impl ConvBackend for CubeBackend {
         grad: FloatTensor<Self>,
         options: ConvOptions<2>,
     ) -> FloatTensor<Self> {
-        weight_grad(x, weight, grad, options, BandSum::Now)
-    }
-
-    fn conv2d_weight_grad_queue(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        weight_grad(x, weight, grad, options, BandSum::Queued)
+        weight_grad(x, weight, grad, options)
     }
 
     fn conv2d_weight_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
@@ -215,19 +206,22 @@ impl ConvBackend for CubeBackend {
     }
 }
 
-/// The weight gradient: in bands where [`weight_grad_split`] splits it (their sum run as
-/// `sum` says), else as an implicit GEMM on matrix units, else Burn's direct kernel.
+/// The weight gradient: in bands where [`weight_grad_split`] splits it (their sum queued), else
+/// as an implicit GEMM on matrix units, else Burn's direct kernel.
 fn weight_grad(
     x: FloatTensor<CubeBackend>,
     weight: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
     options: ConvOptions<2>,
-    sum: BandSum,
 ) -> FloatTensor<CubeBackend> {
     if choose_here(&options) {
-        if let Some(weight_grad) =
-            weight_grad_split(x.clone(), grad.clone(), weight.shape(), &options, sum)
-        {
+        if let Some(weight_grad) = weight_grad_split(
+            x.clone(),
+            grad.clone(),
+            weight.shape(),
+            &options,
+            BandSum::Queued,
+        ) {
             return weight_grad;
         }
         if has_matrix_units(&x)

@@ -90,6 +90,7 @@ impl ConvBackend for Flex {
         )
     }
 
+    /// Nothing is queued on the CPU: the gradient is computed at once.
     fn conv2d_weight_grad(
         x: FloatTensor<Self>,
         weight: FloatTensor<Self>,
@@ -102,16 +103,6 @@ impl ConvBackend for Flex {
             || weight_grad_tensor(x, weight, grad, options),
             |_| shapes,
         )
-    }
-
-    /// Nothing is queued on the CPU: the gradient is computed at once.
-    fn conv2d_weight_grad_queue(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        grad: FloatTensor<Self>,
-        options: ConvOptions<2>,
-    ) -> FloatTensor<Self> {
-        Self::conv2d_weight_grad(x, weight, grad, options)
     }
 
     fn conv2d_weight_grads_launch_queued(anchor: FloatTensor<Self>) -> FloatTensor<Self> {
