@@ -529,6 +529,15 @@ pub trait FusedBackend: Backend {
     #[fusion(dtype = grad, shape = Shape::new([grad[0], grad[1], *height, *width]))]
     fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self>;
 
+    /// `[B, C, h, w] → [B, C, height, width]`, bilinear (`align_corners = false`; every side
+    /// above zero).
+    #[fusion(dtype = x, shape = Shape::new([x[0], x[1], *height, *width]))]
+    fn resize(x: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self>;
+
+    /// The adjoint of [`FusedBackend::resize`] for an input of `height × width`.
+    #[fusion(dtype = grad, shape = Shape::new([grad[0], grad[1], *height, *width]))]
+    fn resize_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self>;
+
     /// The blur: each axis grows by `before + after − 3`. Its adjoint is the blur with padding
     /// `(3 − before, 3 − after)` (the taps are symmetric).
     #[fusion(dtype = x, shape = blurred(x, *before, *after))]

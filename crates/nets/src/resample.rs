@@ -1,32 +1,36 @@
 //! Bilinear resizing of `[B, C, H, W]` tensors (`align_corners = false`, no antialiasing:
 //! PyTorch's and Burn's semantics) to any size, differentiable on every backend.
 
-use burn::tensor::module::interpolate;
-use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+use burn::backend::Dispatch;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::fused::{self, downsample2, upsample2};
+use crate::fused::{self, FusedBackend, downsample2, upsample2};
 
 /// Bilinear resize (`align_corners = false`); doubling goes through [`upsample2`] and halving
 /// even sizes through [`downsample2`] (there bilinear samples midway between two pixels: the
-/// 2 × 2 mean). On the CPU (Flex) other sizes use Burn's `interpolate`; on other devices
-/// [`resize_separable`], because Burn 0.22's CubeCL backends (CUDA, wgpu) have no backward for
-/// bilinear interpolation.
+/// 2 × 2 mean), other sizes through one op where it [`fused::runs`] (Burn's `interpolate` on
+/// the CPU; on other devices one kernel each way, since Burn 0.22's CubeCL backends have no
+/// backward for bilinear interpolation) and [`resize_separable`] elsewhere. An empty input or
+/// output gives zeros.
 pub fn resize(x: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
-    let [_, _, h, w] = x.dims();
+    let [b, c, h, w] = x.dims();
     if [height, width] == [2 * h, 2 * w] {
         return upsample2(x);
     }
     if h % 2 == 0 && w % 2 == 0 && [height, width] == [h / 2, w / 2] {
         return downsample2(x);
     }
-    if !fused::on_flex(&x) {
-        return resize_separable(x, height, width);
+    if h * w == 0 || height * width == 0 {
+        return Tensor::zeros([b, c, height, width], &x.device());
     }
-    let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
-    options.align_corners = false;
-    options.output_size = Some([height, width]);
-    interpolate(x, options)
+    if fused::runs(&x, b * c * height * width) {
+        return Tensor::from_dispatch(<Dispatch as FusedBackend>::resize(
+            x.into_dispatch(),
+            height,
+            width,
+        ));
+    }
+    resize_separable(x, height, width)
 }
 
 /// Bilinear resize (`align_corners = false`, no antialiasing: PyTorch's and Burn's semantics)
@@ -69,6 +73,9 @@ fn bilinear_weights(from: usize, to: usize, device: &Device) -> Tensor<2> {
 
 #[cfg(test)]
 mod tests {
+    use burn::tensor::module::interpolate;
+    use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+
     use super::*;
     use crate::fused::portable;
 
@@ -153,20 +160,26 @@ mod tests {
                 let grads = (y.clone() * weights.clone()).sum().backward();
                 (values(y), values(x.grad(&grads).unwrap()))
             };
-            let (ours, ours_grad) = run(&|x| resize_separable(x, to_h, to_w));
             let (theirs, theirs_grad) = run(&|x| {
                 let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
                 options.align_corners = false;
                 options.output_size = Some([to_h, to_w]);
                 interpolate(x, options)
             });
-            assert_eq!(ours.len(), theirs.len());
-            for (a, b) in ours
-                .iter()
-                .zip(&theirs)
-                .chain(ours_grad.iter().zip(&theirs_grad))
-            {
-                assert!((a - b).abs() < 1e-5, "{h}×{w} → {to_h}×{to_w}: {a} vs {b}");
+            // The portable path, and `resize`'s op with its graph node.
+            for (ours, ours_grad) in [
+                run(&|x| resize_separable(x, to_h, to_w)),
+                run(&|x| resize(x, to_h, to_w)),
+            ] {
+                assert_eq!(ours.len(), theirs.len());
+                assert_eq!(ours_grad.len(), theirs_grad.len());
+                for (a, b) in ours
+                    .iter()
+                    .zip(&theirs)
+                    .chain(ours_grad.iter().zip(&theirs_grad))
+                {
+                    assert!((a - b).abs() < 1e-5, "{h}×{w} → {to_h}×{to_w}: {a} vs {b}");
+                }
             }
         }
     }

@@ -846,6 +846,20 @@ fn the_fused_ops_match_the_cpu() {
     for shape in [[2, 3, 5, 7], [1, 32, 16, 16], [1, 2, 2, 9]] {
         compare(&fused::downsample2, shape, "downsample2");
     }
+    // Bilinear resizing to sizes neither double nor half (one kernel each way): enlarging by
+    // non-integer factors (a sample read by up to 7 outputs along an axis), shrinking (a
+    // crop to LPIPS's side), the same size, one sample, one output.
+    for (shape, height, width) in [
+        ([1, 3, 7, 5], 19, 12),
+        ([2, 3, 40, 30], 17, 23),
+        ([1, 32, 16, 16], 16, 16),
+        ([1, 2, 1, 1], 4, 3),
+        ([1, 1, 9, 6], 1, 1),
+        ([1, 4, 64, 48], 150, 7),
+    ] {
+        let resize = |x| f3g_nets::resample::resize(x, height, width);
+        compare(&resize, shape, &format!("resize to {height} × {width}"));
+    }
     // 4 · 2 100² outputs: 68 907 cubes of 256, past one grid row of 65 535.
     compare(&fused::upsample2, [1, 1, 2100, 2100], "upsample2");
     for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {

@@ -163,6 +163,27 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for Downsample2Backward {
 }
 
 #[derive(Debug)]
+struct ResizeBackward;
+
+impl<B: Backend + FusedBackend> Backward<B, 1> for ResizeBackward {
+    /// The input's height and width.
+    type State = (usize, usize);
+
+    fn backward(
+        self,
+        ops: Ops<Self::State, 1>,
+        grads: &mut Gradients,
+        _checkpointer: &mut Checkpointer,
+    ) {
+        let grad = grads.consume::<B>(&ops.node);
+        let (height, width) = ops.state;
+        if let [Some(node)] = ops.parents {
+            grads.register::<B>(node.id, B::resize_grad(grad, height, width));
+        }
+    }
+}
+
+#[derive(Debug)]
 struct BlurBackward;
 
 impl<B: Backend + FusedBackend> Backward<B, 1> for BlurBackward {
@@ -730,6 +751,24 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
 
     fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
         Autodiff::<B, C>::from_inner(B::downsample2_grad(grad.into_primitive(), height, width))
+    }
+
+    fn resize(x: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        let nodes = [x.node()];
+        let [.., h, w] = x.shape().dims::<4>();
+        let out = B::resize(x.into_primitive(), height, width);
+        match ResizeBackward
+            .prepare::<C>(nodes)
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => prep.finish((h, w), out),
+            OpsKind::UnTracked(prep) => prep.finish(out),
+        }
+    }
+
+    fn resize_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        Autodiff::<B, C>::from_inner(B::resize_grad(grad.into_primitive(), height, width))
     }
 
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {

@@ -37,6 +37,7 @@ mod linear;
 mod lpips;
 mod modulate;
 mod position;
+mod resize;
 mod sum;
 mod to_rgb;
 mod upsample;
@@ -155,6 +156,14 @@ impl FusedBackend for CubeBackend {
 
     fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
         downsample::downsample2_grad(grad, height, width)
+    }
+
+    fn resize(x: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        resize::resize(x, height, width)
+    }
+
+    fn resize_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        resize::resize_grad(grad, height, width)
     }
 
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {

@@ -9,8 +9,10 @@ use std::ops::Range;
 
 use burn::backend::Flex;
 use burn::backend::TensorMetadata;
-use burn::backend::ops::FloatTensorOps;
+use burn::backend::ops::{FloatTensorOps, ModuleOps};
 use burn::backend::tensor::FloatTensor;
+use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
+use burn::tensor::{FloatDType, Shape};
 use rayon::prelude::*;
 
 use super::{
@@ -243,6 +245,27 @@ impl FusedBackend for Flex {
                 });
         }
         from_values(dx, vec![batch, channels, height, width])
+    }
+
+    /// Burn's bilinear interpolation, as the CPU resized before this op existed.
+    fn resize(x: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        <Self as ModuleOps<Self>>::interpolate(x, [height, width], bilinear())
+    }
+
+    fn resize_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
+        let [batch, channels, out_height, out_width] = dims(&grad);
+        // Burn's backward reads only the input's shape.
+        let input = Self::float_empty(
+            Shape::new([batch, channels, height, width]),
+            &grad.device(),
+            FloatDType::F32,
+        );
+        <Self as ModuleOps<Self>>::interpolate_backward(
+            input,
+            grad,
+            [out_height, out_width],
+            bilinear(),
+        )
     }
 
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {
@@ -808,6 +831,13 @@ fn leaky_relu_grad(grad: f32, output: f32, slope: f32, gain: f32) -> f32 {
     } else {
         gain * slope * grad
     }
+}
+
+/// Bilinear interpolation with `align_corners = false` (PyTorch's default).
+fn bilinear() -> InterpolateOptions {
+    let mut options = InterpolateOptions::new(InterpolateMode::Bilinear);
+    options.align_corners = false;
+    options
 }
 
 fn dims(t: &FloatTensor<Flex>) -> [usize; 4] {
