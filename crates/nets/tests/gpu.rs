@@ -860,6 +860,21 @@ fn the_fused_ops_match_the_cpu() {
         let resize = |x| f3g_nets::resample::resize(x, height, width);
         compare(&resize, shape, &format!("resize to {height} × {width}"));
     }
+    // Strided views read as they are: resizing a slice, and the gradients of a resize and of a
+    // 2 × 2 mean arriving as slices of a concatenation's gradient (offset into its buffer).
+    let beside = |y: Tensor<4>| {
+        let [b, c, h, _] = y.dims();
+        Tensor::cat(vec![ramp([b, c, h, 3], &y.device()), y], 3)
+    };
+    let sliced = |x: Tensor<4>| {
+        let [b, c, h, w] = x.dims();
+        f3g_nets::resample::resize(x.slice([0..b, 0..c, 1..h, 2..w]), 11, 6)
+    };
+    compare(&sliced, [2, 3, 9, 8], "resize of a slice");
+    let resized = |x| beside(f3g_nets::resample::resize(x, 13, 5));
+    compare(&resized, [1, 4, 6, 9], "resize, its gradient a slice");
+    let halved = |x| beside(fused::downsample2(x));
+    compare(&halved, [2, 3, 10, 7], "downsample2, its gradient a slice");
     // 4 · 2 100² outputs: 68 907 cubes of 256, past one grid row of 65 535.
     compare(&fused::upsample2, [1, 1, 2100, 2100], "upsample2");
     for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {

@@ -4,13 +4,13 @@ use burn::backend::tensor::FloatTensor;
 use burn_cubecl::CubeBackend;
 
 use super::{dims, one_thread_per_output, u32_of};
-use crate::cube_layout::{empty_in_layout, readable};
+use crate::cube_layout::{empty_in_layout, pixel_stride, readable};
 
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    use crate::fused::cube::position::{offset, position};
+    use crate::fused::cube::position::{offset, position, strided};
 
     /// `out` (`[B, C, h, w]`) from `x` (`[B, C, height, width]`, the same layout, `h = ⌊height / 2⌋`,
     /// `w = ⌊width / 2⌋`): the mean of each 2 × 2 block.
@@ -39,8 +39,9 @@ mod kernels {
         out[i] = 0.25 * (p + q + r + s);
     }
 
-    /// `dx` (`[B, C, height, width]`), the adjoint of [`downsample2`]: a quarter of the gradient
-    /// (`[B, C, h, w]`, the same layout) of the block a value falls in, zero outside the blocks.
+    /// `dx` (`[B, C, height, width]`, channels-last with `channels_last`), the adjoint of
+    /// [`downsample2`]: a quarter of the gradient (`[B, C, h, w]`, any strides) of the block a
+    /// value falls in, zero outside the blocks.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn downsample2_grad(
@@ -61,8 +62,7 @@ mod kernels {
         let (y, x) = (at.y / 2, at.x / 2);
         let mut value = 0.0f32;
         if y < h && x < w {
-            let o = offset(at.batch, at.channel, y, x, channels, h, w, channels_last);
-            value = 0.25 * grad[o];
+            value = 0.25 * grad[strided(grad, at.batch, at.channel, y, x)];
         }
         dx[i] = value;
     }
@@ -91,7 +91,8 @@ pub(super) fn downsample2(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBacken
     })
 }
 
-/// One kernel, in `grad`'s layout.
+/// One kernel, reading `grad` through its strides (a pitched gradient as it is); `dx`
+/// channels-last where `grad` is.
 pub(super) fn downsample2_grad(
     grad: FloatTensor<CubeBackend>,
     height: usize,
@@ -103,7 +104,7 @@ pub(super) fn downsample2_grad(
         [height / 2, width / 2],
         "the gradient of a 2 × 2 mean"
     );
-    let (grad, last) = readable(grad);
+    let last = pixel_stride(&grad).is_some();
     let dx = empty_in_layout(&grad, [batch, channels, height, width], last);
     one_thread_per_output(dx, &grad, |cubes, cube, dx| {
         kernels::downsample2_grad::launch(

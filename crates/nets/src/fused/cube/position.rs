@@ -61,6 +61,17 @@ pub(super) fn offset(
     o as usize
 }
 
+/// The buffer offset of `(batch, channel, y, x)` in `t`, a `[B, C, H, W]` view with any strides
+/// (a slice of a concatenation's gradient, a pitched convolution output): read so, a tensor
+/// needs no copy into one of the two layouts first.
+#[cube]
+pub(super) fn strided(t: &Tensor<f32>, batch: u32, channel: u32, y: u32, x: u32) -> usize {
+    batch as usize * t.stride(0)
+        + channel as usize * t.stride(1)
+        + y as usize * t.stride(2)
+        + x as usize * t.stride(3)
+}
+
 /// The sample `2i ∓ 1`'s neighbour along an axis of `n` samples: output `o` of the ×2
 /// up-sampling blends sample `o / 2` (¾) with this one (¼), the edge repeated.
 #[cube]

@@ -2,19 +2,21 @@
 //! output value: the forward blends its four taps, the adjoint sums, for each input value, the
 //! outputs whose taps include it (a short range along each axis, found from the same tap
 //! arithmetic as the forward's, so the two agree to the weight). Gathered, not scattered: no
-//! atomics, deterministic.
+//! atomics, deterministic. The input is read through its strides (a slice of a concatenation's
+//! gradient as it is); the output is channels-last where the input is (pitched or not), else
+//! row-major.
 
 use burn::backend::tensor::FloatTensor;
 use burn_cubecl::CubeBackend;
 
 use super::{dims, one_thread_per_output, u32_of};
-use crate::cube_layout::{empty_in_layout, readable};
+use crate::cube_layout::{empty_in_layout, pixel_stride};
 
 mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    use crate::fused::cube::position::{offset, position};
+    use crate::fused::cube::position::{position, strided};
 
     /// Output `o`'s taps along an axis of `n` samples resized with `ratio = n / outputs`: the
     /// lower sample, the upper one and the upper's weight. The source coordinate
@@ -65,7 +67,8 @@ mod kernels {
         (first, last)
     }
 
-    /// `out` (`[B, C, height, width]`) from `x` (`[B, C, h, w]`, the same layout).
+    /// `out` (`[B, C, height, width]`, channels-last with `channels_last`) from `x`
+    /// (`[B, C, h, w]`, any strides).
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn resize(
@@ -88,15 +91,14 @@ mod kernels {
         let (y0, y1, ty) = taps(p.y, ratio_y, h);
         let (x0, x1, tx) = taps(p.x, ratio_x, w);
         let (b, c) = (p.batch, p.channel);
-        let top = (1.0f32 - tx) * x[offset(b, c, y0, x0, channels, h, w, channels_last)]
-            + tx * x[offset(b, c, y0, x1, channels, h, w, channels_last)];
-        let bottom = (1.0f32 - tx) * x[offset(b, c, y1, x0, channels, h, w, channels_last)]
-            + tx * x[offset(b, c, y1, x1, channels, h, w, channels_last)];
+        let top = (1.0f32 - tx) * x[strided(x, b, c, y0, x0)] + tx * x[strided(x, b, c, y0, x1)];
+        let bottom = (1.0f32 - tx) * x[strided(x, b, c, y1, x0)] + tx * x[strided(x, b, c, y1, x1)];
         out[i] = (1.0f32 - ty) * top + ty * bottom;
     }
 
-    /// `dx` (`[B, C, h, w]`), the adjoint of [`resize`]: for each input value the weighted sum
-    /// of the outputs of `grad` (`[B, C, height, width]`, the same layout) that read it.
+    /// `dx` (`[B, C, h, w]`, channels-last with `channels_last`), the adjoint of [`resize`]: for
+    /// each input value the weighted sum of the outputs of `grad` (`[B, C, height, width]`, any
+    /// strides) that read it.
     #[allow(clippy::too_many_arguments)]
     #[cube(launch)]
     pub fn resize_grad(
@@ -126,17 +128,7 @@ mod kernels {
                 for ox in first_x..last_x + 1 {
                     let wx = weight(ox, p.x, ratio_x, w);
                     if wx != 0.0f32 {
-                        let at = offset(
-                            p.batch,
-                            p.channel,
-                            oy,
-                            ox,
-                            channels,
-                            height,
-                            width,
-                            channels_last,
-                        );
-                        along += wx * grad[at];
+                        along += wx * grad[strided(grad, p.batch, p.channel, oy, ox)];
                     }
                 }
                 sum += wy * along;
@@ -151,14 +143,14 @@ fn ratio(n: usize, outputs: usize) -> f32 {
     (n as f64 / outputs as f64) as f32
 }
 
-/// One kernel, in `x`'s layout.
+/// One kernel; the output channels-last where `x` is.
 pub(super) fn resize(
     x: FloatTensor<CubeBackend>,
     height: usize,
     width: usize,
 ) -> FloatTensor<CubeBackend> {
     let [batch, channels, h, w] = dims(&x);
-    let (x, last) = readable(x);
+    let last = pixel_stride(&x).is_some();
     let out = empty_in_layout(&x, [batch, channels, height, width], last);
     one_thread_per_output(out, &x, |cubes, cube, out| {
         kernels::resize::launch(
@@ -179,14 +171,14 @@ pub(super) fn resize(
     })
 }
 
-/// One kernel, in `grad`'s layout; `h × w` is the input's size.
+/// One kernel; `dx` (of the input's size `h × w`) channels-last where `grad` is.
 pub(super) fn resize_grad(
     grad: FloatTensor<CubeBackend>,
     h: usize,
     w: usize,
 ) -> FloatTensor<CubeBackend> {
     let [batch, channels, height, width] = dims(&grad);
-    let (grad, last) = readable(grad);
+    let last = pixel_stride(&grad).is_some();
     let dx = empty_in_layout(&grad, [batch, channels, h, w], last);
     one_thread_per_output(dx, &grad, |cubes, cube, dx| {
         kernels::resize_grad::launch(
