@@ -216,9 +216,10 @@ fn the_phase_trace_places_every_launch_in_its_phase() {
 /// with every activation's bias and noise-strength sums made together, 4 423 with a skinning's
 /// rotation one tensor, 4 245 with every convolution's weight-gradient sum over its bands made
 /// together, 4 198 with a network's input stored channels-last, 4 084 with its output's gradient
-/// stored so (2026-12-01); the target is 3 000. The bound keeps what was won.
+/// stored so, 4 024 with bilinear resizing one kernel each way (2026-12-01); the target is
+/// 3 000. The bound keeps what was won.
 #[test]
-fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_200() {
+fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_100() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let launches = |steps: &str, json: &str| {
@@ -250,7 +251,7 @@ fn a_cold_paper_step_compiles_at_most_300_kernels_and_a_step_launches_at_most_4_
     );
     let per_step = (launches("3", "paper3.json") - one) / 2;
     assert!(
-        (3_900..=4_200).contains(&per_step),
+        (3_800..=4_100).contains(&per_step),
         "a paper step launches {per_step} kernels"
     );
 }
