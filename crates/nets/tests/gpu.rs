@@ -875,6 +875,13 @@ fn the_fused_ops_match_the_cpu() {
     compare(&resized, [1, 4, 6, 9], "resize, its gradient a slice");
     let halved = |x| beside(fused::downsample2(x));
     compare(&halved, [2, 3, 10, 7], "downsample2, its gradient a slice");
+    // A network's last op: the Haar analysis of its output's gradient, here a slice.
+    let synthesised = |x| beside(fused::inverse_haar(x));
+    compare(
+        &synthesised,
+        [1, 8, 5, 6],
+        "inverse_haar, its gradient a slice",
+    );
     // 4 · 2 100² outputs: 68 907 cubes of 256, past one grid row of 65 535.
     compare(&fused::upsample2, [1, 1, 2100, 2100], "upsample2");
     for shape in [[1, 2, 8, 8], [2, 3, 5, 9], [1, 1, 1, 2]] {

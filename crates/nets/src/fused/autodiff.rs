@@ -223,11 +223,9 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for HaarBackward {
         let grad = grads.consume::<B>(&ops.node);
         if let [Some(node)] = ops.parents {
             let dx = if self.inverse {
-                // A network's last op: its output's gradient arrives row-major, and the Haar
-                // analysis and the ToRGBs' backwards keep the layout down every decoder level,
-                // where each ToRGB convolution's two gradient GEMMs copied it to channels-last
-                // (88 launches a `paper` step). One copy here instead (on the CPU, none).
-                B::haar(B::to_channels_last(grad))
+                // A network's last op: its output's gradient arrives in any layout; on a GPU the
+                // analysis writes it channels-last, as the ToRGBs' convolutions read it.
+                B::haar(grad)
             } else {
                 B::inverse_haar(grad)
             };

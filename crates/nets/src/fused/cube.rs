@@ -9,9 +9,11 @@
 //! callers route tensors of 2³² values or more to the portable ops (`fused::runs`).
 //!
 //! Layouts: every op reads and writes either of `crate::cube_layout`'s two and keeps its input's
-//! (anything else is made row-major first), so the activation after a convolution goes through
-//! bias + leaky ReLU, blur or up-sampling into the next convolution in the channels-last layout
-//! the convolutions compute in, without copies to row-major and back. Convolution weights
+//! (anything else is made row-major first; the resize, the 2 × 2 mean's adjoint and the Haar
+//! analysis read any strides, the analysis writing channels-last always), so the activation
+//! after a convolution goes through bias + leaky ReLU, blur or up-sampling into the next
+//! convolution in the channels-last layout the convolutions compute in, without copies to
+//! row-major and back. Convolution weights
 //! (`modulate`, `scale_weight`) are written channels-last whatever their input's layout, as the
 //! implicit GEMM reads them; the linear layer's `[B, in]` tensors are row-major. The arithmetic
 //! follows `fused::flex` term by term.

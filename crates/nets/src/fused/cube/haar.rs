@@ -11,32 +11,24 @@ mod kernels {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
 
-    use crate::fused::cube::position::{analysed, offset, position, synthesised};
+    use crate::fused::cube::position::{analysed, position, strided, synthesised};
 
-    /// `out` (`[B, 4C, h, w]`): channel `4c + k` holds sub-band `k ∈ (LL, LH, HL, HH)` of the
-    /// 2 × 2 block `(p q / r s)` at `(2y, 2x)` of channel `c` of `x` (`[B, C, 2h, 2w]`, the same
-    /// layout), `½(p ± q ± r ± s)`.
+    /// `out` (`[B, 4C, h, w]`, channels-last): channel `4c + k` holds sub-band `k ∈ (LL, LH, HL,
+    /// HH)` of the 2 × 2 block `(p q / r s)` at `(2y, 2x)` of channel `c` of `x` (`[B, C, 2h,
+    /// 2w]`, any strides), `½(p ± q ± r ± s)`.
     #[cube(launch)]
-    pub fn haar(
-        x: &Tensor<f32>,
-        out: &mut Tensor<f32>,
-        channels: u32,
-        h: u32,
-        w: u32,
-        #[comptime] channels_last: bool,
-    ) {
+    pub fn haar(x: &Tensor<f32>, out: &mut Tensor<f32>, channels: u32, h: u32, w: u32) {
         let o = ABSOLUTE_POS;
         if o >= out.len() {
             terminate!();
         }
-        let at = position(o as u32, 4 * channels, h, w, channels_last);
+        let at = position(o as u32, 4 * channels, h, w, true);
         let (b, c, band) = (at.batch, at.channel / 4, at.channel % 4);
         let (y, x0) = (2 * at.y, 2 * at.x);
-        let (h2, w2) = (2 * h, 2 * w);
-        let p = x[offset(b, c, y, x0, channels, h2, w2, channels_last)];
-        let q = x[offset(b, c, y, x0 + 1, channels, h2, w2, channels_last)];
-        let r = x[offset(b, c, y + 1, x0, channels, h2, w2, channels_last)];
-        let s = x[offset(b, c, y + 1, x0 + 1, channels, h2, w2, channels_last)];
+        let p = x[strided(x, b, c, y, x0)];
+        let q = x[strided(x, b, c, y, x0 + 1)];
+        let r = x[strided(x, b, c, y + 1, x0)];
+        let s = x[strided(x, b, c, y + 1, x0 + 1)];
         out[o] = analysed(p, q, r, s, band);
     }
 
@@ -70,7 +62,11 @@ mod kernels {
     }
 }
 
-/// One kernel, in `x`'s layout.
+/// One kernel, reading `x` through its strides and writing channels-last whatever its layout:
+/// the analysis is the backward of a network's last op, whose output gradient arrives in any
+/// layout (a slice of a concatenation's gradient, row-major from a resize), and the ToRGB
+/// convolutions' gradients it feeds compute channels-last (their GEMMs would copy anything
+/// else, at every decoder level).
 pub(super) fn haar(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
     let [batch, channels, height, width] = dims(&x);
     assert!(
@@ -78,8 +74,7 @@ pub(super) fn haar(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
         "Haar analysis of even sizes"
     );
     let (h, w) = (height / 2, width / 2);
-    let (x, last) = readable(x);
-    let out = empty_in_layout(&x, [batch, 4 * channels, h, w], last);
+    let out = empty_in_layout(&x, [batch, 4 * channels, h, w], true);
     one_thread_per_output(out, &x, |cubes, cube, out| {
         kernels::haar::launch(
             &x.client,
@@ -90,7 +85,6 @@ pub(super) fn haar(x: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
             u32_of(channels),
             u32_of(h),
             u32_of(w),
-            last,
         )
     })
 }
