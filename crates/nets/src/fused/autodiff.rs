@@ -9,7 +9,7 @@ use burn::backend::autodiff::{
     Autodiff, NodeId,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
     grads::Gradients,
-    ops::{Backward, Ops, OpsKind},
+    ops::{Backward, NodeGuard, Ops, OpsKind},
 };
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{AutodiffBackend, Backend, TensorMetadata};
@@ -141,11 +141,21 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for Upsample2Backward {
     }
 }
 
-#[derive(Debug)]
-struct Downsample2Backward;
+/// The backward of a one-input op whose adjoint is an op of the gradient and two sizes kept
+/// from the forward (the 2 × 2 mean's and the resize's: the input's height and width; the
+/// blur's: the padding that undoes the forward's).
+struct AdjointBackward<B: Backend> {
+    adjoint: fn(FloatTensor<B>, usize, usize) -> FloatTensor<B>,
+}
 
-impl<B: Backend + FusedBackend> Backward<B, 1> for Downsample2Backward {
-    /// The input's height and width.
+impl<B: Backend> std::fmt::Debug for AdjointBackward<B> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("AdjointBackward")
+    }
+}
+
+impl<B: Backend> Backward<B, 1> for AdjointBackward<B> {
+    /// The adjoint's two sizes.
     type State = (usize, usize);
 
     fn backward(
@@ -155,52 +165,24 @@ impl<B: Backend + FusedBackend> Backward<B, 1> for Downsample2Backward {
         _checkpointer: &mut Checkpointer,
     ) {
         let grad = grads.consume::<B>(&ops.node);
-        let (height, width) = ops.state;
+        let (a, b) = ops.state;
         if let [Some(node)] = ops.parents {
-            grads.register::<B>(node.id, B::downsample2_grad(grad, height, width));
+            grads.register::<B>(node.id, (self.adjoint)(grad, a, b));
         }
     }
 }
 
-#[derive(Debug)]
-struct ResizeBackward;
-
-impl<B: Backend + FusedBackend> Backward<B, 1> for ResizeBackward {
-    /// The input's height and width.
-    type State = (usize, usize);
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (height, width) = ops.state;
-        if let [Some(node)] = ops.parents {
-            grads.register::<B>(node.id, B::resize_grad(grad, height, width));
-        }
-    }
-}
-
-#[derive(Debug)]
-struct BlurBackward;
-
-impl<B: Backend + FusedBackend> Backward<B, 1> for BlurBackward {
-    /// The forward's padding `(before, after)`.
-    type State = (usize, usize);
-
-    fn backward(
-        self,
-        ops: Ops<Self::State, 1>,
-        grads: &mut Gradients,
-        _checkpointer: &mut Checkpointer,
-    ) {
-        let grad = grads.consume::<B>(&ops.node);
-        let (before, after) = ops.state;
-        if let [Some(node)] = ops.parents {
-            grads.register::<B>(node.id, B::blur(grad, 3 - before, 3 - after));
-        }
+/// `out`, computed from the tensor of `nodes`, on the graph with [`AdjointBackward`].
+fn with_adjoint<B: Backend, C: CheckpointStrategy>(
+    nodes: [NodeGuard; 1],
+    out: FloatTensor<B>,
+    adjoint: fn(FloatTensor<B>, usize, usize) -> FloatTensor<B>,
+    sizes: (usize, usize),
+) -> FloatTensor<Autodiff<B, C>> {
+    let backward = AdjointBackward { adjoint };
+    match backward.prepare::<C>(nodes).compute_bound().stateful() {
+        OpsKind::Tracked(prep) => prep.finish(sizes, out),
+        OpsKind::UnTracked(prep) => prep.finish(out),
     }
 }
 
@@ -737,14 +719,7 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         let nodes = [x.node()];
         let [.., height, width] = x.shape().dims::<4>();
         let out = B::downsample2(x.into_primitive());
-        match Downsample2Backward
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => prep.finish((height, width), out),
-            OpsKind::UnTracked(prep) => prep.finish(out),
-        }
+        with_adjoint::<B, C>(nodes, out, B::downsample2_grad, (height, width))
     }
 
     fn downsample2_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
@@ -755,14 +730,7 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
         let nodes = [x.node()];
         let [.., h, w] = x.shape().dims::<4>();
         let out = B::resize(x.into_primitive(), height, width);
-        match ResizeBackward
-            .prepare::<C>(nodes)
-            .compute_bound()
-            .stateful()
-        {
-            OpsKind::Tracked(prep) => prep.finish((h, w), out),
-            OpsKind::UnTracked(prep) => prep.finish(out),
-        }
+        with_adjoint::<B, C>(nodes, out, B::resize_grad, (h, w))
     }
 
     fn resize_grad(grad: FloatTensor<Self>, height: usize, width: usize) -> FloatTensor<Self> {
@@ -772,10 +740,8 @@ impl<B: Backend + FusedBackend, C: CheckpointStrategy> FusedBackend for Autodiff
     fn blur(x: FloatTensor<Self>, before: usize, after: usize) -> FloatTensor<Self> {
         let nodes = [x.node()];
         let out = B::blur(x.into_primitive(), before, after);
-        match BlurBackward.prepare::<C>(nodes).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => prep.finish((before, after), out),
-            OpsKind::UnTracked(prep) => prep.finish(out),
-        }
+        // The blur's adjoint is the blur padded by what the forward's padding leaves of 3.
+        with_adjoint::<B, C>(nodes, out, B::blur, (3 - before, 3 - after))
     }
 
     fn haar(x: FloatTensor<Self>) -> FloatTensor<Self> {
