@@ -10,7 +10,7 @@ use cubek::{
     std::InputBinding,
 };
 
-use crate::{ops::numeric::empty_device_dtype, tensor::CubeTensor};
+use crate::{ops::numeric::empty_device_contiguous_dtype, tensor::CubeTensor};
 
 pub(crate) fn wgrad_gemm_simple_sync<const N: usize>(
     input: CubeTensor,
@@ -97,7 +97,9 @@ pub fn launch_backwards_weight<const N: usize>(
 
     let out_dtype = out_grad.dtype;
 
-    let weight_grad = empty_device_dtype(
+    // Contiguous, not pitched: a gradient read beside its weight (an optimiser's update) in
+    // the weight's gapless layout needs no copy first.
+    let weight_grad = empty_device_contiguous_dtype(
         input.client.clone(),
         input.device.clone(),
         weight_shape,
