@@ -179,8 +179,8 @@ pub fn haar(x: Tensor<4>) -> Tensor<4> {
 /// elsewhere as it is. The values, and the gradient, are unchanged. Why: a network's input
 /// arrives row-major, and its encoder convolves it and its 2 × 2 means (which keep its layout)
 /// at every level: Burn's implicit GEMM copied each of them to channels-last, a launch per
-/// level and network (36 a `paper` step), where this is one per network. The output's gradient
-/// likewise, in the inverse Haar transform's backward.
+/// level and network (36 a `paper` step), where this is one per network. (The output's
+/// gradient needs no such op: the Haar analysis, its backward, writes channels-last itself.)
 pub fn channels_last(x: Tensor<4>) -> Tensor<4> {
     if runs(&x, 0) {
         Tensor::from_dispatch(<Dispatch as FusedBackend>::to_channels_last(

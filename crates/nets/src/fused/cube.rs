@@ -13,10 +13,9 @@
 //! analysis read any strides, the analysis writing channels-last always), so the activation
 //! after a convolution goes through bias + leaky ReLU, blur or up-sampling into the next
 //! convolution in the channels-last layout the convolutions compute in, without copies to
-//! row-major and back. Convolution weights
-//! (`modulate`, `scale_weight`) are written channels-last whatever their input's layout, as the
-//! implicit GEMM reads them; the linear layer's `[B, in]` tensors are row-major. The arithmetic
-//! follows `fused::flex` term by term.
+//! row-major and back. Convolution weights (`modulate`, `scale_weight`) are written
+//! channels-last whatever their input's layout, as the implicit GEMM reads them; the linear
+//! layer's `[B, in]` tensors are row-major. The arithmetic follows `fused::flex` term by term.
 //!
 //! One file per op and its backward, the kernels (`mod kernels`) beside their launches;
 //! `position` holds the index arithmetic of the layouts, which the resampling kernels share.
