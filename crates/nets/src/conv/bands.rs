@@ -270,20 +270,19 @@ mod kernels {
 }
 
 /// The weight gradient of a convolution of `x` (groups 1, symmetric padding) given its output
-/// gradient `grad`, in bands where [`Bands::plan`] splits it, their sum run as `sum` says;
-/// `None` where it does not split (the caller runs the implicit GEMM).
+/// gradient `grad`, in bands where [`Bands::plan`] splits it, their sum queued
+/// ([`BandSum::Queued`]); `None` where it does not split (the caller runs the implicit GEMM).
 pub fn weight_grad_split(
     x: FloatTensor<CubeBackend>,
     grad: FloatTensor<CubeBackend>,
     weight_shape: Shape,
     options: &ConvOptions<2>,
-    sum: BandSum,
 ) -> Option<FloatTensor<CubeBackend>> {
     let [batch, c_in, _, _] = x.shape().dims();
     let [c_out, _, kh, kw] = weight_shape.dims();
     let [_, _, h_out, w_out] = grad.shape().dims();
     let bands = Bands::plan(batch * h_out * w_out, c_out, c_in * kh * kw)?;
-    weight_grad_in_bands(x, grad, weight_shape, options, bands, sum)
+    weight_grad_in_bands(x, grad, weight_shape, options, bands, BandSum::Queued)
 }
 
 /// The weight gradient `[C_out, C_in, kh, kw]` of a convolution of `x` (groups 1, symmetric

@@ -29,7 +29,7 @@ use burn_cubecl::kernel::conv::{
 use std::sync::{Mutex, OnceLock};
 
 use super::ConvBackend;
-use super::bands::{BandSum, launch_queued_band_sums, weight_grad_split};
+use super::bands::{launch_queued_band_sums, weight_grad_split};
 use super::strided::strided_input_grad;
 
 /// Whether to pick the algorithm here: Burn's default is `Direct` unless its `autotune` is on.
@@ -215,13 +215,9 @@ fn weight_grad(
     options: ConvOptions<2>,
 ) -> FloatTensor<CubeBackend> {
     if choose_here(&options) {
-        if let Some(weight_grad) = weight_grad_split(
-            x.clone(),
-            grad.clone(),
-            weight.shape(),
-            &options,
-            BandSum::Queued,
-        ) {
+        if let Some(weight_grad) =
+            weight_grad_split(x.clone(), grad.clone(), weight.shape(), &options)
+        {
             return weight_grad;
         }
         if has_matrix_units(&x)
