@@ -245,6 +245,15 @@ fn every_backward_matches_central_differences() {
         1e-2,
         "inverse_haar",
     );
+    // Bilinear resizing to sizes neither double nor half (its own op): enlarging and shrinking.
+    for (height, width) in [(7, 9), (3, 2)] {
+        central_differences::check(
+            &|x| squared(f3g_nets::resample::resize(x, height, width)),
+            x0.clone(),
+            1e-2,
+            &format!("resize to {height} × {width}"),
+        );
+    }
     for (before, after) in [(2, 2), (3, 0), (1, 3)] {
         central_differences::check(
             &|x| squared(fused::blur(x, before, after)),
