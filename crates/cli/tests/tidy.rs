@@ -39,6 +39,11 @@ const BURN: [&str; 4] = ["splat", "nets", "avatar", "cli"];
 
 /// The `[dependencies]` entries of a crate's manifest (not dev- or build-dependencies).
 fn dependencies(krate: &str) -> Vec<String> {
+    manifest_entries(krate, "[dependencies]")
+}
+
+/// The entry names of a section (`[dependencies]`, `[dev-dependencies]`) of a crate's manifest.
+fn manifest_entries(krate: &str, wanted: &str) -> Vec<String> {
     let text =
         std::fs::read_to_string(workspace().join("crates").join(krate).join("Cargo.toml")).unwrap();
     let mut section = String::new();
@@ -47,7 +52,7 @@ fn dependencies(krate: &str) -> Vec<String> {
         let line = line.trim();
         if line.starts_with('[') {
             section = line.to_string();
-        } else if section == "[dependencies]"
+        } else if section == wanted
             && let Some((name, _)) = line.split_once(['=', '.'])
             && !line.starts_with('#')
         {
@@ -621,4 +626,80 @@ fn unreached(feature: &str) -> Vec<String> {
         }
     }
     broken
+}
+
+/// A dependency nothing uses still costs every build its compile time (the npz reader's zip
+/// brought two C libraries no `.npz` needs; four crates listed dependencies they no longer
+/// used, 2026-12-01). A `[dependencies]` entry must be named in the crate's `src/` (as `name::`,
+/// `use name` or `name!`), a `[dev-dependencies]` entry in its `src/` or `tests/`; an optional
+/// dependency that one of the crate's features turns on (`dep:name`) may be there only for the
+/// features it sets on a dependency shared with other crates.
+#[test]
+fn every_dependency_a_crate_lists_is_used() {
+    let mut unused = Vec::new();
+    for (krate, _) in LAYERS {
+        let dir = workspace().join("crates").join(krate);
+        // The library's code without its test modules; all code, tests included (comment lines
+        // left out of both).
+        let (mut library, mut everything) = (String::new(), String::new());
+        for folder in ["src", "tests"] {
+            let path = dir.join(folder);
+            if !path.is_dir() {
+                continue;
+            }
+            for file in &rust_files(&path) {
+                if folder == "src" {
+                    for (_, line) in code_lines(file) {
+                        library.push_str(&line);
+                        library.push('\n');
+                    }
+                }
+                let text = std::fs::read_to_string(file).unwrap();
+                for line in text.lines().filter(|l| !l.trim_start().starts_with("//")) {
+                    everything.push_str(line);
+                    everything.push('\n');
+                }
+            }
+        }
+        let switched_on: BTreeSet<String> = features(krate)
+            .into_values()
+            .flatten()
+            .filter_map(|entry| entry.strip_prefix("dep:").map(str::to_string))
+            .collect();
+        for (section, code) in [
+            ("[dependencies]", &library),
+            ("[dev-dependencies]", &everything),
+        ] {
+            for name in manifest_entries(krate, section) {
+                if !names_crate(code, &name.replace('-', "_")) && !switched_on.contains(&name) {
+                    unused.push(format!("crates/{krate}/Cargo.toml {section} {name}"));
+                }
+            }
+        }
+    }
+    assert!(
+        unused.is_empty(),
+        "dependencies no code of their crate names:\n{}",
+        unused.join("\n")
+    );
+}
+
+/// Whether `code` names the crate `ident` as a path's first segment or a macro's path (`ident::`,
+/// `ident!`, not `other_ident::`).
+fn names_crate(code: &str, ident: &str) -> bool {
+    code.match_indices(ident).any(|(at, _)| {
+        let before = code[..at].chars().next_back();
+        let after = &code[at + ident.len()..];
+        !before.is_some_and(|c| c.is_alphanumeric() || c == '_' || c == ':')
+            && (after.starts_with("::") || after.starts_with('!'))
+    })
+}
+
+#[test]
+fn a_crate_is_named_by_its_paths_not_by_a_longer_name() {
+    assert!(names_crate("use rand::Rng;", "rand"));
+    assert!(names_crate("let x = serde_json!(1);", "serde_json"));
+    assert!(!names_crate("use rand_chacha::ChaCha8Rng;", "rand"));
+    assert!(!names_crate("use burn::backend::rand::x;", "rand"));
+    assert!(!names_crate("fn grand::x", "rand"));
 }

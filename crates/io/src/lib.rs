@@ -425,14 +425,15 @@ fn checked_shape(shape: &[u64]) -> Result<Vec<usize>, String> {
 /// An `.npz` archive (as numpy's `savez`/`savez_compressed` write), with typed accessors whose
 /// errors name the file and the array.
 pub struct Npz<R: std::io::Read + std::io::Seek> {
-    archive: npyz::npz::NpzArchive<R>,
+    archive: zip::ZipArchive<R>,
     path: PathBuf,
 }
 
 impl Npz<std::io::BufReader<std::fs::File>> {
     /// Opens an `.npz` file.
     pub fn open(path: &Path) -> Result<Self, IoError> {
-        let archive = npyz::npz::NpzArchive::open(path)
+        let file = std::fs::File::open(path).map_err(|e| IoError::new(path, e))?;
+        let archive = zip::ZipArchive::new(std::io::BufReader::new(file))
             .map_err(|e| IoError::new(path, format!("not a readable .npz archive: {e}")))?;
         Ok(Self {
             archive,
@@ -445,7 +446,7 @@ impl<'a> Npz<Cursor<&'a [u8]>> {
     /// Reads an `.npz` held in memory; `label` names it in errors.
     pub fn from_bytes(bytes: &'a [u8], label: &str) -> Result<Self, IoError> {
         let path = PathBuf::from(label);
-        let archive = npyz::npz::NpzArchive::new(Cursor::new(bytes))
+        let archive = zip::ZipArchive::new(Cursor::new(bytes))
             .map_err(|e| IoError::new(&path, format!("not a readable .npz archive: {e}")))?;
         Ok(Self { archive, path })
     }
@@ -454,23 +455,34 @@ impl<'a> Npz<Cursor<&'a [u8]>> {
 impl<R: std::io::Read + std::io::Seek> Npz<R> {
     /// The archive's array names.
     pub fn names(&self) -> Vec<String> {
-        self.archive.array_names().map(String::from).collect()
+        self.array_names().map(String::from).collect()
     }
 
     /// Whether the archive holds `name`.
     pub fn contains(&self, name: &str) -> bool {
-        self.archive.array_names().any(|n| n == name)
+        self.array_names().any(|n| n == name)
     }
 
-    fn array(
-        &mut self,
-        name: &str,
-    ) -> Result<npyz::NpyFile<npyz::zip::read::ZipFile<'_>>, IoError> {
-        let path = self.path.clone();
+    /// The members that are arrays (`NAME.npy`), by name.
+    fn array_names(&self) -> impl Iterator<Item = &str> {
         self.archive
-            .by_name(name)
-            .map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))?
-            .ok_or_else(|| IoError::new(&path, format!("missing array `{name}`")))
+            .file_names()
+            .filter_map(npyz::npz::array_name_from_file_name)
+    }
+
+    fn array(&mut self, name: &str) -> Result<npyz::NpyFile<zip::read::ZipFile<'_>>, IoError> {
+        let path = self.path.clone();
+        let member = match self
+            .archive
+            .by_name(&npyz::npz::file_name_from_array_name(name))
+        {
+            Ok(member) => member,
+            Err(zip::result::ZipError::FileNotFound) => {
+                return Err(IoError::new(&path, format!("missing array `{name}`")));
+            }
+            Err(e) => return Err(IoError::new(&path, format!("`{name}`: {e}"))),
+        };
+        npyz::NpyFile::new(member).map_err(|e| IoError::new(&path, format!("`{name}`: {e}")))
     }
 
     /// Array `name` as `f32` with its shape.
@@ -606,16 +618,16 @@ pub fn encode_npz(
 ) -> Result<Vec<u8>, String> {
     let mut buf = Cursor::new(Vec::new());
     {
-        let mut zip = npyz::zip::ZipWriter::new(&mut buf);
+        let mut zip = zip::ZipWriter::new(&mut buf);
         // A fixed timestamp (the zip epoch, 1980-01-01) instead of the current time, so the
         // same arrays always give the same bytes (checkpoints can be verified by hash).
         let method = match entries {
-            NpzEntries::Stored => npyz::zip::CompressionMethod::Stored,
-            NpzEntries::Deflated => npyz::zip::CompressionMethod::Deflated,
+            NpzEntries::Stored => zip::CompressionMethod::Stored,
+            NpzEntries::Deflated => zip::CompressionMethod::Deflated,
         };
-        let options = npyz::zip::write::FileOptions::default()
+        let options = zip::write::FileOptions::default()
             .compression_method(method)
-            .last_modified_time(npyz::zip::DateTime::default());
+            .last_modified_time(zip::DateTime::default());
         for (name, shape, values) in arrays {
             zip.start_file(format!("{name}.npy"), options)
                 .map_err(|e| e.to_string())?;

@@ -373,11 +373,11 @@ fn amass_gender_as_a_string_array_is_accepted() {
     write_arrays(&plain, &amass(156, 3, "mocap_framerate"));
     // Copy the archive and add `gender` as numpy writes it: a 0-d '<U6' array.
     let path = dir.path().join("gendered.npz");
-    let mut zip = npyz::zip::ZipWriter::new(std::fs::File::create(&path).unwrap());
-    let mut source = npyz::zip::ZipArchive::new(std::fs::File::open(&plain).unwrap()).unwrap();
+    let mut archive = zip::ZipWriter::new(std::fs::File::create(&path).unwrap());
+    let mut source = zip::ZipArchive::new(std::fs::File::open(&plain).unwrap()).unwrap();
     for i in 0..source.len() {
         let file = source.by_index(i).unwrap();
-        zip.raw_copy_file(file).unwrap();
+        archive.raw_copy_file(file).unwrap();
     }
     let mut header = b"{'descr': '<U6', 'fortran_order': False, 'shape': (), }".to_vec();
     while !(10 + header.len() + 1).is_multiple_of(64) {
@@ -390,10 +390,11 @@ fn amass_gender_as_a_string_array_is_accepted() {
     for c in "female".chars() {
         npy.extend((c as u32).to_le_bytes());
     }
-    zip.start_file("gender.npy", npyz::zip::write::FileOptions::default())
+    archive
+        .start_file("gender.npy", zip::write::FileOptions::default())
         .unwrap();
-    zip.write_all(&npy).unwrap();
-    zip.finish().unwrap();
+    archive.write_all(&npy).unwrap();
+    archive.finish().unwrap();
     assert_eq!(read(&path).unwrap().frames(), 3);
 }
 
