@@ -11,11 +11,12 @@ use std::cell::RefCell;
 use burn::backend::TensorMetadata;
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
-use burn::tensor::Shape;
+use burn::tensor::{DType, Shape};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::cubecl::CubeDim;
 use burn_cubecl::cubecl::prelude::SequenceArg;
 use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
 use burn_cubecl::ops::permute_nchw_to_nhwc;
 
 use super::sum::{SUM_UNITS, one_cube_per_channel_in_layers};
@@ -559,16 +560,29 @@ fn queue_sum(shares: FloatTensor<CubeBackend>) -> FloatTensor<CubeBackend> {
 const MAX_SUMS_PER_LAUNCH: usize = 48;
 
 /// Launches the sums queued on this thread ([`kernels::sum_columns_many`], up to
-/// [`MAX_SUMS_PER_LAUNCH`] tables a launch, a grid layer each).
+/// [`MAX_SUMS_PER_LAUNCH`] tables a launch, a grid layer each). Every launch binds the same
+/// number of tables, a short last one made up with fillers (a one-value sum of an unwritten
+/// value): the number is a compile-time constant of the kernel and the queue's length varies,
+/// so each length would be another kernel to compile (three in a `paper` step, where one will
+/// do), as for the bands' sums (`conv::bands::launch_queued_band_sums`).
 pub(super) fn launch_queued_sums() {
     let queue: Vec<QueuedSum> = SUM_QUEUE.with(|q| std::mem::take(&mut *q.borrow_mut()));
     let Some(first) = queue.first() else {
         return;
     };
-    let client = first.shares.client.clone();
-    for chunk in queue.chunks(items_per_launch(&client, 2, 0, MAX_SUMS_PER_LAUNCH)) {
+    let (client, device) = (first.shares.client.clone(), first.shares.device.clone());
+    let empty = |shape: Shape| {
+        empty_device_contiguous_dtype(client.clone(), device.clone(), shape, DType::F32)
+    };
+    let filler = QueuedSum {
+        shares: empty(Shape::new([1, 1])),
+        sums: empty(Shape::new([1])),
+    };
+    let count = items_per_launch(&client, 2, 0, MAX_SUMS_PER_LAUNCH);
+    for chunk in queue.chunks(count) {
         let (mut shares, mut sums) = (SequenceArg::new(), SequenceArg::new());
-        for q in chunk {
+        let fillers = std::iter::repeat_n(&filler, count - chunk.len());
+        for q in chunk.iter().chain(fillers) {
             shares.push(q.shares.clone().into_tensor_arg());
             sums.push(q.sums.clone().into_tensor_arg());
         }
@@ -579,11 +593,11 @@ pub(super) fn launch_queued_sums() {
             .unwrap_or(0);
         kernels::sum_columns_many::launch(
             &client,
-            one_cube_per_channel_in_layers(most_values, "bias", chunk.len()),
+            one_cube_per_channel_in_layers(most_values, "bias", count),
             CubeDim::new_1d(SUM_UNITS),
             shares,
             sums,
-            chunk.len(),
+            count,
             SUM_UNITS,
         );
     }
