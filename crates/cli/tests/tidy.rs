@@ -630,8 +630,9 @@ fn unreached(feature: &str) -> Vec<String> {
 
 /// A dependency nothing uses still costs every build its compile time (the npz reader's zip
 /// brought two C libraries no `.npz` needs; four crates listed dependencies they no longer
-/// used, 2026-12-01). A `[dependencies]` entry must be named in the crate's `src/` (as `name::`,
-/// `use name` or `name!`), a `[dev-dependencies]` entry in its `src/` or `tests/`; an optional
+/// used, 2026-12-01). A `[dependencies]` entry must be named in the crate's `src/` outside its
+/// test modules (a path `name::…` or a macro `name!`, [`names_crate`]), a `[dev-dependencies]`
+/// entry in its `src/` or `tests/`; an optional
 /// dependency that one of the crate's features turns on (`dep:name`) may be there only for the
 /// features it sets on a dependency shared with other crates.
 #[test]
