@@ -9,6 +9,9 @@
 #                                         # a training step on the offline driver, cold then from
 #                                         # the kernel cache (crates/cli/tests/cuda_offline.rs);
 #                                         # F3G_GPU_CARGO_CONFIG=FILE: cargo --config for its build
+#   tools/cuda-offline.sh test-binaries   # `test`'s build alone: prints the test executables
+#   tools/cuda-offline.sh run-tests BIN…  # `test`'s run alone, of those executables (so that
+#                                         # cargo is free for other work while they run: CI)
 #   tools/cuda-offline.sh run F3G ARGS…   # setup, then `F3G ARGS…` (a `cuda` build of f3g) against
 #                                         # the offline driver, e.g. `bench train --device cuda`
 #   tools/cuda-offline.sh features        # every GPU feature of the crates with GPU tests
@@ -52,6 +55,35 @@ setup() {
     driver=$(cd "$dir/driver" && pwd)
 }
 
+# The checks' test executables, built as CI's GPU build builds them: printed one per line.
+test_binaries() {
+    export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
+    # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
+    # it all of Burn) when CUDA_PATH changes. The packages and features of CI's GPU build
+    # (`ci-features`), so .ci/run's lavapipe tests and these share one build of Burn; with
+    # F3G_GPU_CARGO_CONFIG (a cargo `--config` file) as that build had it (CI's: .ci/gpu-build.toml).
+    (env -u CUDA_PATH cargo test ${F3G_GPU_CARGO_CONFIG:+--config "$F3G_GPU_CARGO_CONFIG"} \
+        --release --locked -p f3g-cli -p f3g-nets -p f3g-splat \
+        --features "$CI_FEATURES" --test cuda_offline --test cuda_kernels --no-run \
+        --message-format=json-render-diagnostics) | python3 -c '
+import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"]:
+        print(m["executable"])
+'
+}
+
+# Runs test executables (test_binaries') against NVRTC from PyPI and the offline driver.
+run_tests() {
+    [ $# -gt 0 ] || { echo "run-tests: no test executables given" >&2; exit 2; }
+    setup
+    export F3G_OFFLINE_CUDA_DRIVER=$driver
+    for test in "$@"; do
+        "$test" --nocapture --test-threads 1
+    done
+}
+
 case "$mode" in
 features)
     echo "$GPU_TEST_FEATURES"
@@ -73,30 +105,21 @@ run)
     setup
     LD_LIBRARY_PATH=$driver:$LD_LIBRARY_PATH "$f3g" "$@"
     ;;
+test-binaries)
+    test_binaries
+    ;;
+run-tests)
+    shift
+    dir=target/cuda-offline
+    run_tests "$@"
+    ;;
 test)
-    setup
-    export CUDARC_CUDA_VERSION=${CUDARC_CUDA_VERSION:-13000}
-    export F3G_OFFLINE_CUDA_DRIVER=$driver
-    # Built without CUDA_PATH, as every other build here: cudarc's build script reruns (and with
-    # it all of Burn) when CUDA_PATH changes. The packages and features of CI's GPU build
-    # (`ci-features`), so .ci/run's lavapipe tests and these share one build of Burn; with
-    # F3G_GPU_CARGO_CONFIG (a cargo `--config` file) as that build had it (CI's: .ci/gpu-build.toml).
-    tests=$( (env -u CUDA_PATH cargo test ${F3G_GPU_CARGO_CONFIG:+--config "$F3G_GPU_CARGO_CONFIG"} \
-        --release --locked -p f3g-cli -p f3g-nets -p f3g-splat \
-        --features "$CI_FEATURES" --test cuda_offline --test cuda_kernels --no-run \
-        --message-format=json-render-diagnostics) | python3 -c '
-import json, sys
-for line in sys.stdin:
-    m = json.loads(line)
-    if m.get("reason") == "compiler-artifact" and m.get("executable") and m["target"]["kind"] == ["test"]:
-        print(m["executable"])
-')
-    for test in $tests; do
-        "$test" --nocapture --test-threads 1
-    done
+    binaries=$(test_binaries)
+    # shellcheck disable=SC2086 # one executable path per word
+    run_tests $binaries
     ;;
 *)
-    sed -n '2,24p' "$0"
+    sed -n '2,27p' "$0"
     exit 2
     ;;
 esac

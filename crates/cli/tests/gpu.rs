@@ -1,8 +1,8 @@
 //! The `f3g` binary on a wgpu device (Mesa lavapipe in CI): `render-ply --device wgpu` gives
 //! the CPU's image, `bench splat --device wgpu` measures and writes its JSON, a run trained on
 //! the CPU evaluates, animates and exports on wgpu as on the CPU, a missing adapter is an error
-//! that lists the ones there are, and the avatar crate's skinning and quaternion-product kernels
-//! give the CPU's values. Run with `cargo test --release -p f3g-cli --features
+//! that lists the ones there are, and the avatar crate's skinning, gathering,
+//! quaternion-product and view kernels give the CPU's values. Run with `cargo test --release -p f3g-cli --features
 //! gpu --test gpu`.
 #![cfg(feature = "gpu")]
 
@@ -399,6 +399,104 @@ fn skinning_on_the_gpu_matches_the_cpu() {
             let worst = worst_difference(g, e);
             assert!(worst < 2e-5, "{what} under {turn:?} differs by {worst}");
         }
+    }
+}
+
+/// The view maps' values on GPU devices (`f3g_avatar::model::posing::view_cosines`: one kernel
+/// for posed normals and `n · v`) against Burn's tensor ops on the CPU: the built-in human's
+/// vertices skinned under a bent pose, seen from a camera, without view noise and with noise
+/// read from the middle of a larger tensor (as training slices each part's rows out of one).
+#[test]
+fn the_view_values_on_the_gpu_match_the_cpu() {
+    use burn::tensor::{Device, TensorData};
+    use f3g_avatar::model::posing::{
+        Skinning, Taps, affine_tensor, view_cosines, view_cosines_as_tensors,
+    };
+    let human = f3g_rig::builtin::load().unwrap();
+    let rig = &human.rig;
+    let mut params = rig.zero_params();
+    for (i, p) in params.pose.iter_mut().enumerate() {
+        *p = 0.4 * ((i * 37 % 11) as f32 / 11.0 - 0.5);
+    }
+    let joints = rig.pose(&params).unwrap().skinning;
+    let n = rig.skin.len();
+    let ramp = |rows: usize, phase: f32, scale: f32| -> Vec<f32> {
+        (0..3 * rows)
+            .map(|i| scale * (i as f32 * 0.37 + phase).sin())
+            .collect()
+    };
+    type ViewFn = fn(
+        &Skinning,
+        &Tensor<2>,
+        &Tensor<2>,
+        &Tensor<2>,
+        Option<Tensor<2>>,
+    ) -> (Tensor<2>, Tensor<2>);
+    let run = |device: Device, op: ViewFn, noisy: bool| {
+        let tensor = |v: Vec<f32>, rows: usize| {
+            Tensor::<2>::from_data(TensorData::new(v, [rows, 3]), &device)
+        };
+        let skinning = Skinning::new(
+            &affine_tensor(&joints, &device),
+            &Taps::skin(&rig.skin, &device),
+        );
+        let canonical = tensor(ramp(n, 0.2, 0.9), n);
+        let normals = tensor(ramp(n, 1.7, 1.0), n);
+        let centre = Tensor::<2>::from_data(TensorData::new(vec![0.3, 1.2, 3.5], [1, 3]), &device);
+        let noise = noisy.then(|| tensor(ramp(n + 20, 2.9, 0.1), n + 20).slice([7..7 + n, 0..3]));
+        let (posed_normals, cosines) = op(&skinning, &canonical, &normals, &centre, noise);
+        [values(posed_normals), values(cosines)]
+    };
+    for noisy in [false, true] {
+        let gpu = run(
+            Device::wgpu(burn::tensor::DeviceKind::DefaultDevice),
+            view_cosines,
+            noisy,
+        );
+        let cpu = run(Device::flex(), view_cosines_as_tensors, noisy);
+        for ((g, c), what) in gpu.iter().zip(&cpu).zip(["normals", "cosines"]) {
+            assert_eq!(g.len(), c.len(), "{what}");
+            let worst = worst_difference(g, c);
+            assert!(worst < 1e-5, "{what} (noise: {noisy}) differs by {worst}");
+        }
+    }
+}
+
+/// The taps' gather on GPU devices (`f3g_avatar::model::posing::Taps::apply` for inputs that
+/// need no gradient: one kernel) against Burn's tensor ops on the CPU: rows of one to four
+/// taps (the short ones padded), five channels, more values than one cube holds; and on an
+/// autodiff device, as training calls it.
+#[test]
+fn the_taps_gather_on_the_gpu_matches_the_cpu() {
+    use burn::tensor::{Device, TensorData};
+    use f3g_avatar::model::posing::Taps;
+    let (sources, rows, channels) = (300, 1000, 5);
+    let lists: Vec<Vec<(usize, f32)>> = (0..rows)
+        .map(|i| {
+            (0..1 + i % 4)
+                .map(|k| ((i * 7 + k * 131) % sources, 0.3 + 0.1 * k as f32))
+                .collect()
+        })
+        .collect();
+    let x: Vec<f32> = (0..sources * channels)
+        .map(|i| (i as f32 * 0.29).sin())
+        .collect();
+    let gather = |device: &Device, on_gpu: bool| {
+        let taps = Taps::new(lists.iter().map(Vec::as_slice), device);
+        let x = Tensor::<2>::from_data(TensorData::new(x.clone(), [sources, channels]), device);
+        let out = if on_gpu {
+            taps.apply(x)
+        } else {
+            taps.apply_as_tensors(x)
+        };
+        assert_eq!(out.dims(), [rows, channels]);
+        values(out)
+    };
+    let expected = gather(&Device::flex(), false);
+    let gpu = Device::wgpu(burn::tensor::DeviceKind::DefaultDevice);
+    for device in [gpu.clone(), gpu.autodiff()] {
+        let worst = worst_difference(&gather(&device, true), &expected);
+        assert!(worst < 1e-6, "differs by {worst} on {device:?}");
     }
 }
 

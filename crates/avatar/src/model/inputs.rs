@@ -14,7 +14,7 @@ use glam::Vec3;
 
 use super::nets::Constants;
 use super::posing::{
-    Skinning, Taps, affine_tensor, blend, normalize, split_affine, transform_points,
+    Skinning, Taps, affine_tensor, blend, split_affine, transform_points, view_cosines,
 };
 use super::setup::{FramePose, Setup};
 use crate::AvatarError;
@@ -101,33 +101,25 @@ impl Part {
             .reshape([1, 2 * c, s, s])
     }
 
-    /// Posed unit normals `[N, 3]`: the canonical normals turned by the skinning rotation.
-    fn posed_normals(&self, skinning: &Skinning) -> Tensor<2> {
-        normalize(skinning.rotate(self.normals.clone()))
-    }
-
-    /// `n · v` maps `[1, 1, S, S]` (front, back) of the posed unit normals `normals`, `v` the
-    /// unit direction from the posed Gaussian to the camera centre, moved by `noise` (`[N,
-    /// 3]`, already scaled) and renormalised when given.
-    fn view(
+    /// Posed unit normals `[N, 3]` (the canonical normals turned by the skinning rotation) and
+    /// the `n · v` maps `[1, 1, S, S]` (front, back) of them, `v` the unit direction from the
+    /// posed Gaussian to the camera centre, moved by `noise` (`[N, 3]`, already scaled) and
+    /// renormalised when given.
+    fn normals_and_view(
         &self,
         canonical: &Tensor<2>,
         skinning: &Skinning,
-        normals: &Tensor<2>,
         centre: &Tensor<2>,
         noise: Option<Tensor<2>>,
-    ) -> (Tensor<4>, Tensor<4>) {
-        let posed = transform_points(&skinning.linear, &skinning.translation, canonical.clone());
-        let mut to_camera = normalize(centre.clone() - posed);
-        if let Some(noise) = noise {
-            to_camera = normalize(to_camera + noise);
-        }
-        let both = self.input((normals.clone() * to_camera).sum_dim(1));
+    ) -> (Tensor<2>, (Tensor<4>, Tensor<4>)) {
+        let (normals, cosines) = view_cosines(skinning, canonical, &self.normals, centre, noise);
+        let both = self.input(cosines);
         let s = self.size;
-        (
+        let view = (
             both.clone().slice([0..1, 0..1, 0..s, 0..s]),
             both.slice([0..1, 1..2, 0..s, 0..s]),
-        )
+        );
+        (normals, view)
     }
 }
 
@@ -332,11 +324,9 @@ impl Constants {
             posed_body = pca.project(posed_body);
         }
         let body_skinning = Skinning::new(&pose.joints, &tables.body.skin);
-        let body_normals = tables.body.posed_normals(&body_skinning);
-        let body_view = tables.body.view(
+        let (body_normals, body_view) = tables.body.normals_and_view(
             &body_canonical,
             &body_skinning,
-            &body_normals,
             &centre,
             noise_rows(0, nb),
         );
@@ -354,15 +344,10 @@ impl Constants {
             let canonical = face.positions.clone() + displacement.clone();
             let posed = face.input_pose(canonical.clone(), pose);
             let skinning = Skinning::new(&pose.joints, &face.skin);
-            let normals = face.posed_normals(&skinning);
             let total = tables.count();
-            inputs.face_view = Some(face.view(
-                &canonical,
-                &skinning,
-                &normals,
-                &centre,
-                noise_rows(nb, total),
-            ));
+            let (normals, view) =
+                face.normals_and_view(&canonical, &skinning, &centre, noise_rows(nb, total));
+            inputs.face_view = Some(view);
             inputs.face_map = Some(face.input(posed));
             inputs.displacement = Tensor::cat(vec![inputs.displacement, displacement], 0);
             inputs.normals = Tensor::cat(vec![inputs.normals, normals], 0);

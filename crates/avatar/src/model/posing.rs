@@ -14,7 +14,7 @@
 //! columns, each a serial pass and an allocation on `Flex`. On GPU devices the skinning
 //! is one kernel (`posing/cube.rs`), for the same reason: each of those operations is a launch.
 //! The rotations' Hamilton product, which has a gradient, is one backend op each way
-//! ([`quaternion`]).
+//! ([`quaternion`]); the view maps' normals and cosines are one op ([`view`]).
 
 use std::sync::Arc;
 
@@ -28,8 +28,10 @@ use super::{host_data, host_values};
 #[cfg(any(feature = "gpu", feature = "cuda"))]
 mod cube;
 mod quaternion;
+mod view;
 
 pub use quaternion::{QuaternionBackend, quat_mul, quat_mul_as_tensors};
+pub use view::{ViewBackend, view_cosines, view_cosines_as_tensors};
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
 /// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
@@ -116,11 +118,16 @@ impl Taps {
         self.rows
     }
 
-    /// `[rows, C]` from `x` `[M, C]`: on the CPU backend (for `x` that needs no gradient) one
-    /// parallel loop, elsewhere tensor operations.
+    /// `[rows, C]` from `x` `[M, C]`: for `x` that needs no gradient, one parallel loop on the
+    /// CPU backend and one kernel on GPU devices (as tensor operations, a gather, a product and
+    /// a sum: three launches); elsewhere tensor operations.
     pub fn apply(&self, x: Tensor<2>) -> Tensor<2> {
         match &self.host {
             Some(host) if !x.is_require_grad() => self.apply_on_host(host, x),
+            #[cfg(any(feature = "gpu", feature = "cuda"))]
+            _ if !x.is_require_grad() => {
+                cube::apply_taps(self, &x).unwrap_or_else(|| self.apply_as_tensors(x))
+            }
             _ => self.apply_as_tensors(x),
         }
     }
@@ -146,7 +153,7 @@ impl Taps {
     }
 
     /// [`Taps::apply`] as tensor operations, for every device.
-    fn apply_as_tensors(&self, x: Tensor<2>) -> Tensor<2> {
+    pub fn apply_as_tensors(&self, x: Tensor<2>) -> Tensor<2> {
         let c = x.dims()[1];
         let picked = x
             .select(0, self.index.clone())

@@ -1,7 +1,9 @@
 //! [`Skinning`](super::Skinning) on `Cube` devices (wgpu, CUDA; under Burn's `fusion` a lazy
 //! operation of its stream): the blend, the polar iteration and Shepperd's quaternion of every
-//! point in one kernel, one thread per point; and the rotations' Hamilton product
-//! ([`super::quaternion`]), one thread per row.
+//! point in one kernel, one thread per point; the rotations' Hamilton product
+//! ([`super::quaternion`]), one thread per row; and the view maps' normals and cosines
+//! ([`super::view`]), one thread per Gaussian; and the gather of [`super::Taps::apply`] for
+//! inputs that need no gradient, one thread per output value.
 //!
 //! Why: as tensor operations on `[N, 1]` columns ([`super::Skinning::from_tensors`]) the
 //! skinning of a `paper` step's body and face Gaussians launched about 1 300 kernels (the offline
@@ -181,9 +183,95 @@ mod kernels {
         out[(4 * i + 2) as usize] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2;
         out[(4 * i + 3) as usize] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2;
     }
+
+    /// Gaussian `i` (`ABSOLUTE_POS`) of `view::view_row`'s arithmetic: the posed unit normal
+    /// (`rotation · normal`, row-major `[rows, 9]`) and the cosine between it and the unit
+    /// direction from the posed point (`linear · canonical + translation`) to `centre`, moved
+    /// by `noise` and renormalised when `noisy`.
+    #[allow(clippy::too_many_arguments)]
+    #[cube(launch)]
+    pub fn view_cosines(
+        linear: &Tensor<f32>,
+        translation: &Tensor<f32>,
+        rotation: &Tensor<f32>,
+        canonical: &Tensor<f32>,
+        normals: &Tensor<f32>,
+        centre: &Tensor<f32>,
+        noise: &Tensor<f32>,
+        posed_normals: &mut Tensor<f32>,
+        cosines: &mut Tensor<f32>,
+        rows: u32,
+        #[comptime] noisy: bool,
+    ) {
+        let i = ABSOLUTE_POS as u32;
+        if i >= rows {
+            terminate!();
+        }
+        let mut n = Array::<f32>::new(3usize);
+        let mut v = Array::<f32>::new(3usize);
+        for r in 0..3u32 {
+            let m = (9 * i + 3 * r) as usize;
+            let p = (3 * i) as usize;
+            n[r as usize] = rotation[m] * normals[p]
+                + rotation[m + 1] * normals[p + 1]
+                + rotation[m + 2] * normals[p + 2];
+            let posed = linear[m] * canonical[p]
+                + linear[m + 1] * canonical[p + 1]
+                + linear[m + 2] * canonical[p + 2]
+                + translation[p + r as usize];
+            v[r as usize] = centre[r as usize] - posed;
+        }
+        let n_norm = f32::max(f32::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]), 1e-12f32);
+        let mut v_norm = f32::max(f32::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-12f32);
+        for r in 0..3usize {
+            n[r] /= n_norm;
+            v[r] /= v_norm;
+        }
+        if comptime![noisy] {
+            for r in 0..3u32 {
+                v[r as usize] += noise[(3 * i + r) as usize];
+            }
+            v_norm = f32::max(f32::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]), 1e-12f32);
+            for r in 0..3usize {
+                v[r] /= v_norm;
+            }
+        }
+        for r in 0..3u32 {
+            posed_normals[(3 * i + r) as usize] = n[r as usize];
+        }
+        cosines[i as usize] = n[0] * v[0] + n[1] * v[1] + n[2] * v[2];
+    }
+
+    /// Output value `t` (`ABSOLUTE_POS`, row `t / channels`, channel `t % channels`) of
+    /// [`super::super::Taps::apply`]: `Σ_k weight[k, row] · x[index[k, row], channel]`, the taps
+    /// tap-major and `x` row-major `[M, channels]`.
+    #[cube(launch)]
+    pub fn apply_taps(
+        x: &Tensor<f32>,
+        index: &Tensor<i32>,
+        weight: &Tensor<f32>,
+        out: &mut Tensor<f32>,
+        rows: u32,
+        width: u32,
+        channels: u32,
+    ) {
+        let t = ABSOLUTE_POS as u32;
+        if t >= rows * channels {
+            terminate!();
+        }
+        let (i, c) = (t / channels, t % channels);
+        let mut sum = 0.0f32;
+        for k in 0..width {
+            let tap = (k * rows + i) as usize;
+            let j = u32::cast_from(index[tap]);
+            sum += weight[tap] * x[(j * channels + c) as usize];
+        }
+        out[t as usize] = sum;
+    }
 }
 
-/// The skinning kernel as a backend op, so that `Dispatch` routes it to the `Cube` backend.
+/// The skinning and gathering kernels as backend ops, so that `Dispatch` routes them to the
+/// `Cube` backend.
 #[backend_extension(Cube, Fusion: cfg(feature = "fusion"))]
 pub trait SkinningBackend: Backend {
     /// `joints` `[J, 3, 4]`, taps tap-major (`index` `[width · rows]`, `weight` `[width, rows,
@@ -204,6 +292,17 @@ pub trait SkinningBackend: Backend {
         FloatTensor<Self>,
         FloatTensor<Self>,
     );
+
+    /// `x` `[M, C]` gathered by taps (`index` `[width · rows]`, `weight` `[width, rows, 1]`,
+    /// tap-major) → `[rows, C]`: [`super::Taps::apply`].
+    #[fusion(meta = |x, _index, weight| {
+        TensorSpec::new(Shape::new([weight.shape[1], x.shape[1]]), x.dtype)
+    })]
+    fn apply_taps(
+        x: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
 }
 
 impl SkinningBackend for CubeBackend {
@@ -217,13 +316,8 @@ impl SkinningBackend for CubeBackend {
         FloatTensor<Self>,
         FloatTensor<Self>,
     ) {
-        use burn::backend::ops::IntTensorOps;
         let [width, rows, _] = weight.shape().dims();
-        let index = if index.dtype == DType::I32 {
-            into_contiguous(index)
-        } else {
-            into_contiguous(CubeBackend::int_cast(index, IntDType::I32))
-        };
+        let index = contiguous_i32(index);
         let [joints, weight] = [joints, weight].map(into_contiguous);
         let empty = |shape: [usize; 2]| {
             empty_device_contiguous_dtype(
@@ -255,6 +349,50 @@ impl SkinningBackend for CubeBackend {
             );
         }
         (linear, translation, rotation, quaternion)
+    }
+
+    fn apply_taps(
+        x: FloatTensor<Self>,
+        index: IntTensor<Self>,
+        weight: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let [width, rows, _] = weight.shape().dims();
+        let channels = x.shape()[1];
+        let index = contiguous_i32(index);
+        let [x, weight] = [x, weight].map(into_contiguous);
+        let out = empty_device_contiguous_dtype(
+            x.client.clone(),
+            x.device.clone(),
+            Shape::new([rows, channels]),
+            DType::F32,
+        );
+        if rows * channels > 0 {
+            let (cubes, cube) = one_thread_per_value(rows * channels);
+            let small = |n: usize| u32::try_from(n).expect("checked by cube::apply_taps");
+            kernels::apply_taps::launch(
+                &x.client,
+                cubes,
+                cube,
+                x.clone().into_tensor_arg(),
+                index.into_tensor_arg(),
+                weight.into_tensor_arg(),
+                out.clone().into_tensor_arg(),
+                small(rows),
+                small(width),
+                small(channels),
+            );
+        }
+        out
+    }
+}
+
+/// Tap indices as the kernels read them: contiguous 32-bit integers.
+fn contiguous_i32(index: IntTensor<CubeBackend>) -> IntTensor<CubeBackend> {
+    use burn::backend::ops::IntTensorOps;
+    if index.dtype == DType::I32 {
+        into_contiguous(index)
+    } else {
+        into_contiguous(CubeBackend::int_cast(index, IntDType::I32))
     }
 }
 
@@ -288,6 +426,52 @@ impl super::QuaternionBackend for CubeBackend {
             );
         }
         out
+    }
+}
+
+impl super::ViewBackend for CubeBackend {
+    fn view_cosines(
+        linear: FloatTensor<Self>,
+        translation: FloatTensor<Self>,
+        rotation: FloatTensor<Self>,
+        canonical: FloatTensor<Self>,
+        normals: FloatTensor<Self>,
+        centre: FloatTensor<Self>,
+        noise: FloatTensor<Self>,
+        noisy: bool,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let [rows, _] = translation.shape().dims();
+        let (client, device) = (linear.client.clone(), linear.device.clone());
+        let empty = |width: usize| {
+            empty_device_contiguous_dtype(
+                client.clone(),
+                device.clone(),
+                Shape::new([rows, width]),
+                DType::F32,
+            )
+        };
+        let (posed_normals, cosines) = (empty(3), empty(1));
+        if rows > 0 {
+            let (cubes, cube) = one_thread_per_value(rows);
+            let arg = |t: FloatTensor<Self>| into_contiguous(t).into_tensor_arg();
+            kernels::view_cosines::launch(
+                &client,
+                cubes,
+                cube,
+                arg(linear),
+                arg(translation),
+                arg(rotation),
+                arg(canonical),
+                arg(normals),
+                arg(centre),
+                arg(noise),
+                posed_normals.clone().into_tensor_arg(),
+                cosines.clone().into_tensor_arg(),
+                u32::try_from(rows).expect("checked by view::has_op"),
+                noisy,
+            );
+        }
+        (posed_normals, cosines)
     }
 }
 
@@ -325,5 +509,33 @@ pub(super) fn skinning(
         translation: on_device(Tensor::from_dispatch(translation)),
         rotation: rotation.reshape([rows, 3, 3]),
         quaternion: on_device(Tensor::from_dispatch(quaternion)),
+    })
+}
+
+/// [`super::Taps::apply`] of `x` (which needs no gradient) in one kernel, or `None` off `Cube`
+/// devices and where a tensor has too many values for the kernel's 32-bit indices.
+pub(super) fn apply_taps(taps: &super::Taps, x: &Tensor<2>) -> Option<Tensor<2>> {
+    let device = x.device();
+    if !matches!(
+        device.clone().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    ) {
+        return None;
+    }
+    let [sources, channels] = x.dims();
+    let fits = |n: usize| u32::try_from(n).is_ok();
+    if !(fits(sources * channels) && fits(taps.rows * channels) && fits(taps.width * taps.rows)) {
+        return None;
+    }
+    let out = Tensor::<2>::from_dispatch(<Dispatch as SkinningBackend>::apply_taps(
+        x.clone().without_autodiff().into_dispatch(),
+        taps.index.clone().without_autodiff().into_dispatch(),
+        taps.weight.clone().without_autodiff().into_dispatch(),
+    ));
+    // Back on `x`'s device (with autodiff if it has it), as a constant.
+    Some(if device.is_autodiff() {
+        out.autodiff()
+    } else {
+        out
     })
 }
