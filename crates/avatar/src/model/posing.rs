@@ -33,6 +33,24 @@ mod view;
 pub use quaternion::{QuaternionBackend, quat_mul, quat_mul_as_tensors};
 pub use view::{ViewBackend, view_cosines, view_cosines_as_tensors};
 
+/// Whether this module's backend ops ([`QuaternionBackend`], [`ViewBackend`]) run on `t`'s
+/// device: the CPU, and `Cube` devices (with this crate's GPU features) where `largest` values
+/// (the most any of the op's tensors has) fit its kernel's 32-bit indices.
+fn op_runs(t: &Tensor<2>, largest: usize) -> bool {
+    if f3g_nets::fused::on_flex(t) {
+        return true;
+    }
+    #[cfg(any(feature = "gpu", feature = "cuda"))]
+    if matches!(
+        t.device().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    ) {
+        return u32::try_from(largest).is_ok();
+    }
+    let _ = largest;
+    false
+}
+
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration
 /// converges quadratically: blends of rotations less than 90° apart (as neighbouring joints of a
 /// body are) match the host reference's `f32` result after 5 (tested with 5 while choosing), so

@@ -41,20 +41,9 @@ pub fn quat_mul(a: Tensor<2>, b: Tensor<2>) -> Tensor<2> {
     }
 }
 
-/// Whether `t`'s backend implements [`QuaternionBackend`]: the CPU, and `Cube` devices where
-/// the rows' values fit the kernel's 32-bit indices.
+/// Whether `t`'s backend implements [`QuaternionBackend`] for its rows.
 fn has_op(t: &Tensor<2>) -> bool {
-    if f3g_nets::fused::on_flex(t) {
-        return true;
-    }
-    #[cfg(any(feature = "gpu", feature = "cuda"))]
-    if matches!(
-        t.device().without_autodiff().as_dispatch(),
-        burn::backend::DispatchDevice::Cube(_)
-    ) {
-        return u32::try_from(t.shape().num_elements()).is_ok();
-    }
-    false
+    super::op_runs(t, t.shape().num_elements())
 }
 
 /// [`quat_mul`] in Burn's tensor ops (the reference the op is tested against, and the path of

@@ -97,21 +97,10 @@ pub fn view_cosines_as_tensors(
     (normals, cosines)
 }
 
-/// Whether `t`'s backend implements [`ViewBackend`]: the CPU, and `Cube` devices where every
-/// input's values fit the kernel's 32-bit indices.
-fn has_op(t: &Tensor<2>) -> bool {
-    if f3g_nets::fused::on_flex(t) {
-        return true;
-    }
-    #[cfg(any(feature = "gpu", feature = "cuda"))]
-    if matches!(
-        t.device().without_autodiff().as_dispatch(),
-        burn::backend::DispatchDevice::Cube(_)
-    ) {
-        // The largest input: the `[N, 9]` linear parts.
-        return u32::try_from(3 * t.shape().num_elements()).is_ok();
-    }
-    false
+/// Whether the backend of `canonical` (`[N, 3]`) implements [`ViewBackend`] for `N` rows (the
+/// largest input: the `[N, 9]` linear parts).
+fn has_op(canonical: &Tensor<2>) -> bool {
+    super::op_runs(canonical, 3 * canonical.shape().num_elements())
 }
 
 /// The view values as a backend op.
