@@ -74,7 +74,8 @@ for line in sys.stdin:
 '
 }
 
-# Runs test executables (test_binaries') against NVRTC from PyPI and the offline driver.
+# Runs test executables (as `test-binaries` prints them) against NVRTC from PyPI and the offline
+# driver.
 run_tests() {
     [ $# -gt 0 ] || { echo "run-tests: no test executables given" >&2; exit 2; }
     setup
