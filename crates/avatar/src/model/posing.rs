@@ -41,14 +41,21 @@ fn op_runs(t: &Tensor<2>, largest: usize) -> bool {
         return true;
     }
     #[cfg(any(feature = "gpu", feature = "cuda"))]
-    if matches!(
-        t.device().without_autodiff().as_dispatch(),
-        burn::backend::DispatchDevice::Cube(_)
-    ) {
+    if cube::on_cube(&t.device()) {
         return u32::try_from(largest).is_ok();
     }
     let _ = largest;
     false
+}
+
+/// `t`, made by one of this module's ops on the inner backend, back on `device` as a constant
+/// (with autodiff where `device` has it): those ops' inputs need no gradient.
+fn constant_on<const D: usize>(device: &Device, t: Tensor<D>) -> Tensor<D> {
+    if device.is_autodiff() {
+        t.autodiff()
+    } else {
+        t
+    }
 }
 
 /// Newton iterations of the polar decomposition. With determinant scaling the iteration

@@ -15,7 +15,7 @@
 use burn::backend::fusion::custom::TensorSpec;
 use burn::backend::tensor::{FloatTensor, IntTensor};
 use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
-use burn::tensor::{DType, Int, IntDType, Shape, Tensor};
+use burn::tensor::{DType, Device, Int, IntDType, Shape, Tensor};
 use burn_cubecl::CubeBackend;
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_contiguous_dtype;
@@ -482,10 +482,7 @@ pub(super) fn skinning(
     weight: &Tensor<3>,
 ) -> Option<super::Skinning> {
     let device = joints.device();
-    if !matches!(
-        device.clone().without_autodiff().as_dispatch(),
-        burn::backend::DispatchDevice::Cube(_)
-    ) {
+    if !on_cube(&device) {
         return None;
     }
     let (linear, translation, rotation, quaternion) = <Dispatch as SkinningBackend>::skinning(
@@ -493,14 +490,7 @@ pub(super) fn skinning(
         index.clone().without_autodiff().into_dispatch(),
         weight.clone().without_autodiff().into_dispatch(),
     );
-    // Back on the joints' device (with autodiff if it has it), as constants.
-    let on_device = |t: Tensor<2>| {
-        if device.is_autodiff() {
-            t.autodiff()
-        } else {
-            t
-        }
-    };
+    let on_device = |t: Tensor<2>| super::constant_on(&device, t);
     let linear = on_device(Tensor::<2>::from_dispatch(linear));
     let rows = linear.dims()[0];
     let rotation = on_device(Tensor::<2>::from_dispatch(rotation));
@@ -516,10 +506,7 @@ pub(super) fn skinning(
 /// devices and where a tensor has too many values for the kernel's 32-bit indices.
 pub(super) fn apply_taps(taps: &super::Taps, x: &Tensor<2>) -> Option<Tensor<2>> {
     let device = x.device();
-    if !matches!(
-        device.clone().without_autodiff().as_dispatch(),
-        burn::backend::DispatchDevice::Cube(_)
-    ) {
+    if !on_cube(&device) {
         return None;
     }
     let [sources, channels] = x.dims();
@@ -532,10 +519,13 @@ pub(super) fn apply_taps(taps: &super::Taps, x: &Tensor<2>) -> Option<Tensor<2>>
         taps.index.clone().without_autodiff().into_dispatch(),
         taps.weight.clone().without_autodiff().into_dispatch(),
     ));
-    // Back on `x`'s device (with autodiff if it has it), as a constant.
-    Some(if device.is_autodiff() {
-        out.autodiff()
-    } else {
-        out
-    })
+    Some(super::constant_on(&device, out))
+}
+
+/// Whether `device` (with autodiff or not) is a `Cube` device, where these kernels run.
+pub(super) fn on_cube(device: &Device) -> bool {
+    matches!(
+        device.clone().without_autodiff().as_dispatch(),
+        burn::backend::DispatchDevice::Cube(_)
+    )
 }

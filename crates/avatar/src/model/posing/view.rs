@@ -64,17 +64,9 @@ pub fn view_cosines(
         on_op(noise.unwrap_or_else(|| centre.clone())),
         noisy,
     );
-    // Back on the inputs' device (with autodiff if it has it), as constants.
-    let on_device = |t: Tensor<2>| {
-        if device.is_autodiff() {
-            t.autodiff()
-        } else {
-            t
-        }
-    };
     (
-        on_device(Tensor::from_dispatch(posed_normals)),
-        on_device(Tensor::from_dispatch(cosines)),
+        super::constant_on(&device, Tensor::from_dispatch(posed_normals)),
+        super::constant_on(&device, Tensor::from_dispatch(cosines)),
     )
 }
 
@@ -139,7 +131,7 @@ fn unit(v: [f32; 3]) -> [f32; 3] {
 
 /// One Gaussian's posed unit normal and cosine (the CPU's loop and the reference of the GPU
 /// kernel's arithmetic): `linear` and `rotation` row-major.
-pub(super) fn view_row(
+fn view_row(
     linear: &[f32],
     translation: &[f32],
     rotation: &[f32],
